@@ -1,0 +1,119 @@
+"""Console backend: one human-readable line per update, rate-limited, for people watching.
+
+Lines go through a :class:`~gateway.link.LinkEngine`, so a stalled terminal or a full pipe
+never blocks the dispatcher: lines are dropped (and counted) instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from typing import Any
+
+from gateway.backend import Backend, Outcome
+from gateway.config import Key, Schema
+from gateway.link import LinkEngine
+from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+
+
+class _StreamTransport:
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, data: bytes) -> None:
+        self._stream.write(data)
+        self._stream.flush()
+
+    def read(self, size: int = 1) -> bytes:
+        return b""
+
+    def close(self) -> None:
+        pass  # never close the process's stdout
+
+
+def format_sm_update(m: SmUpdate) -> str:
+    return (
+        f"t={m.timestamp_ms / 1000:10.3f}s {m.state_name:<10} {'ARMED' if m.armed else 'safe '}"
+        f" alt {m.altitude_m:8.1f} m  vel {m.velocity_mps:7.1f} m/s"
+        f"  acc {m.acceleration_mps2:6.1f} m/s²  rpy {math.degrees(m.roll_rad):6.1f}"
+        f" {math.degrees(m.pitch_rad):6.1f} {math.degrees(m.yaw_rad):6.1f}°"
+    )
+
+
+def format_status(m: Status) -> str:
+    bad = [k for k, ok in m.health().items() if not ok and k != "armed"]
+    health = "all ok" if not bad else "NOT " + ",".join(bad)
+    return f"t={m.timestamp_ms / 1000:10.3f}s STATUS {m.state_name:<10} {health}"
+
+
+class ConsoleBackend(Backend):
+    NAME = "console"
+    CONFIG = Schema(
+        interval_s=Key(float, 1.0, "least time between update lines (state changes always "
+                       "print)", minimum=0),
+        stream=Key(str, "stdout", "where lines go", choices=("stdout", "stderr")),
+        status=Key(bool, False, "print STATUS heartbeats too"),
+    )
+    EMBEDDED_DEFAULT: dict[str, Any] = {}
+
+    def __init__(self, interval_s: float = 1.0, stream: str = "stdout", status: bool = False,
+                 name: str | None = None, out: Any = None) -> None:
+        super().__init__(name)
+        self.interval_s = interval_s
+        self.show_status = status
+        self._out = out if out is not None else getattr(sys, stream).buffer
+        self._last_line = -math.inf
+        self._last_state: tuple[int, int] | None = None
+        self.engine = LinkEngine(lambda: _StreamTransport(self._out), name=self.name,
+                                 queue_depth=64)
+
+    @classmethod
+    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--console-interval", type=float, metavar="S",
+                            help="console backend: least seconds between update lines")
+
+    @classmethod
+    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
+        if args.console_interval is None:
+            return None
+        return {"interval_s": args.console_interval}
+
+    def init(self) -> None:
+        self.engine.start()
+        self.engine.wait_connected(1.0)
+
+    def close(self) -> None:
+        self.engine.drain(0.3)
+        self.engine.close(0.3)
+
+    def _line(self, text: str) -> Outcome:
+        return self.engine.submit((text + "\n").encode())
+
+    def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        now = time.monotonic()
+        key = (msg.sm_type, msg.state)
+        if key == self._last_state and now - self._last_line < self.interval_s:
+            return Outcome.THROTTLED
+        if key != self._last_state and self._last_state is not None:
+            self._line(f"--- {msg.origin}: state {msg.state_name}")
+        self._last_state = key
+        self._last_line = now
+        return self._line(format_sm_update(msg))
+
+    def send_status(self, msg: Status) -> Outcome:
+        return self._line(format_status(msg)) if self.show_status else Outcome.ACCEPTED
+
+    def send_raw(self, msg: RawFrame) -> Outcome:
+        return self._line(f"frame type 0x{msg.type:02X} len {len(msg.payload)} from "
+                          f"{msg.origin}: {msg.payload[:16].hex()}")
+
+    def on_link(self, ev: LinkEvent) -> Outcome:
+        if ev.up:
+            return self._line(f"*** link {ev.source} UP")
+        return self._line(f"*** link {ev.source} DOWN after {ev.silence_s:.1f} s of silence")
+
+    def stats(self) -> dict[str, Any]:
+        s = self.engine.stats
+        return {"sent": s.sent_frames, "dropped": s.dropped}

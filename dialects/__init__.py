@@ -1,0 +1,1 @@
+"""Message definitions as data: state-machine enums per ``sm_type`` (and, later, protocol dialects)."""

@@ -1,0 +1,131 @@
+"""The running gateway: sources → ingest (record, monitor, count) → dispatcher → backends."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import threading
+import time
+from collections import Counter
+from typing import Any, TextIO
+
+from gateway.config import ConfigError, GatewayConfig, Part
+from gateway.dispatcher import Dispatcher
+from gateway.monitor import LinkMonitor
+from gateway.recording import Recorder
+
+log = logging.getLogger(__name__)
+
+STOP_BUDGET_S = 0.9  # SIGINT/SIGTERM must end everything within a second
+
+
+def _build(part: Part, where: str) -> Any:
+    try:
+        return part.cls.from_config(dict(part.options), name=part.name)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+class Gateway:
+    """Builds and runs sources and backends from a validated configuration."""
+
+    def __init__(self, cfg: GatewayConfig, status_out: TextIO | None = None) -> None:
+        self.cfg = cfg
+        self.status_out = status_out if status_out is not None else sys.stderr
+        self.dispatcher = Dispatcher()
+        self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
+        self.counts: Counter[str] = Counter()
+        self.recorder: Recorder | None = None
+        self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
+        for p in cfg.backends:
+            self.dispatcher.add(_build(p, f"backends.{p.name}"))
+        self.started_at: float | None = None
+        self.stop_event = threading.Event()
+
+    # -- the hot path ------------------------------------------------------------------------
+
+    def ingest(self, msg: Any) -> None:
+        """Everything a source produces comes through here (from the source's thread)."""
+        rec = self.recorder
+        if rec is not None and msg.raw:
+            rec.write(msg.raw)
+        self.monitor.frame_seen(msg.origin)
+        self.counts[msg.KIND] += 1
+        self.dispatcher.dispatch(msg)
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    def start(self) -> list[tuple[str, str]]:
+        """Start backends, then the recorder, then the sources; returns backend failures."""
+        self.started_at = time.monotonic()
+        failures = self.dispatcher.start()
+        path = self.cfg.gateway.get("record")
+        if path:
+            self.recorder = Recorder(path)
+        for src in self.sources:
+            src.start(self.ingest)
+        return failures
+
+    def run(self, duration_s: float | None = None) -> None:
+        """Check links and print status lines until stopped, ``duration_s`` passes, or every
+        source is done."""
+        interval = self.cfg.gateway["status_interval_s"]
+        start = time.monotonic()
+        next_status = start + interval if interval else None
+        while not self.stop_event.is_set():
+            now = time.monotonic()
+            if duration_s is not None and now - start >= duration_s:
+                break
+            if self.sources and all(s.done.is_set() for s in self.sources):
+                break
+            self.monitor.check()
+            if next_status is not None and now >= next_status:
+                print(self.status_line(), file=self.status_out, flush=True)
+                next_status += interval
+                if next_status < now:
+                    next_status = now + interval
+            self.stop_event.wait(0.05)
+
+    def stop(self) -> dict[str, Any]:
+        """Stop sources, backends and the recorder within about a second; returns the summary."""
+        deadline = time.monotonic() + STOP_BUDGET_S
+        for src in self.sources:
+            src._stop.set()
+        for src in self.sources:
+            src.stop(max(0.05, (deadline - time.monotonic()) / 2))
+        self.dispatcher.close()
+        if self.recorder is not None:
+            self.recorder.close()
+        return self.summary()
+
+    # -- reporting ---------------------------------------------------------------------------
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
+            "messages_in": dict(self.counts),
+            "sources": {s.name: s.stats() for s in self.sources},
+            "links": self.monitor.states(),
+            "backends": self.dispatcher.stats(),
+            "recorded": self.recorder.records if self.recorder else None,
+        }
+
+    def status_line(self) -> str:
+        up = time.monotonic() - (self.started_at or time.monotonic())
+        c = self.counts
+        parts = [f"[{up:7.1f}s] in {sum(c.values())} "
+                 f"(sm {c['sm_update']} st {c['status']} raw {c['raw']})"]
+        for name, state in self.monitor.states().items():
+            parts.append(f"{name} {'up' if state else 'DOWN'}")
+        for name, st in self.dispatcher.stats().items():
+            if "init_error" in st:
+                parts.append(f"{name} FAILED")
+                continue
+            sent = st.get("sent", st.get("accepted", 0))
+            dropped = st.get("dropped", st.get("queue-full", 0) + st.get("not-ready", 0))
+            parts.append(f"{name} sent {sent} dropped {dropped}")
+        if self.recorder is not None:
+            parts.append(f"rec {self.recorder.records}")
+        return " | ".join(parts)

@@ -1,0 +1,173 @@
+"""The dispatcher: synchronous fan-out of every message to every backend that wants it.
+
+The seed's contract, in Python:
+
+* it runs in the caller's thread and never blocks (backends that do I/O own a queue);
+* every backend with a hook for the message's kind is called, in registration order;
+* it returns the first outcome that is not ``ACCEPTED`` and still tries every backend;
+* a backend that raises is isolated: logged (once per kind of error), counted as ``FAILED``;
+* ``Status`` goes through its own hook, never subject to SM-update rate limits;
+* hooks of one dispatcher are never called concurrently (one short lock around a fan-out).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+from gateway.backend import Outcome
+from gateway.model import MESSAGE_TYPES
+
+log = logging.getLogger(__name__)
+
+ACCEPTED = Outcome.ACCEPTED
+
+
+@dataclass
+class BackendRecord:
+    """A registered backend and what the dispatcher has seen it do."""
+
+    backend: Any
+    started: bool = False
+    init_error: str | None = None
+    outcomes: dict[Outcome, int] = field(default_factory=lambda: dict.fromkeys(Outcome, 0))
+    errors_logged: set[str] = field(default_factory=set)
+
+    @property
+    def name(self) -> str:
+        return getattr(self.backend, "name", type(self.backend).__name__)
+
+
+class Dispatcher:
+    """Fans messages out to backends; see the module docstring for the contract."""
+
+    def __init__(self, backends: Iterable[Any] = ()) -> None:
+        self._records: list[BackendRecord] = []
+        self._routes: dict[type, list[tuple[BackendRecord, Callable[[Any], Any]]]] = {}
+        self._lock = threading.Lock()
+        self.dispatched = 0
+        self.unrouted = 0
+        for b in backends:
+            self.add(b)
+
+    # -- registration and life cycle ----------------------------------------------------------
+
+    def add(self, backend: Any) -> None:
+        """Register a backend.  It receives messages once :meth:`start` has initialised it."""
+        names = {r.name for r in self._records}
+        rec = BackendRecord(backend)
+        if rec.name in names:
+            raise ValueError(f"a backend named {rec.name!r} is already registered")
+        self._records.append(rec)
+
+    @property
+    def records(self) -> list[BackendRecord]:
+        return list(self._records)
+
+    def backends(self) -> list[Any]:
+        return [r.backend for r in self._records]
+
+    def start(self) -> list[tuple[str, str]]:
+        """Initialise every registered backend (the seed's ``telemetry_init()``).
+
+        A backend whose ``init`` raises is reported and left out of the fan-out; the others
+        still start.  Returns the failures as (name, first error), empty when all started.
+        """
+        failures: list[tuple[str, str]] = []
+        for rec in self._records:
+            if rec.started:
+                continue
+            init = getattr(rec.backend, "init", None)
+            try:
+                if init is not None:
+                    init()
+            except Exception as exc:  # a failing backend must not stop the others
+                rec.init_error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                failures.append((rec.name, rec.init_error))
+                log.error("backend %s failed to start: %s", rec.name, rec.init_error)
+                continue
+            rec.started = True
+        self._rebuild_routes()
+        return failures
+
+    def close(self) -> None:
+        """Close every backend (errors logged, never raised); safe to call twice."""
+        with self._lock:
+            self._routes = {}
+        for rec in self._records:
+            close = getattr(rec.backend, "close", None)
+            if close is None:
+                continue
+            try:
+                close()
+            except Exception:
+                log.exception("backend %s failed to close", rec.name)
+            rec.started = False
+
+    def _rebuild_routes(self) -> None:
+        routes: dict[type, list] = {}
+        for cls in MESSAGE_TYPES:
+            hooks = []
+            for rec in self._records:
+                fn = getattr(rec.backend, cls.HOOK, None) if rec.started else None
+                if callable(fn):
+                    hooks.append((rec, fn))
+            routes[cls] = hooks
+        with self._lock:
+            self._routes = routes
+
+    # -- fan-out ----------------------------------------------------------------------------
+
+    def dispatch(self, msg: Any) -> Outcome:
+        """Hand ``msg`` to every backend with a hook for its kind; the first non-accepted
+        outcome, or ``ACCEPTED``.  Never raises because of a backend."""
+        hooks = self._routes.get(type(msg))
+        if hooks is None:
+            self.unrouted += 1
+            return ACCEPTED
+        first = ACCEPTED
+        with self._lock:
+            self.dispatched += 1
+            for rec, fn in hooks:
+                try:
+                    res = fn(msg)
+                    outcome = ACCEPTED if res is None or res == 0 else Outcome(res)
+                except Exception as exc:
+                    outcome = Outcome.FAILED
+                    self._log_failure(rec, exc)
+                rec.outcomes[outcome] += 1
+                if outcome is not ACCEPTED and first is ACCEPTED:
+                    first = outcome
+        return first
+
+    __call__ = dispatch
+
+    def _log_failure(self, rec: BackendRecord, exc: Exception) -> None:
+        key = type(exc).__name__
+        if key in rec.errors_logged:
+            log.debug("backend %s raised again: %r", rec.name, exc)
+            return
+        rec.errors_logged.add(key)
+        log.error("backend %s raised %s (isolated; further %s not logged)", rec.name,
+                  f"{key}: {exc}", key, exc_info=exc)
+
+    # -- reporting ----------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, dict[str, Any]]:
+        """Per backend: outcome counts plus the backend's own ``stats()``."""
+        out: dict[str, dict[str, Any]] = {}
+        for rec in self._records:
+            d: dict[str, Any] = {o.label: n for o, n in rec.outcomes.items() if n}
+            if rec.init_error:
+                d["init_error"] = rec.init_error
+            own = getattr(rec.backend, "stats", None)
+            if callable(own):
+                try:
+                    d.update(own())
+                except Exception:
+                    log.exception("backend %s failed to report stats", rec.name)
+            out[rec.name] = d
+        return out

@@ -1,0 +1,188 @@
+"""The gateway's messages: small, immutable, typed records.
+
+Messages are ``NamedTuple`` classes rather than frozen dataclasses: they are just as
+immutable and typed, and about eight times cheaper to build, which is what lets the wire
+decoder keep several times ahead of pymavlink (see ``tools/bench/bench_decode.py``).
+
+Every message carries two pieces of provenance besides its fields:
+
+``raw``
+    the untouched wire frame it was decoded from (empty when it was built in memory), so a
+    relay or recorder can pass on exactly what arrived;
+``origin``
+    the name of the source that produced it, so a backend can refuse to send a message back
+    where it came from (loop prevention between gateways).
+
+Both take part in equality like every other field; compare :meth:`fields` to ignore them.
+
+Each class names the dispatcher hook that receives it (``HOOK``) and the key it is known by in
+channels, recordings and publications (``KIND``).
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+from dialects.states import is_in_flight, is_on_pad, state_name
+
+STATUS_ARMED = 0x01
+STATUS_IMU_OK = 0x02
+STATUS_BARO_OK = 0x04
+STATUS_CALIBRATED = 0x08
+STATUS_LOG_READY = 0x10
+
+SM_UPDATE_F32_LEN = 36
+SM_UPDATE_F64_LEN = 64
+
+
+class SmUpdate(NamedTuple):
+    """A state-machine snapshot (wire type 0x01), either revision.
+
+    ``payload_len`` remembers the revision that arrived (36: f32 fields, 64: f64 fields) and
+    ``reserved`` the byte the firmware leaves zero, so re-encoding reproduces the frame.
+    """
+
+    timestamp_ms: int
+    state: int
+    armed: bool
+    sm_type: int
+    altitude_m: float
+    acceleration_mps2: float
+    accel_vert_mps2: float
+    velocity_mps: float
+    roll_rad: float
+    pitch_rad: float
+    yaw_rad: float
+    payload_len: int = SM_UPDATE_F64_LEN
+    reserved: int = 0
+    raw: bytes = b""
+    origin: str = ""
+
+    HOOK = "send_sm_update"
+    KIND = "sm_update"
+
+    @property
+    def state_name(self) -> str:
+        return state_name(self.sm_type, self.state)
+
+    @property
+    def in_flight(self) -> bool:
+        return is_in_flight(self.sm_type, self.state)
+
+    @property
+    def on_pad(self) -> bool:
+        return is_on_pad(self.sm_type, self.state)
+
+    def fields(self) -> dict[str, Any]:
+        """The message's own fields, without ``raw`` and ``origin``."""
+        d = self._asdict()
+        del d["raw"], d["origin"]
+        return d
+
+
+class Status(NamedTuple):
+    """The low-rate health heartbeat (wire type 0x02); flags decode to named booleans."""
+
+    timestamp_ms: int
+    state: int
+    sm_type: int
+    flags: int
+    reserved: int = 0
+    raw: bytes = b""
+    origin: str = ""
+
+    HOOK = "send_status"
+    KIND = "status"
+
+    @property
+    def armed(self) -> bool:
+        return bool(self.flags & STATUS_ARMED)
+
+    @property
+    def imu_ok(self) -> bool:
+        return bool(self.flags & STATUS_IMU_OK)
+
+    @property
+    def baro_ok(self) -> bool:
+        return bool(self.flags & STATUS_BARO_OK)
+
+    @property
+    def calibrated(self) -> bool:
+        return bool(self.flags & STATUS_CALIBRATED)
+
+    @property
+    def log_ready(self) -> bool:
+        return bool(self.flags & STATUS_LOG_READY)
+
+    @property
+    def state_name(self) -> str:
+        return state_name(self.sm_type, self.state)
+
+    def health(self) -> dict[str, bool]:
+        """The flags as named booleans."""
+        return {
+            "armed": self.armed,
+            "imu_ok": self.imu_ok,
+            "baro_ok": self.baro_ok,
+            "calibrated": self.calibrated,
+            "log_ready": self.log_ready,
+        }
+
+    def fields(self) -> dict[str, Any]:
+        d = self._asdict()
+        del d["raw"], d["origin"]
+        return d
+
+    @staticmethod
+    def make_flags(
+        *,
+        armed: bool = False,
+        imu_ok: bool = False,
+        baro_ok: bool = False,
+        calibrated: bool = False,
+        log_ready: bool = False,
+    ) -> int:
+        """Build a flags byte from named booleans."""
+        return (
+            (STATUS_ARMED if armed else 0)
+            | (STATUS_IMU_OK if imu_ok else 0)
+            | (STATUS_BARO_OK if baro_ok else 0)
+            | (STATUS_CALIBRATED if calibrated else 0)
+            | (STATUS_LOG_READY if log_ready else 0)
+        )
+
+
+class RawFrame(NamedTuple):
+    """A frame nobody decodes (unknown type, or type 0x01 of an unknown length): kept whole."""
+
+    type: int
+    payload: bytes
+    raw: bytes = b""
+    origin: str = ""
+
+    HOOK = "send_raw"
+    KIND = "raw"
+
+    def fields(self) -> dict[str, Any]:
+        return {"type": self.type, "payload": self.payload}
+
+
+class LinkEvent(NamedTuple):
+    """A source's link went up (first valid frame) or down (silence past the timeout)."""
+
+    source: str
+    up: bool
+    silence_s: float = 0.0
+    origin: str = ""
+
+    HOOK = "on_link"
+    KIND = "link"
+
+    def fields(self) -> dict[str, Any]:
+        return {"source": self.source, "up": self.up, "silence_s": self.silence_s}
+
+
+#: Every message class the dispatcher knows, by its hook.
+MESSAGE_TYPES: tuple[type, ...] = (SmUpdate, Status, RawFrame, LinkEvent)
+
+Message = SmUpdate | Status | RawFrame | LinkEvent

@@ -1,0 +1,75 @@
+"""Link monitor (OpenPilot's TelemetryMonitor, seed 001): per source, is the link up?
+
+A source's link comes *up* on its first valid frame and goes *down* after ``timeout_s``
+without one (default 3 s).  Every change becomes a :class:`LinkEvent` handed to ``sink``
+(normally the dispatcher, so every backend hears it).  The clock is injectable so the
+behaviour is testable without waiting.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from gateway.model import LinkEvent
+
+DEFAULT_LINK_TIMEOUT_S = 3.0
+
+
+class LinkMonitor:
+    def __init__(
+        self,
+        sink: Callable[[LinkEvent], Any],
+        timeout_s: float = DEFAULT_LINK_TIMEOUT_S,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if timeout_s <= 0:
+            raise ValueError("link timeout must be positive")
+        self.timeout_s = timeout_s
+        self._sink = sink
+        self._clock = clock
+        self._last: dict[str, float] = {}
+        self._up: dict[str, bool] = {}
+        self._lock = threading.Lock()
+        self.changes = 0
+
+    def frame_seen(self, source: str) -> None:
+        """A valid frame arrived from ``source`` (call from the source's thread)."""
+        now = self._clock()
+        self._last[source] = now
+        if self._up.get(source):
+            return
+        with self._lock:
+            if self._up.get(source):
+                return
+            self._up[source] = True
+            self.changes += 1
+        self._sink(LinkEvent(source, True, 0.0))
+
+    def check(self) -> list[LinkEvent]:
+        """Mark silent links down; call periodically.  Returns the events it emitted."""
+        now = self._clock()
+        events = []
+        with self._lock:
+            for source, up in self._up.items():
+                silence = now - self._last[source]
+                if up and silence >= self.timeout_s:
+                    self._up[source] = False
+                    self.changes += 1
+                    events.append(LinkEvent(source, False, silence))
+        for ev in events:
+            self._sink(ev)
+        return events
+
+    def is_up(self, source: str) -> bool | None:
+        """True/False once the source has been heard from; None before its first frame."""
+        return self._up.get(source)
+
+    def silence_s(self, source: str) -> float | None:
+        last = self._last.get(source)
+        return None if last is None else self._clock() - last
+
+    def states(self) -> dict[str, bool]:
+        return dict(self._up)

@@ -1,0 +1,237 @@
+"""Sans-I/O codec for the Aurora telemetry wire frame.
+
+``A5 5A | type | len | payload[len] | crc16 (LE)`` with the CRC over type, len and payload.
+The CRC is Zephyr's ``crc16_ccitt(0xFFFF, …)``, which is the catalogue's CRC-16/MCRF4XX
+(reflected 0x1021, init 0xFFFF, no final XOR; check value 0x6F91), *not* CRC-16/CCITT-FALSE
+despite the firmware documentation's name for it.  See ``shared/specs/aurora-wire.md``.
+
+:class:`Decoder` takes bytes and returns messages; :func:`encode` turns a message back into a
+frame.  No I/O, clocks or threads here; corruption never raises, it is counted.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+from fastcrc import crc16
+
+from gateway.model import (
+    SM_UPDATE_F32_LEN,
+    SM_UPDATE_F64_LEN,
+    RawFrame,
+    SmUpdate,
+    Status,
+)
+
+MAGIC = b"\xa5\x5a"
+TYPE_SM_UPDATE = 0x01
+TYPE_STATUS = 0x02
+STATUS_LEN = 8
+HEADER_LEN = 4
+CRC_LEN = 2
+OVERHEAD = HEADER_LEN + CRC_LEN
+MAX_PAYLOAD = 255
+MAX_FRAME = OVERHEAD + MAX_PAYLOAD
+
+_SM_F32 = struct.Struct("<IBBBB7f")
+_SM_F64 = struct.Struct("<IBBBB7d")
+_STATUS = struct.Struct("<IBBBB")
+_crc = crc16.mcrf4xx
+_new = tuple.__new__
+
+
+def crc(data: bytes) -> int:
+    """The frame CRC (CRC-16/MCRF4XX) of ``data``."""
+    return _crc(data)
+
+
+@dataclass
+class DecoderStats:
+    """What a decoder has seen.  ``bytes_skipped`` counts every byte not inside a valid frame."""
+
+    bytes_in: int = 0
+    frames: int = 0
+    crc_failures: int = 0
+    bytes_skipped: int = 0
+    unknown_types: int = 0
+    bad_lengths: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+class Decoder:
+    """Turns a byte stream into messages, resynchronising after any corruption.
+
+    One resync rule: find the magic, wait for the claimed length, check the CRC; on failure
+    drop *one* byte and rescan (never the claimed length, so a frame hiding behind a
+    corrupted length byte is still found).  A false sync claiming a long payload holds the
+    frames behind it back until enough bytes arrive to refute it, or until :meth:`flush`
+    at end of input rescans them.  The retained buffer never exceeds one maximal frame
+    (261 bytes): everything before a pending sync is decided at once.
+    """
+
+    __slots__ = ("_buf", "origin", "stats")
+
+    def __init__(self, origin: str = "") -> None:
+        self._buf = b""
+        self.origin = origin
+        self.stats = DecoderStats()
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def feed(self, data: bytes) -> list[SmUpdate | Status | RawFrame]:
+        """Add bytes; return every message completed by them, in stream order."""
+        self.stats.bytes_in += len(data)
+        buf = self._buf + bytes(data) if self._buf else bytes(data)
+        out: list[SmUpdate | Status | RawFrame] = []
+        self._buf = self._scan(buf, out, eof=False)
+        return out
+
+    def flush(self) -> list[SmUpdate | Status | RawFrame]:
+        """End of input: rescan what is held back as if no more bytes will come.
+
+        Frames that were waiting behind a false sync are returned; a truncated tail is
+        counted as skipped bytes.
+        """
+        out: list[SmUpdate | Status | RawFrame] = []
+        if self._buf:
+            self._buf = self._scan(self._buf, out, eof=True)
+        return out
+
+    def _scan(self, buf: bytes, out: list, eof: bool) -> bytes:
+        stats = self.stats
+        origin = self.origin
+        n = len(buf)
+        pos = 0
+        frames = skipped = crc_failures = unknown = bad_len = 0
+        find = buf.find
+        append = out.append
+        while True:
+            i = find(MAGIC, pos)
+            if i < 0:
+                # Keep a trailing 0xA5: it may be the first half of the next magic.
+                keep = 1 if (not eof and n > pos and buf[n - 1] == 0xA5) else 0
+                skipped += n - keep - pos
+                pos = n - keep
+                break
+            end = i + OVERHEAD + buf[i + 3] if i + HEADER_LEN <= n else n + 1
+            if end > n:
+                if not eof:
+                    skipped += i - pos
+                    pos = i
+                    break
+                # End of input: this sync can never complete; drop one byte and rescan.
+                skipped += i + 1 - pos
+                pos = i + 1
+                continue
+            raw = buf[i:end]
+            if _crc(raw[2:]):  # a good frame's CRC over type..crc leaves residue 0
+                crc_failures += 1
+                skipped += i + 1 - pos
+                pos = i + 1
+                continue
+            skipped += i - pos
+            pos = end
+            frames += 1
+            ftype = buf[i + 2]
+            length = end - i - OVERHEAD
+            if ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F64_LEN:
+                t = _SM_F64.unpack_from(buf, i + 4)
+                append(_new(SmUpdate, (t[0], t[1], t[2] != 0, t[3], t[5], t[6], t[7], t[8],
+                                       t[9], t[10], t[11], SM_UPDATE_F64_LEN, t[4], raw, origin)))
+            elif ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F32_LEN:
+                t = _SM_F32.unpack_from(buf, i + 4)
+                append(_new(SmUpdate, (t[0], t[1], t[2] != 0, t[3], t[5], t[6], t[7], t[8],
+                                       t[9], t[10], t[11], SM_UPDATE_F32_LEN, t[4], raw, origin)))
+            elif ftype == TYPE_STATUS and length == STATUS_LEN:
+                append(_new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin)))
+            else:
+                if ftype in (TYPE_SM_UPDATE, TYPE_STATUS):
+                    bad_len += 1
+                else:
+                    unknown += 1
+                append(_new(RawFrame, (ftype, raw[4:-2], raw, origin)))
+        stats.frames += frames
+        stats.bytes_skipped += skipped
+        stats.crc_failures += crc_failures
+        stats.unknown_types += unknown
+        stats.bad_lengths += bad_len
+        return buf[pos:]
+
+
+def decode_all(data: bytes, origin: str = "") -> list[SmUpdate | Status | RawFrame]:
+    """Decode a complete byte string (feed and flush); convenience for files and tests."""
+    dec = Decoder(origin)
+    return dec.feed(data) + dec.flush()
+
+
+def frame(ftype: int, payload: bytes) -> bytes:
+    """Wrap ``payload`` in a wire frame of type ``ftype``."""
+    if not 0 <= ftype <= 0xFF:
+        raise ValueError(f"frame type {ftype} is not a byte")
+    if len(payload) > MAX_PAYLOAD:
+        raise ValueError(f"payload of {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    body = bytes((ftype, len(payload))) + payload
+    return MAGIC + body + _crc(body).to_bytes(2, "little")
+
+
+def encode(msg: SmUpdate | Status | RawFrame) -> bytes:
+    """Encode a message as a wire frame (the revision ``SmUpdate.payload_len`` names)."""
+    if isinstance(msg, SmUpdate):
+        if msg.payload_len == SM_UPDATE_F64_LEN:
+            packer = _SM_F64
+        elif msg.payload_len == SM_UPDATE_F32_LEN:
+            packer = _SM_F32
+        else:
+            raise ValueError(f"SmUpdate.payload_len must be 36 or 64, not {msg.payload_len}")
+        payload = packer.pack(
+            msg.timestamp_ms & 0xFFFFFFFF, msg.state, 1 if msg.armed else 0, msg.sm_type,
+            msg.reserved, msg.altitude_m, msg.acceleration_mps2, msg.accel_vert_mps2,
+            msg.velocity_mps, msg.roll_rad, msg.pitch_rad, msg.yaw_rad,
+        )
+        return frame(TYPE_SM_UPDATE, payload)
+    if isinstance(msg, Status):
+        payload = _STATUS.pack(msg.timestamp_ms & 0xFFFFFFFF, msg.state, msg.sm_type,
+                               msg.flags, msg.reserved)
+        return frame(TYPE_STATUS, payload)
+    if isinstance(msg, RawFrame):
+        return frame(msg.type, msg.payload)
+    raise TypeError(f"no wire encoding for {type(msg).__name__}")
+
+
+def to_wire_dict(msg: SmUpdate | Status | RawFrame) -> dict:
+    """The message under the spec's wire field names (as ``aurora-gateway decode`` prints)."""
+    if isinstance(msg, SmUpdate):
+        return {
+            "type": TYPE_SM_UPDATE,
+            "payload_len": msg.payload_len,
+            "timestamp_ms": msg.timestamp_ms,
+            "state": msg.state,
+            "state_name": msg.state_name,
+            "armed": int(msg.armed),
+            "sm_type": msg.sm_type,
+            "altitude": msg.altitude_m,
+            "acceleration": msg.acceleration_mps2,
+            "accel_vert": msg.accel_vert_mps2,
+            "velocity": msg.velocity_mps,
+            "roll": msg.roll_rad,
+            "pitch": msg.pitch_rad,
+            "yaw": msg.yaw_rad,
+        }
+    if isinstance(msg, Status):
+        return {
+            "type": TYPE_STATUS,
+            "payload_len": STATUS_LEN,
+            "timestamp_ms": msg.timestamp_ms,
+            "state": msg.state,
+            "state_name": msg.state_name,
+            "sm_type": msg.sm_type,
+            "flags": msg.flags,
+            **msg.health(),
+        }
+    return {"type": msg.type, "payload_len": len(msg.payload), "payload_hex": msg.payload.hex()}
