@@ -10,7 +10,7 @@ import argparse
 import math
 import sys
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 from gateway.backend import Backend, Outcome
 from gateway.config import Key, Schema
@@ -56,7 +56,7 @@ class ConsoleBackend(Backend):
         stream=Key(str, "stdout", "where lines go", choices=("stdout", "stderr")),
         status=Key(bool, False, "print STATUS heartbeats too"),
     )
-    EMBEDDED_DEFAULT: dict[str, Any] = {}
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
 
     def __init__(self, interval_s: float = 1.0, stream: str = "stdout", status: bool = False,
                  name: str | None = None, out: Any = None) -> None:

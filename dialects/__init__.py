@@ -1,1 +1,1 @@
-"""Message definitions as data: state-machine enums per ``sm_type`` (and, later, protocol dialects)."""
+"""Message definitions as data: state-machine enums per ``sm_type``, protocol dialects."""

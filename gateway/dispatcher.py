@@ -47,7 +47,7 @@ class Dispatcher:
     def __init__(self, backends: Iterable[Any] = ()) -> None:
         self._records: list[BackendRecord] = []
         self._routes: dict[type, list[tuple[BackendRecord, Callable[[Any], Any]]]] = {}
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()  # re-entrant: a hook may dispatch (no self-deadlock)
         self.dispatched = 0
         self.unrouted = 0
         for b in backends:
@@ -107,17 +107,28 @@ class Dispatcher:
                 log.exception("backend %s failed to close", rec.name)
             rec.started = False
 
+    def _hooks_for(self, cls: type) -> list[tuple[BackendRecord, Callable[[Any], Any]]]:
+        hook = getattr(cls, "HOOK", None)
+        hooks = []
+        for rec in self._records:
+            fn = getattr(rec.backend, hook, None) if (hook and rec.started) else None
+            if callable(fn):
+                hooks.append((rec, fn))
+        return hooks
+
     def _rebuild_routes(self) -> None:
-        routes: dict[type, list] = {}
-        for cls in MESSAGE_TYPES:
-            hooks = []
-            for rec in self._records:
-                fn = getattr(rec.backend, cls.HOOK, None) if rec.started else None
-                if callable(fn):
-                    hooks.append((rec, fn))
-            routes[cls] = hooks
+        routes = {cls: self._hooks_for(cls) for cls in (*MESSAGE_TYPES, *self._routes)}
         with self._lock:
             self._routes = routes
+
+    def _route_new_type(self, cls: type) -> list[tuple[BackendRecord, Callable[[Any], Any]]]:
+        """Routes for a message class first seen now (defined outside gateway.model)."""
+        with self._lock:
+            hooks = self._routes.get(cls)
+            if hooks is None:
+                hooks = self._hooks_for(cls) if getattr(cls, "HOOK", None) else []
+                self._routes = {**self._routes, cls: hooks}
+        return hooks
 
     # -- fan-out ----------------------------------------------------------------------------
 
@@ -126,6 +137,8 @@ class Dispatcher:
         outcome, or ``ACCEPTED``.  Never raises because of a backend."""
         hooks = self._routes.get(type(msg))
         if hooks is None:
+            hooks = self._route_new_type(type(msg))
+        if not hooks:
             self.unrouted += 1
             return ACCEPTED
         first = ACCEPTED

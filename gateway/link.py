@@ -19,6 +19,7 @@ for a while (an AT-command exchange) takes the same lock, and frames queue meanw
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -156,10 +157,8 @@ class LinkEngine:
         if thread is None:
             return
         self._stop.set()
-        try:
+        with contextlib.suppress(queue.Full):
             self._queue.put_nowait(_STOP)
-        except queue.Full:
-            pass
         thread.join(timeout)
         self._thread = None
         leftover = 0

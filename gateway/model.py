@@ -182,7 +182,101 @@ class LinkEvent(NamedTuple):
         return {"source": self.source, "up": self.up, "silence_s": self.silence_s}
 
 
-#: Every message class the dispatcher knows, by its hook.
-MESSAGE_TYPES: tuple[type, ...] = (SmUpdate, Status, RawFrame, LinkEvent)
+class LinkStats(NamedTuple):
+    """Radio link quality as a receiver reports it (e.g. CRSF 0x14); ``None`` = not reported.
 
-Message = SmUpdate | Status | RawFrame | LinkEvent
+    RSSI in dBm (negative), link quality in percent, SNR in dB, TX power in mW.
+    """
+
+    rssi_dbm: float | None = None
+    link_quality_pct: int | None = None
+    snr_db: float | None = None
+    tx_power_mw: int | None = None
+    downlink_rssi_dbm: float | None = None
+    downlink_link_quality_pct: int | None = None
+    downlink_snr_db: float | None = None
+    rf_mode: int | None = None
+    antenna: int | None = None
+    origin: str = ""
+
+    HOOK = "send_link_stats"
+    KIND = "link_stats"
+
+    def fields(self) -> dict[str, Any]:
+        d = self._asdict()
+        del d["origin"]
+        return d
+
+
+class Position(NamedTuple):
+    """A GNSS fix: WGS-84 degrees, altitude above mean sea level; ``None`` = not known."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float | None = None
+    relative_alt_m: float | None = None
+    ground_speed_mps: float | None = None
+    course_deg: float | None = None
+    satellites: int | None = None
+    fix_type: int | None = None
+    origin: str = ""
+
+    HOOK = "send_position"
+    KIND = "position"
+
+    def fields(self) -> dict[str, Any]:
+        d = self._asdict()
+        del d["origin"]
+        return d
+
+
+class Battery(NamedTuple):
+    """A battery's state; ``None`` = not measured."""
+
+    voltage_v: float
+    current_a: float | None = None
+    consumed_mah: float | None = None
+    remaining_pct: int | None = None
+    battery_id: int = 0
+    origin: str = ""
+
+    HOOK = "send_battery"
+    KIND = "battery"
+
+    def fields(self) -> dict[str, Any]:
+        d = self._asdict()
+        del d["origin"]
+        return d
+
+
+class VehicleState(NamedTuple):
+    """A vehicle that is not an Aurora state machine (e.g. a MAVLink autopilot): armed,
+    mode and attitude/altitude as it reports them; ``None`` = not reported."""
+
+    armed: bool
+    mode: str
+    custom_mode: int | None = None
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    yaw_rad: float | None = None
+    altitude_m: float | None = None
+    climb_mps: float | None = None
+    origin: str = ""
+
+    HOOK = "send_vehicle_state"
+    KIND = "vehicle_state"
+
+    def fields(self) -> dict[str, Any]:
+        d = self._asdict()
+        del d["origin"]
+        return d
+
+
+#: The message classes defined here.  The dispatcher routes any class with a ``HOOK``, so a
+#: backend package may define more without touching this module.
+MESSAGE_TYPES: tuple[type, ...] = (
+    SmUpdate, Status, RawFrame, LinkEvent, LinkStats, Position, Battery, VehicleState,
+)
+
+Message = (SmUpdate | Status | RawFrame | LinkEvent | LinkStats | Position | Battery
+           | VehicleState)

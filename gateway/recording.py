@@ -20,6 +20,7 @@ torn tail off first, so new records never follow garbage.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import struct
@@ -172,9 +173,7 @@ class Recorder:
         with self._lock:
             if self._fd < 0:
                 return
-            try:
+            with contextlib.suppress(OSError):
                 os.fsync(self._fd)
-            except OSError:
-                pass
             os.close(self._fd)
             self._fd = -1
