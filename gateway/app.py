@@ -12,7 +12,7 @@ from typing import Any, TextIO
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
 from gateway.monitor import LinkMonitor
-from gateway.recording import Recorder
+from gateway.recording import Recorder, RecordingError
 
 log = logging.getLogger(__name__)
 
@@ -51,19 +51,34 @@ class Gateway:
         rec = self.recorder
         if rec is not None and msg.raw:
             rec.write(msg.raw)
-        self.monitor.frame_seen(msg.origin)
+        if msg.origin:
+            self.monitor.frame_seen(msg.origin)
         self.counts[msg.KIND] += 1
         self.dispatcher.dispatch(msg)
 
     # -- life cycle ----------------------------------------------------------------------------
 
     def start(self) -> list[tuple[str, str]]:
-        """Start backends, then the recorder, then the sources; returns backend failures."""
+        """Open the recorder, start the backends, then the sources; returns backend failures.
+
+        The recorder comes first: a recording that cannot be opened (no such directory, not
+        a recording) is a configuration error, raised as :class:`ConfigError` before any
+        thread runs."""
         self.started_at = time.monotonic()
-        failures = self.dispatcher.start()
         path = self.cfg.gateway.get("record")
         if path:
-            self.recorder = Recorder(path)
+            try:
+                self.recorder = Recorder(path)
+            except RecordingError as exc:
+                raise ConfigError(f"gateway.record: {exc}") from None
+            except OSError as exc:
+                raise ConfigError(f"gateway.record: cannot open {path}: "
+                                  f"{exc.strerror or exc}") from None
+        for backend in self.dispatcher.backends():
+            attach = getattr(backend, "attach", None)
+            if callable(attach):
+                attach(self.ingest)
+        failures = self.dispatcher.start()
         for src in self.sources:
             src.start(self.ingest)
         return failures

@@ -27,12 +27,17 @@ A backend **might** implement any of these hooks; the dispatcher skips backends 
     the options it runs with in the embedded default (no config file), on loopback and with
     no hardware; None keeps it out of the default run;
 ``add_cli_arguments(parser)`` / ``cli_options(args)``
-    classmethods adding its quick flags to ``run`` and turning them into options.
+    classmethods adding its quick flags to ``run`` and turning them into options;
+``attach(emit)``
+    receive the gateway's ingest function before ``init``: a backend that also *reads*
+    (link statistics from a radio, commands from a ground station) hands what it decodes to
+    ``emit`` with ``origin`` set to its own name, and the message reaches every other backend.
 """
 
 from __future__ import annotations
 
 import errno
+from collections.abc import Callable
 from enum import IntEnum
 from typing import Any, ClassVar
 
@@ -77,6 +82,13 @@ class Backend:
     def cli_options(cls, args: Any) -> dict[str, Any] | None:
         """Options the parsed flags set for this backend, or None when none were given."""
         return None
+
+    def attach(self, emit: Callable[[Any], Any]) -> None:
+        """Remember the gateway's ingest function (called before :meth:`init`)."""
+        self.emit = emit
+
+    def emit(self, msg: Any) -> None:
+        """Hand a message this backend decoded to the gateway (a no-op until attached)."""
 
     def init(self) -> None:
         """Open resources; raise to refuse to start."""

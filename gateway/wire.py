@@ -181,7 +181,18 @@ def frame(ftype: int, payload: bytes) -> bytes:
 
 
 def encode(msg: SmUpdate | Status | RawFrame) -> bytes:
-    """Encode a message as a wire frame (the revision ``SmUpdate.payload_len`` names)."""
+    """Encode a message as a wire frame (the revision ``SmUpdate.payload_len`` names).
+
+    Raises ValueError for a field that does not fit its wire type (a state above 255, say);
+    ``timestamp_ms`` keeps its low 32 bits, as the firmware's uptime counter does.
+    """
+    try:
+        return _encode(msg)
+    except struct.error as exc:
+        raise ValueError(f"{type(msg).__name__} does not fit the wire format: {exc}") from None
+
+
+def _encode(msg: SmUpdate | Status | RawFrame) -> bytes:
     if isinstance(msg, SmUpdate):
         if msg.payload_len == SM_UPDATE_F64_LEN:
             packer = _SM_F64

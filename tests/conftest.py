@@ -1,0 +1,55 @@
+"""Shared fixtures: the independent test vectors in ``../shared/vectors/``.
+
+The shared directory sits beside the repository (locally and in CI).  A missing or unreadable
+vector file is an error, never a skip: tests that silently skip their vectors prove nothing.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+SHARED_DIR = Path(__file__).resolve().parents[1].parent / "shared"
+WIRE_VECTORS_PATH = SHARED_DIR / "vectors" / "aurora-wire.json"
+
+
+@cache
+def _load_wire_vectors() -> dict[str, Any]:
+    try:
+        text = WIRE_VECTORS_PATH.read_text(encoding="utf-8")
+    except OSError as exc:  # pragma: no cover - only when the checkout is incomplete
+        raise RuntimeError(f"wire test vectors not found at {WIRE_VECTORS_PATH}: {exc}") from exc
+    return json.loads(text)
+
+
+def _vector_id(index: int, vector: dict[str, Any]) -> str:
+    kind = vector["kind"]
+    if kind == "sm_update":
+        return f"{index:02d}-sm_update{vector['payload_len']}"
+    if kind == "unknown":
+        return f"{index:02d}-unknown-type{vector['type']}"
+    return f"{index:02d}-{kind}"
+
+
+@pytest.fixture(scope="session")
+def vectors() -> dict[str, Any]:
+    """The whole ``aurora-wire.json`` (keys ``crc``, ``frames``, ``streams``)."""
+    return _load_wire_vectors()
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    """Parametrise ``vector_frame`` / ``vector_stream`` with every entry of the vector file."""
+    if "vector_frame" in metafunc.fixturenames:
+        frames = _load_wire_vectors()["frames"]
+        metafunc.parametrize(
+            "vector_frame", frames, ids=[_vector_id(i, v) for i, v in enumerate(frames)]
+        )
+    if "vector_stream" in metafunc.fixturenames:
+        streams = _load_wire_vectors()["streams"]
+        metafunc.parametrize(
+            "vector_stream", streams, ids=[f"stream{i}" for i in range(len(streams))]
+        )
