@@ -122,7 +122,12 @@ class Channels:
 
 
 class ChannelBackend(Backend):
-    """A backend that publishes every message into :class:`Channels` for polling consumers."""
+    """A backend that publishes every message into :class:`Channels` for polling consumers.
+
+    Always ``ACCEPTED``: the mailbox holds the latest value whatever the ring does; a full
+    ring's drops are the ring's to count (``stats()`` reports them per kind), since a consumer
+    that only polls mailboxes never drains the rings.
+    """
 
     NAME = "channels"
 
@@ -131,6 +136,12 @@ class ChannelBackend(Backend):
         self.channels = channels if channels is not None else Channels()
 
     def _publish(self, msg: Any) -> Outcome:
-        return Outcome.ACCEPTED if self.channels.publish(msg) else Outcome.QUEUE_FULL
+        self.channels.publish(msg)
+        return Outcome.ACCEPTED
 
     send_sm_update = send_status = send_raw = on_link = _publish
+    send_link_stats = send_position = send_battery = send_vehicle_state = _publish
+
+    def stats(self) -> dict[str, int]:
+        return {f"ring_dropped_{kind}": self.channels[kind].ring.dropped
+                for kind in self.channels.kinds()}

@@ -133,8 +133,11 @@ class LinkEngine:
     def start(self) -> None:
         if self._thread is not None:
             return
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
+        # A fresh stop event per run: a worker left behind by an earlier close() (stuck in a
+        # write that never returns) keeps its own, set, event and can never serve this run.
+        self._stop = stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(stop,), name=f"link-{self.name}",
+                                        daemon=True)
         self._thread.start()
 
     def wait_connected(self, timeout: float) -> bool:
@@ -151,16 +154,21 @@ class LinkEngine:
         return self._queue.unfinished_tasks == 0
 
     def close(self, timeout: float = 1.0) -> None:
-        """Stop the worker (queued frames still pending after ``timeout`` are discarded and
-        counted as not-ready drops) and close the port.  Safe to call twice."""
+        """Stop the worker and close the port, returning within about ``timeout``; safe to call
+        twice.  The worker first writes what is already queued (while the port is up); frames
+        still pending after ``timeout`` are discarded and counted as not-ready drops.  A worker
+        stuck in a write that never returns is abandoned (it is a daemon thread)."""
         thread = self._thread
         if thread is None:
             return
         self._stop.set()
-        with contextlib.suppress(queue.Full):
+        with contextlib.suppress(queue.Full):  # if full, the worker stops when it is empty
             self._queue.put_nowait(_STOP)
         thread.join(timeout)
         self._thread = None
+        if thread.is_alive():
+            log.warning("%s: worker did not stop within %.1f s; abandoning it", self.name,
+                        timeout)
         leftover = 0
         while True:
             try:
@@ -172,63 +180,77 @@ class LinkEngine:
                 leftover += 1
         with self._count_lock:
             self.stats.dropped_not_ready += leftover
-        self._close_transport()
+        self._close_transport(self._transport)
 
     # -- worker -------------------------------------------------------------------------------
 
-    def _open(self) -> bool:
+    def _open(self) -> Transport | None:
         try:
-            self._transport = self._opener()
+            transport = self._opener()
         except Exception as exc:
             self.stats.connect_failures += 1
             if self.stats.connect_failures == 1 or self.stats.connects:
                 log.warning("%s: %s; retrying", self.name, exc)
-            return False
+            return None
         self.stats.connects += 1
         self._backoff.reset()
+        self._transport = transport
         self._connected.set()
         if self.stats.connects > 1:
             log.info("%s: port is back", self.name)
-        return True
+        return transport
 
-    def _close_transport(self) -> None:
-        self._connected.clear()
-        t, self._transport = self._transport, None
-        if t is not None:
-            try:
-                t.close()
-            except Exception:
-                log.debug("%s: error closing port", self.name, exc_info=True)
+    def _close_transport(self, transport: Transport | None) -> None:
+        """Close ``transport`` once, whoever (worker or close()) gets here first."""
+        with self._count_lock:
+            if transport is None or self._transport is not transport:
+                return
+            self._transport = None
+            self._connected.clear()
+        try:
+            transport.close()
+        except Exception:
+            log.debug("%s: error closing port", self.name, exc_info=True)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self._transport is None and not self._open():
-                self._stop.wait(self._backoff.next())
-                continue
-            try:
-                item = self._queue.get(timeout=0.1)
-            except queue.Empty:
-                continue
-            try:
-                if item is _STOP:
-                    return
-                self._write(item)
-            finally:
-                self._queue.task_done()
+    def _run(self, stop: threading.Event) -> None:
+        transport: Transport | None = None
+        try:
+            while True:
+                if transport is None:
+                    if stop.is_set():
+                        return
+                    transport = self._open()
+                    if transport is None:
+                        stop.wait(self._backoff.next())
+                        continue
+                    if stop.is_set() and self._stop is not stop:
+                        return  # close() gave up on this worker while it was opening
+                try:
+                    item = self._queue.get(timeout=0.1)
+                except queue.Empty:
+                    if stop.is_set():
+                        return  # stopping and nothing left to write
+                    continue
+                try:
+                    if item is _STOP:
+                        return
+                    if not self._write(transport, item):
+                        self._close_transport(transport)
+                        transport = None
+                finally:
+                    self._queue.task_done()
+        finally:
+            # Covers an open that completed after close() stopped waiting for this worker.
+            self._close_transport(transport)
 
-    def _write(self, data: bytes) -> None:
-        transport = self._transport
-        if transport is None:
-            with self._count_lock:
-                self.stats.dropped_not_ready += 1
-            return
+    def _write(self, transport: Transport, data: bytes) -> bool:
         try:
             with self.lock:
                 transport.write(data)
         except Exception as exc:
             self.stats.write_errors += 1
             log.warning("%s: write failed (%s); reconnecting", self.name, exc)
-            self._close_transport()
-            return
+            return False
         self.stats.sent_frames += 1
         self.stats.sent_bytes += len(data)
+        return True

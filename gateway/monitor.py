@@ -4,12 +4,19 @@ A source's link comes *up* on its first valid frame and goes *down* after ``time
 without one (default 3 s).  Every change becomes a :class:`LinkEvent` handed to ``sink``
 (normally the dispatcher, so every backend hears it).  The clock is injectable so the
 behaviour is testable without waiting.
+
+Events reach the sink in the order the state changed, even when a source's thread
+(:meth:`LinkMonitor.frame_seen`) and the checking thread (:meth:`LinkMonitor.check`) race:
+changes are queued under a lock and delivered by one thread at a time, so a late "down"
+can never overtake the "up" that followed it.  No lock is held while the sink runs and no
+caller ever waits for another's delivery, so a sink may call back into the monitor.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -33,6 +40,8 @@ class LinkMonitor:
         self._last: dict[str, float] = {}
         self._up: dict[str, bool] = {}
         self._lock = threading.Lock()
+        self._pending: deque[LinkEvent] = deque()
+        self._delivering = threading.Lock()
         self.changes = 0
 
     def frame_seen(self, source: str) -> None:
@@ -46,22 +55,39 @@ class LinkMonitor:
                 return
             self._up[source] = True
             self.changes += 1
-        self._sink(LinkEvent(source, True, 0.0))
+            self._pending.append(LinkEvent(source, True, 0.0))
+        self._deliver()
 
     def check(self) -> list[LinkEvent]:
         """Mark silent links down; call periodically.  Returns the events it emitted."""
-        now = self._clock()
         events = []
         with self._lock:
+            now = self._clock()
             for source, up in self._up.items():
                 silence = now - self._last[source]
                 if up and silence >= self.timeout_s:
                     self._up[source] = False
                     self.changes += 1
                     events.append(LinkEvent(source, False, silence))
-        for ev in events:
-            self._sink(ev)
+            self._pending.extend(events)
+        self._deliver()
         return events
+
+    def _deliver(self) -> None:
+        """Hand queued events to the sink in order; whoever holds ``_delivering`` does it for
+        everyone, the others return at once (their events are already queued)."""
+        while self._pending:
+            if not self._delivering.acquire(blocking=False):
+                return
+            try:
+                while True:
+                    with self._lock:
+                        if not self._pending:
+                            break
+                        ev = self._pending.popleft()
+                    self._sink(ev)
+            finally:
+                self._delivering.release()
 
     def is_up(self, source: str) -> bool | None:
         """True/False once the source has been heard from; None before its first frame."""

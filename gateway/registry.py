@@ -13,15 +13,26 @@ from typing import Any
 
 BACKEND_GROUP = "aurora_gateway.backends"
 SOURCE_GROUP = "aurora_gateway.sources"
+COMMAND_GROUP = "aurora_gateway.commands"
 
 _BUILTIN: dict[str, dict[str, str]] = {
     BACKEND_GROUP: {
         "console": "backends.console:ConsoleBackend",
+        "mavlink": "backends.mavlink:MavlinkBackend",
+        "crsf": "backends.crsf:CrsfBackend",
+        "zenoh": "backends.zenoh:ZenohBackend",
+        "hc12": "backends.hc12:Hc12Backend",
     },
     SOURCE_GROUP: {
         "serial": "gateway.sources.serial_source:SerialSource",
         "sim": "gateway.sources.sim:SimSource",
         "replay": "gateway.sources.replay:ReplaySource",
+        "mavlink": "backends.mavlink:MavlinkSource",
+        "zenoh": "backends.zenoh:ZenohSource",
+    },
+    COMMAND_GROUP: {
+        "listen": "backends.zenoh.cli:add_command",
+        "hc12": "backends.hc12.cli:add_command",
     },
 }
 
@@ -57,8 +68,9 @@ def load(group: str, name: str) -> Any:
         obj = importlib.import_module(module_name)
         for part in attr.split("."):
             obj = getattr(obj, part)
-    except (ImportError, AttributeError) as exc:
-        raise RegistryError(f"{name!r} ({target}) failed to import: {exc}") from exc
+    except Exception as exc:  # ImportError, AttributeError, or whatever a plug-in raises
+        raise RegistryError(f"{name!r} ({target}) failed to import: "
+                            f"{type(exc).__name__}: {exc}") from exc
     _cache[key] = obj
     return obj
 

@@ -1,0 +1,128 @@
+"""The registry: names from the built-ins and installed entry points, lazy imports, clear
+errors, and third-party plug-ins found through a real (temporary) installed distribution."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+import textwrap
+import uuid
+from importlib.metadata import entry_points
+from pathlib import Path
+
+import pytest
+
+from gateway import registry
+from gateway.config import ConfigError, embedded_default, parse
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_backend_names_include_the_builtins_and_installed_entry_points() -> None:
+    installed = {ep.name: ep.value for ep in entry_points(group=registry.BACKEND_GROUP)}
+    assert installed.get("console") == "backends.console:ConsoleBackend"  # editable install
+    names = registry.names(registry.BACKEND_GROUP)
+    assert names["console"] == "backends.console:ConsoleBackend"
+    assert installed.items() <= names.items()
+    assert registry.backend_names() == sorted(names)
+
+
+def test_source_names_include_sim_serial_and_replay() -> None:
+    assert {"sim", "serial", "replay"} <= set(registry.source_names())
+
+
+def test_load_returns_the_registered_class() -> None:
+    from backends.console import ConsoleBackend
+    from gateway.sources.sim import SimSource
+
+    assert registry.load(registry.BACKEND_GROUP, "console") is ConsoleBackend
+    assert registry.load(registry.SOURCE_GROUP, "sim") is SimSource
+
+
+def test_load_of_an_unknown_name_lists_what_is_available() -> None:
+    with pytest.raises(registry.RegistryError) as info:
+        registry.load(registry.BACKEND_GROUP, "teleporter")
+    message = str(info.value)
+    assert "unknown backend 'teleporter'" in message
+    assert "console" in message
+    with pytest.raises(LookupError, match=r"unknown source 'x'; available: .*sim"):
+        registry.load(registry.SOURCE_GROUP, "x")
+
+
+def test_importing_the_registry_imports_no_backend() -> None:
+    code = textwrap.dedent("""
+        import sys
+        import gateway.registry as r
+        import gateway.config
+        r.names(r.BACKEND_GROUP)
+        print("before", "backends.console" in sys.modules)
+        r.load(r.BACKEND_GROUP, "console")
+        print("after", "backends.console" in sys.modules)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, timeout=60, check=True).stdout.split("\n")
+    assert out[:2] == ["before False", "after True"]
+
+
+# -- third-party plug-ins, installed for real on a temporary sys.path entry -------------------
+
+
+@pytest.fixture
+def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """Install a distribution declaring a working and a broken backend; yields their names."""
+    tag = uuid.uuid4().hex[:8]
+    good, broken, missing = f"fancy{tag}", f"broken{tag}", f"missing{tag}"
+    (tmp_path / f"{good}_mod.py").write_text(textwrap.dedent(f"""
+        from gateway.backend import Backend
+        class FancyBackend(Backend):
+            NAME = "{good}"
+            EMBEDDED_DEFAULT = None
+    """))
+    (tmp_path / f"{broken}_mod.py").write_text("raise RuntimeError('plug-in is broken')\n")
+    dist = tmp_path / f"aurora_plugin_{tag}-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: aurora-plugin-{tag}\n"
+                                   "Version: 1.0\n")
+    (dist / "entry_points.txt").write_text(
+        "[aurora_gateway.backends]\n"
+        f"{good} = {good}_mod:FancyBackend\n"
+        f"{broken} = {broken}_mod:Whatever\n"
+        f"{missing} = no_such_module_{tag}:Backend\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    importlib.invalidate_caches()
+    yield good, broken, missing
+    for mod in (f"{good}_mod", f"{broken}_mod"):
+        sys.modules.pop(mod, None)
+
+
+def test_an_installed_plugin_is_found_and_loaded_by_name(plugin: tuple[str, str, str]) -> None:
+    good, _, _ = plugin
+    assert good in registry.backend_names()
+    assert "console" in registry.backend_names()
+    cls = registry.load(registry.BACKEND_GROUP, good)
+    assert cls.__name__ == "FancyBackend"
+    assert cls().name == good
+    assert parse({"backends": {good: {}}}).backends[0].cls is cls
+
+
+@pytest.mark.parametrize("which", [1, 2], ids=["raises-on-import", "module-missing"])
+def test_a_plugin_that_fails_to_import_is_a_registry_error(plugin: tuple[str, str, str],
+                                                           which: int) -> None:
+    name = plugin[which]
+    with pytest.raises(registry.RegistryError, match=rf"'{name}' .* failed to import"):
+        registry.load(registry.BACKEND_GROUP, name)
+    with pytest.raises(ConfigError, match=rf"^backends\.{name}\.type: .*failed to import"):
+        parse({"backends": {name: {}}})
+
+
+def test_a_broken_plugin_does_not_stop_the_embedded_default(
+    plugin: tuple[str, str, str],
+) -> None:
+    good, broken, _ = plugin
+    cfg = embedded_default()
+    types = [p.type for p in cfg.backends]
+    assert "console" in types
+    assert broken not in types
+    assert good not in types  # EMBEDDED_DEFAULT = None keeps it out of the default run
