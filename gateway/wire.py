@@ -38,6 +38,13 @@ _SM_F32 = struct.Struct("<IBBBB7f")
 _SM_F64 = struct.Struct("<IBBBB7d")
 _STATUS = struct.Struct("<IBBBB")
 _crc = crc16.mcrf4xx
+# The decoder's view: "?" unpacks ``armed`` straight to a bool (any non-zero byte is True).
+_SM_F64_IN = struct.Struct("<IB?BB7d")
+_SM_F32_IN = struct.Struct("<IB?BB7f")
+# The CRC register value that the two magic bytes turn into 0xFFFF: the CRC of a whole frame
+# from this value equals the CRC of type..crc from 0xFFFF, so no second slice is needed
+# (crc16.mcrf4xx(MAGIC, _CRC_BEFORE_MAGIC) == 0xFFFF).
+_CRC_BEFORE_MAGIC = 0xA984
 _new = tuple.__new__
 
 
@@ -108,18 +115,30 @@ class Decoder:
         origin = self.origin
         n = len(buf)
         pos = 0
-        frames = skipped = crc_failures = unknown = bad_len = 0
+        skipped = crc_failures = unknown = bad_len = 0
+        first = len(out)
         find = buf.find
         append = out.append
+        crc_ = _crc
+        new = _new
+        sm_update = SmUpdate
+        unpack64 = _SM_F64_IN.unpack_from
+        unpack32 = _SM_F32_IN.unpack_from
         while True:
-            i = find(MAGIC, pos)
+            # Fast path (same result as find): a frame is usually followed at once by the next.
+            i = (pos if pos + 1 < n and buf[pos] == 0xA5 and buf[pos + 1] == 0x5A
+                 else find(MAGIC, pos))
             if i < 0:
                 # Keep a trailing 0xA5: it may be the first half of the next magic.
                 keep = 1 if (not eof and n > pos and buf[n - 1] == 0xA5) else 0
                 skipped += n - keep - pos
                 pos = n - keep
                 break
-            end = i + OVERHEAD + buf[i + 3] if i + HEADER_LEN <= n else n + 1
+            if i + HEADER_LEN <= n:
+                length = buf[i + 3]
+                end = i + OVERHEAD + length
+            else:
+                length = end = n + 1
             if end > n:
                 if not eof:
                     skipped += i - pos
@@ -130,33 +149,32 @@ class Decoder:
                 pos = i + 1
                 continue
             raw = buf[i:end]
-            if _crc(raw[2:]):  # a good frame's CRC over type..crc leaves residue 0
+            # A good frame's CRC over type..crc leaves residue 0 (see _CRC_BEFORE_MAGIC).
+            if crc_(raw, _CRC_BEFORE_MAGIC):
                 crc_failures += 1
                 skipped += i + 1 - pos
                 pos = i + 1
                 continue
             skipped += i - pos
             pos = end
-            frames += 1
             ftype = buf[i + 2]
-            length = end - i - OVERHEAD
             if ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F64_LEN:
-                t = _SM_F64.unpack_from(buf, i + 4)
-                append(_new(SmUpdate, (t[0], t[1], t[2] != 0, t[3], t[5], t[6], t[7], t[8],
-                                       t[9], t[10], t[11], SM_UPDATE_F64_LEN, t[4], raw, origin)))
+                ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack64(buf, i + 4)
+                append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
+                                       SM_UPDATE_F64_LEN, rsv, raw, origin)))
             elif ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F32_LEN:
-                t = _SM_F32.unpack_from(buf, i + 4)
-                append(_new(SmUpdate, (t[0], t[1], t[2] != 0, t[3], t[5], t[6], t[7], t[8],
-                                       t[9], t[10], t[11], SM_UPDATE_F32_LEN, t[4], raw, origin)))
+                ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack32(buf, i + 4)
+                append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
+                                       SM_UPDATE_F32_LEN, rsv, raw, origin)))
             elif ftype == TYPE_STATUS and length == STATUS_LEN:
-                append(_new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin)))
+                append(new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin)))
             else:
                 if ftype in (TYPE_SM_UPDATE, TYPE_STATUS):
                     bad_len += 1
                 else:
                     unknown += 1
-                append(_new(RawFrame, (ftype, raw[4:-2], raw, origin)))
-        stats.frames += frames
+                append(new(RawFrame, (ftype, raw[4:-2], raw, origin)))
+        stats.frames += len(out) - first
         stats.bytes_skipped += skipped
         stats.crc_failures += crc_failures
         stats.unknown_types += unknown
