@@ -49,8 +49,10 @@ class Gateway:
     def ingest(self, msg: Any) -> None:
         """Everything a source produces comes through here (from the source's thread)."""
         rec = self.recorder
-        if rec is not None and msg.raw:
-            rec.write(msg.raw)
+        if rec is not None:
+            raw = getattr(msg, "raw", b"")  # only wire-decoded kinds carry a frame
+            if raw:
+                rec.write(raw)
         if msg.origin:
             self.monitor.frame_seen(msg.origin)
         self.counts[msg.KIND] += 1
