@@ -11,7 +11,7 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NoReturn
 
 from gateway import __version__, config, recording, registry
 from gateway.app import Gateway
@@ -46,15 +46,17 @@ def _backend_classes() -> dict[str, Any]:
     return out
 
 
-def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True) -> None:
+def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
+                         backend_flags: bool = True) -> None:
     p.add_argument("--config", "-c", metavar="FILE",
                    help="TOML configuration (default: the embedded one — the simulated "
                         "flight through every backend on loopback)")
     if sources:
         p.add_argument("--source", "-s", action="append", metavar="URL",
-                       help="'sim', 'replay:FILE' or a pyserial URL (/dev/ttyUSB0, loop://, "
-                            "socket://host:port, rfc2217://host:port); repeatable; replaces "
-                            "the configured sources")
+                       help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
+                            "e.g. mavlink:udpin:0.0.0.0:14551) or a pyserial URL "
+                            "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
+                            "repeatable; replaces the configured sources")
         p.add_argument("--baud", type=int, metavar="N", help="baud rate of serial sources")
         p.add_argument("--sim-speed", type=_positive, metavar="N",
                        help="run the simulated flight N times faster (0 = flat out)")
@@ -67,14 +69,48 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True) ->
                    help="silence after which a source's link is reported down (default 3)")
     p.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
     p.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
+    if not backend_flags:
+        return
     for cls in _backend_classes().values():
         add = getattr(cls, "add_cli_arguments", None)
         if add is not None:
             add(p)
+    p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+class _Parser(argparse.ArgumentParser):
+    """argparse, except that a usage error is one line naming the flag (exit 2), like a bad
+    configuration key; ``--help`` still prints the whole usage.  Subcommand parsers inherit
+    this class."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _add_plugin_commands(sub: Any, only: str | None) -> None:
+    """Subcommands from the ``aurora_gateway.commands`` entry points (``listen``, ``hc12``).
+
+    Each is a function ``add_command(subparsers)`` that adds its parser and sets
+    ``handler``.  Only ``only`` is imported when given (a command of its own), so ``decode``
+    does not pay for importing Zenoh; None imports them all (for ``--help``)."""
+    for name in registry.names(registry.COMMAND_GROUP):
+        if only is not None and name != only:
+            continue
+        try:
+            add = registry.load(registry.COMMAND_GROUP, name)
+        except registry.RegistryError as exc:
+            log.warning("%s", exc)
+            continue
+        add(sub)
+
+
+def build_parser(backend_flags: bool = True,
+                 plugin_command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line.  ``backend_flags`` False leaves the backends' own flags out of
+    ``run`` and ``replay``, which spares importing every backend (pymavlink's dialect alone
+    takes a third of a second) for commands that have no backends.  ``plugin_command``: see
+    :func:`_add_plugin_commands` ("" adds none)."""
+    parser = _Parser(
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
                     "to every configured backend.")
@@ -83,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run the gateway (default: simulated flight, every "
                          "backend, loopback)")
-    _add_gateway_options(run)
+    _add_gateway_options(run, backend_flags=backend_flags)
 
     dec = sub.add_parser("decode", help="print the frames of a capture or recording as JSON "
                          "lines")
@@ -114,7 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--speed", type=_positive, default=1.0, metavar="N",
                      help="N times real time (0 = flat out)")
     rep.add_argument("--loop", action="store_true", help="start again at the end")
-    _add_gateway_options(rep, sources=False)
+    _add_gateway_options(rep, sources=False, backend_flags=backend_flags)
+    if plugin_command != "":
+        _add_plugin_commands(sub, plugin_command)
     return parser
 
 
@@ -163,8 +201,10 @@ def config_from_args(args: argparse.Namespace) -> GatewayConfig:
     if getattr(args, "log_level", None):
         g["log_level"] = args.log_level
     # Backend flags: each backend turns its own flags into options (and is enabled by them).
+    # Only commands built with _add_gateway_options have them (`record` has no backends).
     by_name = {p.name: p for p in cfg.backends}
-    for name, cls in _backend_classes().items():
+    with_flags = _backend_classes() if getattr(args, "backend_flags", False) else {}
+    for name, cls in with_flags.items():
         opts_fn = getattr(cls, "cli_options", None)
         opts = opts_fn(args) if opts_fn is not None else None
         if opts is None:
@@ -384,13 +424,22 @@ COMMANDS = {"run": cmd_run, "decode": cmd_decode, "simulate": cmd_simulate,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version")):
+        argv = ["run", *argv]  # the default command: `aurora-gateway --duration 5` runs
+    first = argv[0]
+    if first in COMMANDS:
+        plugin: str | None = ""
+    elif first in registry.names(registry.COMMAND_GROUP):
+        plugin = first
+    else:
+        plugin = None  # --help, --version or a typo: list every command
+    parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
     args = parser.parse_args(argv)
-    if args.command is None:
-        args = parser.parse_args(["run", *(argv or sys.argv[1:])])
+    handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
-        return COMMANDS[args.command](args)
-    except ConfigError as exc:
+        return handler(args)
+    except (ConfigError, recording.RecordingError) as exc:
         print(f"aurora-gateway: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

@@ -249,7 +249,7 @@ class LinkEngine:
                 transport.write(data)
         except Exception as exc:
             self.stats.write_errors += 1
-            log.warning("%s: write failed (%s); reconnecting", self.name, exc)
+            log.warning("%s: write failed (%r); reconnecting", self.name, exc)
             return False
         self.stats.sent_frames += 1
         self.stats.sent_bytes += len(data)

@@ -55,9 +55,11 @@ class ReadStats:
 
 
 def encode_record(t: float, frame: bytes) -> bytes:
-    """One record's bytes."""
-    if len(frame) > 0xFFFF:
-        raise ValueError("frame too long for a record")
+    """One record's bytes.  Frames longer than a wire frame can be (:data:`MAX_FRAME`) are
+    refused: the reader treats a longer record as corruption, so it could never be read."""
+    if len(frame) > MAX_FRAME:
+        raise ValueError(f"a {len(frame)}-byte frame is longer than a wire frame "
+                         f"({MAX_FRAME} bytes)")
     body = _REC_HEAD.pack(t, len(frame)) + frame
     return body + _CRC.pack(zlib.crc32(body))
 

@@ -32,10 +32,12 @@ def open_serial(
     exclusive: bool | None = None,
 ) -> serial.SerialBase:
     """Open a pyserial port or URL; raises :class:`TransportError` with the URL in the text."""
+    if url.startswith("rfc2217://"):
+        write_timeout = None  # pyserial's RFC 2217 client refuses any write timeout
     kwargs: dict = {"baudrate": baudrate, "timeout": timeout, "write_timeout": write_timeout}
     if exclusive is not None:
         kwargs["exclusive"] = exclusive
     try:
         return serial.serial_for_url(url, **kwargs)
-    except (serial.SerialException, OSError, ValueError) as exc:
+    except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
         raise TransportError(f"cannot open {url}: {exc}") from exc

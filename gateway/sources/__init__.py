@@ -74,7 +74,8 @@ class Source:
 
 
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
-    """``sim``, ``replay:FILE`` or a pyserial URL → (source type, options)."""
+    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT`` or a pyserial URL → (source type,
+    options)."""
     if url in ("sim", "sim:"):
         return "sim", {}
     if url.startswith("replay:"):
@@ -82,6 +83,11 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
         if not path:
             raise ValueError("replay: needs a file, e.g. replay:flight.agrec")
         return "replay", {"path": path}
+    if url.startswith("mavlink:"):
+        endpoint = url[len("mavlink:"):]
+        if not endpoint:
+            raise ValueError("mavlink: needs an endpoint, e.g. mavlink:udpin:0.0.0.0:14551")
+        return "mavlink", {"url": endpoint}
     if not url:
         raise ValueError("empty source URL")
     return "serial", {"url": url}

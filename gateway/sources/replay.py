@@ -35,6 +35,13 @@ class ReplaySource(Source):
         self.path = Path(path)
         if not self.path.is_file():
             raise ConfigError(f"replay: no recording at {path}")
+        try:  # a file that is not a recording is a configuration error, not a thread's crash
+            with self.path.open("rb") as f:
+                recording._check_header(f.read(len(recording.HEADER)), path)
+        except recording.RecordingError as exc:
+            raise ConfigError(str(exc)) from None
+        except OSError as exc:
+            raise ConfigError(f"replay: cannot read {path}: {exc.strerror or exc}") from None
         self.speed = speed
         self.loop = loop
         self.decoder = Decoder(origin=self.name)

@@ -20,6 +20,50 @@ from gateway.wire import Decoder
 log = logging.getLogger(__name__)
 
 
+def _open_unless_stopped(url: str, baudrate: int, stop: threading.Event) -> Any | None:
+    """Open the port in a helper thread and wait for it or for ``stop``, whichever is first.
+
+    An open can take far longer than the one second ``stop()`` may take: pyserial's
+    ``socket://`` connect waits up to 5 s for a host that does not answer (one that is off
+    the network, or a listener whose backlog is full).  On ``stop`` the open is abandoned and
+    the port closed as soon as it completes; returns None then.  Raises
+    :class:`TransportError` when the open fails.
+    """
+    lock = threading.Lock()
+    done = threading.Event()
+    result: dict[str, Any] = {"port": None, "error": None, "abandoned": False}
+
+    def opener() -> None:
+        try:
+            port = open_serial(url, baudrate, timeout=0.05)
+        except TransportError as exc:
+            result["error"] = exc
+            done.set()
+            return
+        with lock:
+            abandoned = result["abandoned"]
+            if not abandoned:
+                result["port"] = port
+        if abandoned:
+            try:
+                port.close()
+            except Exception:
+                log.debug("closing abandoned port %s failed", url, exc_info=True)
+        done.set()
+
+    threading.Thread(target=opener, name=f"open-{url}", daemon=True).start()
+    while not done.wait(0.02):
+        if stop.is_set():
+            with lock:
+                if result["port"] is None:
+                    result["abandoned"] = True
+                    return None
+            break
+    if result["error"] is not None:
+        raise result["error"]
+    return result["port"]
+
+
 class SerialSource(Source):
     NAME = "serial"
     CONFIG = Schema(
@@ -48,17 +92,21 @@ class SerialSource(Source):
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             try:
-                port = open_serial(self.url, self.baudrate, timeout=0.05)
+                port = _open_unless_stopped(self.url, self.baudrate, stop)
             except TransportError as exc:
                 self.open_failures += 1
                 if self.open_failures == 1 or self.disconnects:
                     log.warning("source %s: %s; retrying", self.name, exc)
                 stop.wait(self._backoff.next())
                 continue
+            if port is None:  # stopped while the open was still under way
+                break
             self.opens += 1
             self._backoff.reset()
             if self.opens > 1:
                 log.info("source %s: port is back", self.name)
+            else:
+                log.info("source %s: %s open", self.name, self.url)
             self.port = port
             try:
                 self._read_until_failure(port, stop)

@@ -28,7 +28,11 @@ def flight_messages(
     cycles: int = 0,
 ) -> Iterator[tuple[float, SmUpdate | Status]]:
     """(simulated time, message) for the flight, SM_UPDATE at ``rate_hz`` and STATUS at
-    ``status_hz``, merged in time order; ``cycles`` 0 repeats for ever."""
+    ``status_hz``, merged in time order; ``cycles`` 0 repeats for ever.
+
+    With ``cycles`` N the stream ends with the first SM_UPDATE at or after N × ``cycle_s``:
+    the return to IDLE (the disarm) that closes the last flight, so a one-flight run shows
+    the whole flight, not a rocket left LANDED and armed."""
     if rate_hz <= 0:
         raise ValueError("rate_hz must be positive")
     sm_dt = 1.0 / rate_hz
@@ -37,12 +41,12 @@ def flight_messages(
     next_st = 0.0
     for k in itertools.count():
         t = k * sm_dt
-        if end is not None and t >= end:
-            return
         while st_dt is not None and next_st <= t:
             yield next_st, model.status(next_st, BOOT_UPTIME_MS + round(next_st * 1000))
             next_st += st_dt
         yield t, model.sm_update(t, BOOT_UPTIME_MS + round(t * 1000))
+        if end is not None and t >= end:
+            return
 
 
 def flight_frames(model: FlightModel, rate_hz: float = 10.0, status_hz: float = 1.0,

@@ -1,0 +1,479 @@
+"""``aurora-gateway`` as a user runs it: in a subprocess, through ``python -m gateway.cli`` or
+the installed console script.
+
+Waits are on the processes' own output (reader threads set events) or ``Popen.wait`` with a
+timeout; every process is killed in ``finally``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import itertools
+import json
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from dialects.states import state_name
+from gateway import cli, config, recording
+from gateway.app import STOP_BUDGET_S, Gateway
+from gateway.flight import FlightModel, FlightProfile
+from gateway.recording import Recorder
+from gateway.sources.sim import flight_frames
+from gateway.wire import decode_all, frame, to_wire_dict
+
+ROOT = Path(__file__).resolve().parents[1]
+VECTORS = Path(__file__).resolve().parents[1].parent / "shared" / "vectors" / "aurora-wire.json"
+GATEWAY = [sys.executable, "-m", "gateway.cli"]
+CONSOLE_SCRIPT = Path(sys.executable).parent / "aurora-gateway"
+TIMEOUT_S = 20.0
+STOP_SLACK_S = 1.5  # scheduling slack for a loaded 2-core CI machine, on top of the 1 s budget
+
+SPEC_SM_FIELDS = ("timestamp_ms", "state", "armed", "sm_type", "altitude", "acceleration",
+                  "accel_vert", "velocity", "roll", "pitch", "yaw")
+SPEC_STATUS_FIELDS = ("timestamp_ms", "state", "sm_type", "flags")
+STATUS_LINE = re.compile(r"^\[\s*(\d+\.\d)s\] in (\d+) \(sm \d+ st \d+ raw \d+\)")
+
+
+def own_lines(stderr: str) -> list[str]:
+    """stderr without the registry's warnings about plug-ins that fail to import (entry points
+    of backends not present in this checkout: an environment matter, not the error under
+    test)."""
+    return [ln for ln in stderr.splitlines() if ln.strip() and " failed to import: " not in ln]
+
+
+def gw(*args: str, stdin: bytes | None = None, timeout: float = TIMEOUT_S,
+       cmd: Sequence[str] = GATEWAY) -> subprocess.CompletedProcess[str]:
+    """Run the gateway to completion; stdin as bytes, stdout/stderr as text."""
+    r = subprocess.run([*cmd, *args], cwd=ROOT, input=stdin if stdin is not None else b"",
+                       capture_output=True, timeout=timeout)
+    return subprocess.CompletedProcess(r.args, r.returncode, r.stdout.decode(),
+                                       r.stderr.decode())
+
+
+class Running:
+    """A gateway subprocess whose stdout and stderr lines are collected by reader threads;
+    ``wait_line`` blocks until a line matches (or the deadline passes)."""
+
+    def __init__(self, *args: str, cmd: Sequence[str] = GATEWAY) -> None:
+        self.proc = subprocess.Popen([*cmd, *args], cwd=ROOT, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, bufsize=1)
+        self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
+        self.cond = threading.Condition()
+        self.eof = 0
+        self.threads = [threading.Thread(target=self._pump, args=(name, pipe), daemon=True)
+                        for name, pipe in (("stdout", self.proc.stdout),
+                                           ("stderr", self.proc.stderr))]
+        for th in self.threads:
+            th.start()
+
+    def _pump(self, name: str, pipe: io.TextIOBase) -> None:
+        for line in pipe:
+            with self.cond:
+                self.lines[name].append(line.rstrip("\n"))
+                self.cond.notify_all()
+        with self.cond:
+            self.eof += 1
+            self.cond.notify_all()
+
+    def wait_line(self, name: str, pred: Callable[[str], bool],
+                  timeout: float = TIMEOUT_S) -> bool:
+        """Wait until a line of ``name`` matches ``pred``; False if none does by the deadline
+        or by the end of the process's output."""
+        with self.cond:
+            self.cond.wait_for(lambda: any(pred(ln) for ln in self.lines[name])
+                               or self.eof == 2, timeout)
+            return any(pred(ln) for ln in self.lines[name])
+
+    def finish(self, timeout: float = TIMEOUT_S) -> int:
+        rc = self.proc.wait(timeout)
+        for th in self.threads:
+            th.join(5)
+        return rc
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+        for th in self.threads:
+            th.join(5)
+
+    def text(self, name: str) -> str:
+        with self.cond:
+            return "\n".join(self.lines[name])
+
+
+@pytest.fixture(scope="module")
+def wire_vectors() -> dict:
+    return json.loads(VECTORS.read_text())
+
+
+# -- many short runs, started together -------------------------------------------------------------
+# Each of these is a separate process (~0.3 s of start-up); they run four at a time in a
+# module-scoped fixture and each parametrized test checks its own result.
+
+def _subcommands() -> list[str]:
+    parser = cli.build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sorted({"run", "decode", "simulate", "record", "replay", *subs.choices})
+
+
+HELP_CASES = [None, *_subcommands()]
+
+BAD_FLAGS = [
+    (["run", "--sim-speed", "x"], "--sim-speed"),
+    (["run", "--status-interval", "nan"], "--status-interval"),
+    (["run", "--link-timeout", "0"], "--link-timeout"),
+    (["run", "--disable", "no-such-backend"], "--disable"),
+    (["run", "--source", "replay:"], "--source"),
+    (["run", "--no-such-flag"], "--no-such-flag"),
+    (["simulate", "--out", "loop://", "--revision", "48"], "--revision"),
+    (["simulate", "--out", "loop://", "--rate-hz", "0"], "--rate-hz"),
+    (["replay", "/no/such/file.agrec"], "no recording"),
+    (["decode", "/no/such/capture.bin"], "/no/such/capture.bin"),
+    (["--duration", "soon"], "--duration"),  # the default command is run
+]
+
+BAD_TOML = [
+    ('[gateway]\nstatus_interval_s = "x"\n', "gateway.status_interval_s"),
+    ("[gateway]\nstatus_interval = 1\n", "gateway.status_interval"),
+    ("[gatway]\n", "gatway"),
+    ('[[sources]]\ntype = "sim"\nspeed = "fast"\n', "sources[0].speed"),
+    ('[[sources]]\ntype = "sim"\nwarp = 9\n', "sources[0].warp"),
+    ('[[sources]]\ntype = "warp-drive"\n', "sources[0].type"),
+    ("[backends.console]\ninterval_s = -1\n", "backends.console.interval_s"),
+    ("[gateway\n", "not valid TOML"),
+]
+
+
+@pytest.fixture(scope="module")
+def short_runs(tmp_path_factory: pytest.TempPathFactory
+               ) -> dict[tuple, subprocess.CompletedProcess[str]]:
+    d = tmp_path_factory.mktemp("cfg")
+    jobs: dict[tuple, list[str]] = {}
+    for command in HELP_CASES:
+        jobs[("help", command)] = [*([command] if command else []), "--help"]
+    for args, _ in BAD_FLAGS:
+        jobs[("flag", *args)] = args
+    for i, (toml, _) in enumerate(BAD_TOML):
+        path = d / f"bad{i}.toml"
+        path.write_text(toml)
+        jobs[("toml", toml)] = ["run", "--config", str(path), "--duration", "5"]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        futures = {k: pool.submit(gw, *args) for k, args in jobs.items()}
+        return {k: f.result() for k, f in futures.items()}
+
+
+# -- --help ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", HELP_CASES)
+def test_help_exits_0_for_every_subcommand(short_runs: dict, command: str | None) -> None:
+    r = short_runs[("help", command)]
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("usage: aurora-gateway")
+
+
+def test_the_console_script_is_installed_and_runs() -> None:
+    assert CONSOLE_SCRIPT.exists(), "pip install -e . creates .venv/bin/aurora-gateway"
+    r = gw("--version", cmd=[str(CONSOLE_SCRIPT)])
+    assert r.returncode == 0
+    assert re.fullmatch(r"aurora-gateway \d+\.\d+\.\d+\S*\n", r.stdout)
+
+
+# -- usage errors: one line naming the key, exit 2 ------------------------------------------------
+
+@pytest.mark.parametrize(("args", "key"), BAD_FLAGS)
+def test_a_bad_flag_value_is_one_line_naming_it_and_exit_2(short_runs: dict, args: list[str],
+                                                           key: str) -> None:
+    r = short_runs[("flag", *args)]
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1, lines
+    assert key in lines[0]
+    assert "Traceback" not in r.stderr
+    assert r.stdout == ""
+
+
+@pytest.mark.parametrize(("toml", "key"), BAD_TOML)
+def test_a_bad_config_file_key_is_one_line_naming_it_and_exit_2(short_runs: dict, toml: str,
+                                                                 key: str) -> None:
+    r = short_runs[("toml", toml)]
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1, lines
+    assert key in lines[0]
+    assert r.stdout == ""
+
+
+def test_a_record_file_that_cannot_be_opened_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    r = gw("run", "--record", str(tmp_path / "no" / "dir" / "x.agrec"), "--duration", "5")
+    assert r.returncode == 2
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1 and "record" in lines[0], lines
+    notrec = tmp_path / "notes.txt"
+    notrec.write_text("shopping list\n")
+    r = gw("run", "--record", str(notrec), "--duration", "5")
+    assert r.returncode == 2
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1 and "record" in lines[0] and "magic" in lines[0], lines
+    assert notrec.read_text() == "shopping list\n"  # never appended to
+
+
+# -- decode --------------------------------------------------------------------------------------
+
+def _check_decoded(obj: dict, vec: dict) -> None:
+    if vec["kind"] == "sm_update":
+        assert obj["type"] == 1
+        assert obj["payload_len"] == vec["payload_len"]
+        for k in SPEC_SM_FIELDS:
+            assert obj[k] == vec["fields"][k], k
+        assert obj["state_name"] == state_name(obj["sm_type"], obj["state"])
+    elif vec["kind"] == "status":
+        assert obj["type"] == 2
+        assert obj["payload_len"] == 8
+        for k in SPEC_STATUS_FIELDS:
+            assert obj[k] == vec["fields"][k], k
+        assert obj["state_name"] == state_name(obj["sm_type"], obj["state"])
+        assert obj["armed"] == bool(vec["fields"]["flags"] & 1)
+    else:
+        assert obj == {"type": vec["type"], "payload_len": len(vec["payload_hex"]) // 2,
+                       "payload_hex": vec["payload_hex"]}
+
+
+def test_decode_prints_one_json_object_per_vector_frame(tmp_path: Path, wire_vectors: dict) -> None:
+    cap = tmp_path / "capture.bin"
+    cap.write_bytes(b"".join(bytes.fromhex(v["hex"]) for v in wire_vectors["frames"]))
+    r = gw("decode", str(cap))
+    assert r.returncode == 0, r.stderr
+    objs = [json.loads(ln) for ln in r.stdout.splitlines()]
+    assert len(objs) == len(wire_vectors["frames"])
+    for obj, vec in zip(objs, wire_vectors["frames"], strict=True):
+        _check_decoded(obj, vec)
+    assert {"sm_update", "status", "unknown"} == {v["kind"] for v in wire_vectors["frames"]}
+    assert f"decoded {len(objs)} frames" in r.stderr
+
+
+def test_decode_reads_stdin_and_passes_the_intact_frames_of_a_damaged_stream(
+        wire_vectors: dict) -> None:
+    by_hex = {v["hex"]: v for v in wire_vectors["frames"]}
+    for stream in wire_vectors["streams"]:
+        r = gw("decode", "-", stdin=bytes.fromhex(stream["hex"]))
+        assert r.returncode == 0, r.stderr
+        objs = [json.loads(ln) for ln in r.stdout.splitlines()]
+        assert len(objs) == len(stream["intact_frames"])
+        for obj, hx in zip(objs, stream["intact_frames"], strict=True):
+            _check_decoded(obj, by_hex[hx])
+        assert "crc failures 1" in r.stderr
+
+
+def test_decode_of_a_recording_adds_rx_time(tmp_path: Path, wire_vectors: dict) -> None:
+    path = tmp_path / "v.agrec"
+    rec = Recorder(path)
+    times = [1_700_000_000.125 + 0.5 * i for i in range(len(wire_vectors["frames"]))]
+    for t, v in zip(times, wire_vectors["frames"], strict=True):
+        rec.write(bytes.fromhex(v["hex"]), t=t)
+    rec.close()
+    # a torn last record is skipped, and said so on stderr
+    with path.open("ab") as f:
+        f.write(recording.encode_record(9.0, bytes.fromhex(wire_vectors["frames"][0]["hex"]))[:-3])
+    r = gw("decode", str(path))
+    assert r.returncode == 0, r.stderr
+    objs = [json.loads(ln) for ln in r.stdout.splitlines()]
+    assert [o["rx_time"] for o in objs] == times
+    for obj, vec in zip(objs, wire_vectors["frames"], strict=True):
+        _check_decoded({k: v for k, v in obj.items() if k != "rx_time"}, vec)
+    assert "torn tail" in r.stderr
+
+
+def test_decode_of_a_recording_of_another_version_is_one_line_and_exit_2(
+        tmp_path: Path) -> None:
+    path = tmp_path / "v9.agrec"
+    path.write_bytes(recording.MAGIC + b"\x09\x00\x00\x00")
+    r = gw("decode", str(path))
+    assert r.returncode == 2
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1 and "version 9" in lines[0], lines
+
+
+# -- run: signals and the embedded default ------------------------------------------------------
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_the_gateway_within_a_second_with_a_report(sig: signal.Signals) -> None:
+    p = Running("run", "--sim-speed", "10")
+    try:
+        assert p.wait_line("stderr", lambda ln: ": sources " in ln), p.text("stderr")
+        assert p.wait_line("stdout", lambda ln: ln.startswith("t=")), p.text("stdout")
+        t0 = time.monotonic()
+        p.proc.send_signal(sig)
+        rc = p.finish(timeout=10)
+        took = time.monotonic() - t0
+    finally:
+        p.kill()
+    err = p.text("stderr")
+    assert rc == 0, err
+    assert took < 1.0 + STOP_SLACK_S, f"{took:.2f} s from {sig.name} to exit"
+    assert re.search(r"^stopped after \d+\.\d s: \d+ messages in", err, re.M), err
+    assert re.search(r"^dropped: ", err, re.M), err
+    assert "Traceback" not in err
+
+
+@pytest.mark.usefixtures("capsys")  # the console backend's lines
+def test_the_gateways_own_stop_path_is_bounded_by_its_budget() -> None:
+    """The in-process half of the signal test: ``Gateway.stop`` with the embedded default
+    (what SIGINT/SIGTERM call) takes at most the 1 s budget, whatever the machine's load does
+    to process start-up and exit around it."""
+    args = cli.build_parser().parse_args(["run", "--sim-speed", "10"])
+    cfg = cli.config_from_args(args)
+    g = Gateway(cfg, status_out=io.StringIO())
+    done = threading.Event()
+    orig = g.ingest
+
+    def ingest(msg: object) -> None:
+        orig(msg)
+        if sum(g.counts.values()) >= 5:
+            done.set()
+
+    g.ingest = ingest  # type: ignore[method-assign]
+    g.start()
+    try:
+        assert done.wait(TIMEOUT_S)
+    finally:
+        t0 = time.monotonic()
+        summary = g.stop()
+        took = time.monotonic() - t0
+    assert took <= max(1.0, STOP_BUDGET_S), took
+    assert summary["messages_in"]["sm_update"] >= 1
+    assert all(not s._thread.is_alive() for s in g.sources)
+
+
+def test_the_embedded_default_prints_status_lines_and_console_lines() -> None:
+    r = gw("run", "--duration", "3", "--sim-speed", "20", cmd=[str(CONSOLE_SCRIPT)])
+    assert r.returncode == 0, r.stderr
+    status = [STATUS_LINE.match(ln) for ln in r.stderr.splitlines()]
+    status = [m for m in status if m]
+    assert 2 <= len(status) <= 4, r.stderr  # one a second over 3 s
+    ups = [float(m.group(1)) for m in status]
+    counts = [int(m.group(2)) for m in status]
+    assert ups == sorted(ups) and counts == sorted(counts) and counts[0] > 0
+    assert ups[0] >= 0.9 and all(b > a for a, b in itertools.pairwise(ups)), ups
+    out = r.stdout.splitlines()
+    assert "*** link sim UP" in out
+    assert any(ln.startswith("t=") and " m/s" in ln for ln in out), out
+    assert any(ln.startswith("--- sim: state ") for ln in out), out
+    assert re.search(r"^stopped after [34]\.\d s", r.stderr, re.M), r.stderr
+
+
+def test_run_is_the_default_command() -> None:
+    r = gw("--duration", "0.3", "--sim-speed", "50", "--status-interval", "0")
+    assert r.returncode == 0, r.stderr
+    assert "stopped after" in r.stderr
+
+
+# -- record, replay, simulate ---------------------------------------------------------------------
+
+def _sample_recording(path: Path, span_s: float) -> list[tuple[float, bytes]]:
+    frames = [f for _, f in flight_frames(FlightModel(FlightProfile()), 10, 1, cycles=1)]
+    frames = [*frames[150:180], frame(0x42, b"relay me")]
+    items = [(1_700_000_000.0 + span_s * i / (len(frames) - 1), f)
+             for i, f in enumerate(frames)]
+    rec = Recorder(path)
+    for t, f in items:
+        rec.write(f, t=t)
+    rec.close()
+    return items
+
+
+def test_replay_command_replays_into_a_new_recording(tmp_path: Path) -> None:
+    src = tmp_path / "in.agrec"
+    items = _sample_recording(src, span_s=600.0)
+    no_backends = tmp_path / "quiet.toml"
+    no_backends.write_text("[gateway]\nstatus_interval_s = 0\n")
+    out = tmp_path / "out.agrec"
+    r = gw("replay", str(src), "--speed", "0", "--config", str(no_backends),
+           "--record", str(out))
+    assert r.returncode == 0, r.stderr
+    assert [f for _, f in recording.read(out)] == [f for _, f in items]
+    assert f"{len(items)} frames recorded" in r.stderr
+
+
+def test_record_command_records_what_its_source_receives(tmp_path: Path) -> None:
+    src = tmp_path / "in.agrec"
+    items = _sample_recording(src, span_s=0.2)
+    out = tmp_path / "rec.agrec"
+    r = gw("record", str(out), "--source", f"replay:{src}", "--duration", "15",
+           "--status-interval", "0")
+    assert r.returncode == 0, r.stderr
+    assert [f for _, f in recording.read(out)] == [f for _, f in items]
+
+
+@pytest.fixture
+def listener() -> Iterator[socket.socket]:
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.settimeout(TIMEOUT_S)
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+def _receive_all(conn: socket.socket) -> bytes:
+    conn.settimeout(TIMEOUT_S)
+    chunks = []
+    while data := conn.recv(65536):
+        chunks.append(data)
+    return b"".join(chunks)
+
+
+def test_simulate_writes_exactly_the_flight_frames_and_retries_a_missing_port(
+        listener: socket.socket) -> None:
+    """The port has no listener when simulate starts: it retries, then writes every frame."""
+    port = listener.getsockname()[1]
+    p = Running("simulate", "--out", f"socket://127.0.0.1:{port}", "--speed", "0",
+                "--cycles", "1", "--revision", "36", "--log-level", "warning")
+    try:
+        assert p.wait_line("stderr", lambda ln: "retrying" in ln), p.text("stderr")
+        listener.listen(1)
+        conn, _ = listener.accept()
+        with conn:
+            data = _receive_all(conn)
+        assert p.finish() == 0, p.text("stderr")
+    finally:
+        p.kill()
+    expected = [f for _, f in flight_frames(FlightModel(FlightProfile(revision=36)), 10, 1,
+                                            cycles=1)]
+    assert data == b"".join(expected)
+    assert decode_all(data)[-1].state_name == "IDLE"
+    assert f"simulate: {len(expected)} frames written" in p.text("stderr")
+
+
+def test_decode_output_is_to_wire_dict_of_each_frame(tmp_path: Path) -> None:
+    frames = [f for _, f in flight_frames(FlightModel(FlightProfile()), 10, 1, cycles=1)][:40]
+    cap = tmp_path / "sim.bin"
+    cap.write_bytes(b"".join(frames))
+    r = gw("decode", str(cap))
+    assert r.returncode == 0, r.stderr
+    got = [json.loads(ln) for ln in r.stdout.splitlines()]
+    assert got == [json.loads(json.dumps(to_wire_dict(m))) for m in decode_all(cap.read_bytes())]
+
+
+def test_config_from_args_overrides_the_embedded_default() -> None:
+    args = cli.build_parser().parse_args(["run", "--source", "sim", "--source", "loop://",
+                                          "--baud", "9600", "--sim-speed", "3",
+                                          "--status-interval", "0.5"])
+    cfg = cli.config_from_args(args)
+    assert [p.type for p in cfg.sources] == ["sim", "serial"]
+    assert cfg.sources[0].options["speed"] == 3.0
+    assert cfg.sources[1].options["baudrate"] == 9600
+    assert cfg.gateway["status_interval_s"] == 0.5
+    assert isinstance(cfg, config.GatewayConfig)

@@ -1,0 +1,487 @@
+"""Sources over real byte streams: the serial source on a pty pair and on ``socket://`` against
+a TCP server the test runs on 127.0.0.1; the simulated flight; the replay of a recording.
+
+Synchronisation is on events with deadlines: a sink that notifies a condition for every
+message, log records that set events, and the sources' own ``done`` events.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import socket
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dialects.states import SimpleState as S
+from gateway import recording
+from gateway.config import ConfigError
+from gateway.flight import FlightModel, FlightProfile
+from gateway.model import RawFrame, SmUpdate, Status
+from gateway.recording import Recorder
+from gateway.sources.replay import ReplaySource
+from gateway.sources.serial_source import SerialSource
+from gateway.sources.sim import BOOT_UPTIME_MS, SimSource, flight_frames
+from gateway.wire import decode_all, encode, frame
+
+DEADLINE_S = 10.0
+SIMPLE_ORDER = [S.IDLE, S.ARMED, S.BOOST, S.BURNOUT, S.APOGEE, S.MAIN, S.REDUNDANT, S.LANDED,
+                S.IDLE]
+PROBE_TYPE = 0x7E
+
+
+# -- helpers -------------------------------------------------------------------------------------
+
+class Sink:
+    """Collects what a source emits (with a monotonic stamp) and wakes waiters."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[float, Any]] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, msg: Any) -> None:
+        with self.cond:
+            self.items.append((time.monotonic(), msg))
+            self.cond.notify_all()
+
+    @property
+    def msgs(self) -> list[Any]:
+        with self.cond:
+            return [m for _, m in self.items]
+
+    def wait_for(self, pred: Callable[[list[Any]], bool], timeout: float = DEADLINE_S) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: pred([m for _, m in self.items]), timeout)
+
+    def wait_count(self, n: int, timeout: float = DEADLINE_S,
+                   keep: Callable[[Any], bool] = lambda m: True) -> bool:
+        return self.wait_for(lambda ms: sum(1 for m in ms if keep(m)) >= n, timeout)
+
+
+def not_probe(m: Any) -> bool:
+    return not (isinstance(m, RawFrame) and m.type == PROBE_TYPE)
+
+
+class _LogEvent(logging.Handler):
+    def __init__(self, text: str) -> None:
+        super().__init__(logging.DEBUG)
+        self.text = text
+        self.event = threading.Event()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.text in record.getMessage():
+            self.event.set()
+
+
+@contextlib.contextmanager
+def log_event(logger: str, text: str) -> Iterator[threading.Event]:
+    """An event set when ``logger`` logs a message containing ``text``."""
+    h = _LogEvent(text)
+    lg = logging.getLogger(logger)
+    old = lg.level
+    lg.setLevel(logging.DEBUG)
+    lg.addHandler(h)
+    try:
+        yield h.event
+    finally:
+        lg.removeHandler(h)
+        lg.setLevel(old)
+
+
+def stop_in_time(src: Any, budget: float = 1.0) -> float:
+    """Stop ``src``; assert its thread ended within ``budget``; return how long it took."""
+    t0 = time.monotonic()
+    src.stop(budget)
+    took = time.monotonic() - t0
+    assert src._thread is not None and not src._thread.is_alive(), "source thread still alive"
+    return took
+
+
+def write_all(fd: int, data: bytes, chunk: int = 97) -> None:
+    """Write ``data`` to ``fd`` in odd-sized pieces (frames split across reads)."""
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view[:chunk])
+        view = view[n:]
+
+
+def sample_frames() -> list[bytes]:
+    """Both SM_UPDATE revisions, STATUS, and frames of types nobody decodes."""
+    f64 = [f for _, f in flight_frames(FlightModel(FlightProfile()), 10, 1, cycles=1)][140:200]
+    f36 = [f for _, f in flight_frames(FlightModel(FlightProfile(revision=36)), 10, 1,
+                                       cycles=1)][140:170]
+    return [*f64, frame(0x42, b"\x01\x02\x03"), *f36, frame(0x10, b""),
+            frame(0x01, b"\x00" * 20)]
+
+
+@pytest.fixture
+def pty_pair() -> Iterator[tuple[int, str]]:
+    """(master fd, slave path).  The test keeps the slave open too, in raw mode, so nothing is
+    echoed or line-edited before the source configures the port itself."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        yield master, os.ttyname(slave)
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def wait_until_reading(send: int | Callable[[bytes], Any], sink: Sink) -> None:
+    """pyserial discards pending input when it opens a port (a tty's ``tcflush``; for
+    ``socket://`` it reads and drops whatever arrived before ``open()`` returned), so bytes
+    sent before the source's open completes are lost: send probe frames until one comes
+    through.  ``send`` is a pty master fd or a function (a socket's ``sendall``)."""
+    write = (lambda b: os.write(send, b)) if isinstance(send, int) else send
+    probe = frame(PROBE_TYPE, b"probe")
+    seen = sum(1 for m in sink.msgs if not not_probe(m))
+    deadline = time.monotonic() + DEADLINE_S
+    while not sink.wait_count(seen + 1, 0.05, keep=lambda m: not not_probe(m)):
+        assert time.monotonic() < deadline, "the source never read what was sent"
+        write(probe)
+
+
+# -- serial source on a pty ----------------------------------------------------------------------
+
+def test_pty_frames_are_decoded_and_delivered_with_the_source_name(
+        pty_pair: tuple[int, str]) -> None:
+    master, slave_path = pty_pair
+    src = SerialSource(slave_path, baudrate=9600, name="rocket")
+    sink = Sink()
+    src.start(sink)
+    try:
+        wait_until_reading(master, sink)
+        expected = sample_frames()
+        write_all(master, b"\x00garbage\xa5" + b"".join(expected))
+        assert sink.wait_count(len(expected), keep=not_probe)
+        got = [m for m in sink.msgs if not_probe(m)]
+        assert [m.raw for m in got] == expected
+        assert got == decode_all(b"".join(expected), origin="rocket")
+        assert {m.origin for m in sink.msgs} == {"rocket"}
+        kinds = {type(m) for m in got}
+        assert kinds == {SmUpdate, Status, RawFrame}
+        assert {m.payload_len for m in got if isinstance(m, SmUpdate)} == {36, 64}
+        st = src.stats()
+        assert st["opens"] == 1 and st["disconnects"] == 0
+        assert st["crc_failures"] == 0 and st["bytes_skipped"] >= len(b"\x00garbage\xa5")
+    finally:
+        took = stop_in_time(src)
+    assert took < 1.0
+
+
+def test_a_pty_whose_master_goes_away_is_a_counted_disconnect_not_a_crash() -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    src = SerialSource(os.ttyname(slave), name="pty", reconnect_max_s=0.2)
+    sink = Sink()
+    try:
+        with log_event("gateway.sources.serial_source", "port failed") as failed:
+            src.start(sink)
+            wait_until_reading(master, sink)
+            os.close(master)  # hang up: the source's reads fail from now on
+            master = -1
+            assert failed.wait(DEADLINE_S), "the hang-up was not noticed"
+        assert src._thread is not None and src._thread.is_alive()  # retrying, not dead
+        assert src.stats()["disconnects"] == 1
+        assert stop_in_time(src) < 1.0
+    finally:
+        src.stop(1.0)
+        if master >= 0:
+            os.close(master)
+        os.close(slave)
+
+
+# -- serial source on socket:// --------------------------------------------------------------------
+
+@pytest.fixture
+def server() -> Iterator[socket.socket]:
+    srv = socket.create_server(("127.0.0.1", 0))
+    srv.settimeout(DEADLINE_S)
+    try:
+        yield srv
+    finally:
+        srv.close()
+
+
+def test_socket_source_counts_a_disconnect_reconnects_and_continues(
+        server: socket.socket) -> None:
+    port = server.getsockname()[1]
+    src = SerialSource(f"socket://127.0.0.1:{port}", name="tcp", reconnect_max_s=0.5)
+    sink = Sink()
+    frames = sample_frames()
+    first, second = frames[:40], frames[40:]
+    src.start(sink)
+    try:
+        conn1, _ = server.accept()
+        with conn1:
+            wait_until_reading(conn1.sendall, sink)
+            conn1.sendall(b"".join(first))
+        # the server closed right after sending: everything sent still arrives
+        assert sink.wait_count(len(first), keep=not_probe)
+        conn2, _ = server.accept()  # the source reconnects on its own
+        with conn2:
+            wait_until_reading(conn2.sendall, sink)
+            conn2.sendall(b"".join(second))
+            assert sink.wait_count(len(frames), keep=not_probe)
+            assert [m.raw for m in sink.msgs if not_probe(m)] == frames
+            assert {m.origin for m in sink.msgs} == {"tcp"}
+            st = src.stats()
+            assert st["disconnects"] == 1
+            assert st["opens"] == 2
+            took = stop_in_time(src)  # connected and idle
+    finally:
+        src.stop(1.0)
+    assert took < 1.0
+
+
+def test_a_port_with_no_listener_yet_is_retried_not_fatal() -> None:
+    # Bound but not listening: connects are refused until listen() is called.
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.settimeout(DEADLINE_S)
+    port = srv.getsockname()[1]
+    src = SerialSource(f"socket://127.0.0.1:{port}", name="late", reconnect_max_s=0.2)
+    sink = Sink()
+    try:
+        with log_event("gateway.sources.serial_source", "retrying") as retrying:
+            src.start(sink)
+            assert retrying.wait(DEADLINE_S), "no failed open was reported"
+        assert src._thread is not None and src._thread.is_alive()
+        assert src.stats()["open_failures"] >= 1 and src.stats()["opens"] == 0
+        srv.listen(1)
+        conn, _ = srv.accept()
+        with conn:
+            wait_until_reading(conn.sendall, sink)
+            expected = sample_frames()[:10]
+            conn.sendall(b"".join(expected))
+            assert sink.wait_count(len(expected), keep=not_probe)
+            assert [m.raw for m in sink.msgs if not_probe(m)] == expected
+            assert src.stats()["opens"] == 1
+        took = stop_in_time(src)
+    finally:
+        src.stop(1.0)
+        srv.close()
+    assert took < 1.0
+
+
+def test_stop_while_retrying_a_refused_port_is_quick() -> None:
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))  # never listens
+    port = srv.getsockname()[1]
+    src = SerialSource(f"socket://127.0.0.1:{port}", reconnect_max_s=5.0)
+    try:
+        with log_event("gateway.sources.serial_source", "retrying") as retrying:
+            src.start(Sink())
+            assert retrying.wait(DEADLINE_S)
+        assert stop_in_time(src) < 1.0
+        assert src.done.is_set()
+    finally:
+        src.stop(1.0)
+        srv.close()
+
+
+def _syn_sent_to(port: int) -> int:
+    """Sockets of this host in SYN_SENT towards 127.0.0.1:port (Linux /proc/net/tcp)."""
+    want = f"0100007F:{port:04X}"
+    n = 0
+    with open("/proc/net/tcp") as f:
+        next(f)
+        for line in f:
+            cols = line.split()
+            if cols[2] == want and cols[3] == "02":
+                n += 1
+    return n
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/net/tcp"), reason="needs Linux /proc/net/tcp")
+def test_stop_ends_the_thread_within_1s_even_while_a_connect_hangs() -> None:
+    """pyserial's socket:// connect waits up to 5 s when SYNs go unanswered (a host gone from
+    the network).  On loopback the same happens with a listener whose backlog is full."""
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(0)
+    port = srv.getsockname()[1]
+    fillers = []
+    for _ in range(3):  # fill the accept queue; later SYNs are dropped
+        c = socket.socket()
+        c.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            c.connect(("127.0.0.1", port))
+        fillers.append(c)
+    src = SerialSource(f"socket://127.0.0.1:{port}")
+    try:
+        baseline = _syn_sent_to(port)
+        src.start(Sink())
+        deadline = time.monotonic() + DEADLINE_S
+        stalled = threading.Event()
+        while _syn_sent_to(port) <= baseline:  # wait for the source's connect to hang
+            assert time.monotonic() < deadline, "the source never tried to connect"
+            stalled.wait(0.01)
+        assert stop_in_time(src) < 1.0
+    finally:
+        src.stop(1.0)
+        for c in fillers:
+            c.close()
+        srv.close()
+
+
+# -- sim source --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("revision", [64, 36])
+def test_sim_with_speed_0_and_one_cycle_emits_exactly_one_flight(revision: int) -> None:
+    src = SimSource(speed=0, cycles=1, revision=revision)
+    model = FlightModel(FlightProfile(revision=revision))
+    sink = Sink()
+    src.start(sink)
+    try:
+        assert src.done.wait(30), "the one-cycle simulation did not finish"
+    finally:
+        stop_in_time(src)
+    msgs = sink.msgs
+    sm = [m for m in msgs if isinstance(m, SmUpdate)]
+    st = [m for m in msgs if isinstance(m, Status)]
+    assert len(sm) + len(st) == len(msgs) == src.stats()["sent"]
+    # SM_UPDATE at 10 Hz over one cycle, up to the first sample after the return to IDLE
+    assert [m.timestamp_ms for m in sm] == [BOOT_UPTIME_MS + 100 * k for k in range(len(sm))]
+    assert (len(sm) - 2) * 0.1 < model.cycle_s <= (len(sm) - 1) * 0.1 + 1e-9
+    # STATUS at 1 Hz over the same span
+    assert [m.timestamp_ms for m in st] == [BOOT_UPTIME_MS + 1000 * k for k in range(len(st))]
+    assert len(st) == int((len(sm) - 1) * 0.1) + 1
+    # merged in time order
+    stamps = [m.timestamp_ms for m in msgs]
+    assert stamps == sorted(stamps)
+    # the SIMPLE state order, once, ending back in IDLE (disarmed)
+    states = [m.state for m in sm]
+    runs = [s for i, s in enumerate(states) if i == 0 or s != states[i - 1]]
+    assert runs == SIMPLE_ORDER
+    assert not sm[-1].armed and sm[-2].state == S.LANDED and sm[-2].armed
+    for k, m in enumerate(sm):
+        assert m.state == model.state_at(k * 0.1)
+        assert m.payload_len == revision
+    for m in st:
+        assert m.state == model.state_at((m.timestamp_ms - BOOT_UPTIME_MS) / 1000)
+        assert m.armed == (S.ARMED <= m.state <= S.LANDED)
+    # messages carry their raw frames, which decode to themselves
+    assert {m.origin for m in msgs} == {"sim"}
+    for m in msgs:
+        assert decode_all(m.raw, origin="sim") == [m]
+        assert encode(m) == m.raw
+
+
+def test_sim_source_stops_within_1s_while_pacing() -> None:
+    src = SimSource(speed=1.0, name="slow-sim")
+    sink = Sink()
+    src.start(sink)
+    try:
+        assert sink.wait_count(2)  # running, waiting for the next 100 ms slot
+        assert {m.origin for m in sink.msgs} == {"slow-sim"}
+    finally:
+        took = stop_in_time(src)
+    assert took < 1.0
+    assert src.done.is_set()
+
+
+# -- replay ------------------------------------------------------------------------------------
+
+def make_recording(path: Path, frames: list[bytes], span_s: float,
+                   t0: float = 1_700_000_000.0) -> list[tuple[float, bytes]]:
+    items = [(t0 + span_s * i / (len(frames) - 1), f) for i, f in enumerate(frames)]
+    rec = Recorder(path)
+    for t, f in items:
+        rec.write(f, t=t)
+    rec.close()
+    return items
+
+
+def run_replay(src: ReplaySource, timeout: float = DEADLINE_S) -> Sink:
+    sink = Sink()
+    src.start(sink)
+    try:
+        assert src.done.wait(timeout), "the replay did not finish"
+    finally:
+        stop_in_time(src)
+    return sink
+
+
+def test_replay_at_speed_0_emits_every_frame_in_order(tmp_path: Path) -> None:
+    frames = sample_frames()
+    make_recording(tmp_path / "f.agrec", frames, span_s=3600.0)  # an hour, replayed at once
+    src = ReplaySource(str(tmp_path / "f.agrec"), speed=0)
+    sink = run_replay(src, timeout=5.0)
+    assert [m.raw for m in sink.msgs] == frames
+    assert {m.origin for m in sink.msgs} == {"replay:f.agrec"}
+    assert src.stats()["frames"] == len(frames) == src.stats()["records"]
+    assert src.stats()["torn_tail_bytes"] == 0
+
+
+@pytest.mark.parametrize("speed", [4.0, 10.0])
+def test_replay_at_speed_n_compresses_the_recorded_span_n_fold(tmp_path: Path,
+                                                               speed: float) -> None:
+    frames = sample_frames()[:41]
+    items = make_recording(tmp_path / "p.agrec", frames, span_s=2.0)
+    sink = run_replay(ReplaySource(str(tmp_path / "p.agrec"), speed=speed))
+    stamps = [s for s, _ in sink.items]
+    assert [m.raw for m in sink.msgs] == frames
+    want = 2.0 / speed
+    span = stamps[-1] - stamps[0]
+    # a behaviour check, loose on purpose (scheduling noise of a loaded machine)
+    assert want - 0.05 <= span <= 3 * want + 0.1, (span, want)
+    for (s, _), (t, _) in zip(sink.items, items, strict=True):  # never early
+        assert s - stamps[0] >= (t - items[0][0]) / speed - 0.05
+
+
+def test_replay_skips_a_torn_tail(tmp_path: Path) -> None:
+    frames = sample_frames()[:20]
+    path = tmp_path / "torn.agrec"
+    make_recording(path, frames, span_s=1.0)
+    data = path.read_bytes()
+    path.write_bytes(data[:-7])  # the last record loses its CRC and part of its frame
+    src = ReplaySource(str(path), speed=0)
+    sink = run_replay(src)
+    assert [m.raw for m in sink.msgs] == frames[:-1]
+    assert src.stats()["torn_tail_bytes"] > 0
+    assert src.stats()["crc_failures"] == 0
+
+
+def test_replay_passes_a_corrupt_record_in_the_middle(tmp_path: Path) -> None:
+    frames = sample_frames()[:10]
+    path = tmp_path / "c.agrec"
+    make_recording(path, frames, span_s=1.0)
+    data = bytearray(path.read_bytes())
+    off = len(recording.HEADER) + sum(len(f) + recording.REC_OVERHEAD for f in frames[:3])
+    data[off + 12] ^= 0x55  # inside the fourth record's frame
+    path.write_bytes(bytes(data))
+    src = ReplaySource(str(path), speed=0)
+    sink = run_replay(src)
+    assert [m.raw for m in sink.msgs] == frames[:3] + frames[4:]
+    assert src.stats()["corrupt_skips"] == 1
+
+
+def test_replay_loop_repeats_until_stopped(tmp_path: Path) -> None:
+    frames = sample_frames()[:5]
+    make_recording(tmp_path / "l.agrec", frames, span_s=0.01)
+    src = ReplaySource(str(tmp_path / "l.agrec"), speed=1.0, loop=True)
+    sink = Sink()
+    src.start(sink)
+    try:
+        assert sink.wait_count(3 * len(frames))
+        assert not src.done.is_set()
+    finally:
+        took = stop_in_time(src)
+    assert took < 1.0
+    assert [m.raw for m in sink.msgs[:15]] == frames * 3
+
+
+def test_replay_of_a_missing_or_foreign_file_is_a_config_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no recording"):
+        ReplaySource(str(tmp_path / "nope.agrec"))
+    (tmp_path / "x.txt").write_text("hello, not a recording\n")
+    with pytest.raises(ConfigError, match="magic"):
+        ReplaySource(str(tmp_path / "x.txt"))
