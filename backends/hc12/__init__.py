@@ -1,0 +1,6 @@
+"""HC-12 433 MHz radio backend: relay or re-transmit Aurora frames within the air link's
+budget, and provision the module safely (``aurora-gateway hc12 …``).  See README.md."""
+
+from backends.hc12.backend import Hc12Backend
+
+__all__ = ["Hc12Backend"]

@@ -1,0 +1,305 @@
+"""The HC-12 backend: relay or re-transmit Aurora frames within the air link's budget.
+
+Every frame goes through a :class:`gateway.link.LinkEngine` (bounded queue, default 16; a
+worker thread owns the port; full → dropped and counted; the producer never blocks; optional
+minimum interval between accepted SM_UPDATEs, STATUS exempt).  In front of the engine an
+:class:`~backends.hc12.budget.AirBudget` admits a frame only if the air link can carry it
+(STATUS may use a small reserve but is charged like everything else); a frame it refuses is
+dropped as ``THROTTLED`` and counted as ``dropped_budget``.
+
+Modes:
+
+``relay``
+    every frame a source received — SM_UPDATE of either revision, STATUS, unknown types —
+    goes out byte-identical (``msg.raw``); messages built in memory (no ``raw``) are encoded;
+``generate``
+    the backend encodes SM_UPDATEs itself in the configured revision (36 or 64 bytes),
+    STATUS and unknown frames as they are.
+
+Messages whose ``origin`` is this backend's port are never sent back to it.  The backend also
+serves provisioning (``aurora-gateway hc12 …``) through its control socket, under the
+worker's lock and with its knowledge of the vehicle's state (see ``control.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+from backends.hc12 import at, control
+from backends.hc12.budget import DEFAULT_PRIORITY_RESERVE, AirBudget, figures
+from backends.hc12.port import open_port
+from backends.hc12.provision import (
+    ProvisionError,
+    Refused,
+    Result,
+    Timing,
+    check_allowed,
+    plan,
+    run_request,
+)
+from backends.hc12.setline import SetLine, make_set_line, parse_set_line
+from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
+from gateway.backend import Backend, BackendError, Outcome
+from gateway.config import Key, Schema
+from gateway.link import LinkEngine
+from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
+from gateway.wire import encode
+
+log = logging.getLogger(__name__)
+
+MODES = ("relay", "generate")
+
+
+class Hc12Backend(Backend):
+    """Drives an HC-12 433 MHz UART radio (see the module docstring)."""
+
+    NAME = "hc12"
+    CONFIG = Schema(
+        url=Key(str, help="the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
+                "rfc2217://host:port"),
+        baudrate=Key(int, 9600, "host UART rate; must equal the module's (AT+B)",
+                     choices=at.BAUD_RATES),
+        mode=Key(str, "relay", "relay: pass frames on byte-identical; generate: encode "
+                 "updates in `revision`", choices=MODES),
+        revision=Key(int, SM_UPDATE_F64_LEN, "SM_UPDATE payload length in generate mode",
+                     choices=(SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN)),
+        air_baud=Key(int, 9600, "the link rate the byte budget is computed from (10 bits a "
+                     "byte); the lower of this and baudrate counts", minimum=300,
+                     maximum=1_000_000),
+        utilisation_pct=Key(float, 80.0, "share of the air link frames may use", minimum=1,
+                            maximum=100),
+        burst_bytes=Key(int, None, "bytes that may go out back to back; default: the "
+                        "headroom of one second", minimum=0, maximum=65536, nullable=True),
+        queue_depth=Key(int, 16, "frames waiting for the port before drops", minimum=1,
+                        maximum=4096),
+        min_interval_s=Key(float, 0.0, "least time between accepted SM_UPDATEs; 0 = off "
+                           "(STATUS exempt)", minimum=0),
+        set_line=Key(str, "none", "the module's SET line: none, rts, dtr or gpio:CHIP:LINE"),
+        set_invert=Key(bool, False, "SET is driven through an inverter"),
+        at_baud=Key(int, at.AT_BAUD, "host UART rate while in AT mode", choices=at.BAUD_RATES),
+        reply_timeout_s=Key(float, 1.0, "how long to wait for an AT reply", minimum=0.05,
+                            maximum=30),
+        idle_max_age_s=Key(float, DEFAULT_MAX_AGE_S, "how fresh the vehicle's IDLE must be "
+                           "for provisioning", minimum=0.1, maximum=600),
+        control=Key(str, "auto", "control socket for `aurora-gateway hc12`: auto, off or a "
+                    "path"),
+    )
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
+
+    def __init__(self, url: str, baudrate: int = 9600, mode: str = "relay",
+                 revision: int = SM_UPDATE_F64_LEN, air_baud: int = 9600,
+                 utilisation_pct: float = 80.0, burst_bytes: int | None = None,
+                 queue_depth: int = 16, min_interval_s: float = 0.0, set_line: str = "none",
+                 set_invert: bool = False, at_baud: int = at.AT_BAUD,
+                 reply_timeout_s: float = 1.0, idle_max_age_s: float = DEFAULT_MAX_AGE_S,
+                 control: str = "auto", name: str | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(name)
+        if mode not in MODES:
+            raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+        if revision not in (SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN):
+            raise ValueError(f"revision: expected 36 or 64, got {revision!r}")
+        if not url:
+            raise ValueError("url: the HC-12's port is required")
+        self.url = url
+        self.baudrate = baudrate
+        self.mode = mode
+        self.revision = revision
+        self.set_spec = parse_set_line(set_line, set_invert)
+        self.at_baud = at_baud
+        self.timing = Timing(reply_timeout_s=reply_timeout_s)
+        self.control = control
+        self._clock = clock
+        self.budget = AirBudget(figures(min(baudrate, air_baud), utilisation_pct, burst_bytes,
+                                        DEFAULT_PRIORITY_RESERVE), clock=clock)
+        self.watch = VehicleWatch(idle_max_age_s, clock=clock)
+        self.engine = LinkEngine(self._open, name=self.name, queue_depth=queue_depth,
+                                 min_interval_s=min_interval_s, clock=clock)
+        self._port: Any = None
+        self._set_line: SetLine | None = None
+        self._control: control.ControlServer | None = None
+        self._provision_lock = threading.Lock()
+        self.control_path: Any = None
+        self.encoded = 0
+        self.skipped_loop = 0
+        self.at_exchanges = 0
+        self.at_failures = 0
+        self.at_refused = 0
+
+    # -- run flags -------------------------------------------------------------------------------
+
+    @classmethod
+    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--hc12", metavar="URL",
+                            help="HC-12 backend: relay frames to the HC-12 on this port or URL")
+        parser.add_argument("--hc12-baud", type=int, metavar="N",
+                            help="HC-12 backend: host UART rate (the module's AT+B rate)")
+        parser.add_argument("--hc12-mode", choices=MODES,
+                            help="HC-12 backend: relay frames byte-identical or generate them")
+
+    @classmethod
+    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
+        opts: dict[str, Any] = {}
+        if getattr(args, "hc12", None):
+            opts["url"] = args.hc12
+        if getattr(args, "hc12_baud", None) is not None:
+            opts["baudrate"] = args.hc12_baud
+        if getattr(args, "hc12_mode", None):
+            opts["mode"] = args.hc12_mode
+        return opts or None
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    def _open(self) -> Any:
+        port = open_port(self.url, self.baudrate, self.set_spec)
+        self._port = port
+        return port
+
+    def init(self) -> None:
+        self.engine.start()
+        path = None
+        try:
+            path = control.resolve(self.control, self.url)
+            if path is not None:
+                server = control.ControlServer(path, self.handle_control, name=self.name)
+                server.start()
+                self._control = server
+                self.control_path = path
+        except OSError as exc:
+            if "served by another running gateway" in str(exc):
+                self.engine.close(0.2)
+                raise BackendError(f"another gateway already drives {self.url} ({exc})") from exc
+            log.warning("%s: no control socket (%s); `aurora-gateway hc12` cannot reach this "
+                        "gateway", self.name, exc)
+
+    def close(self) -> None:
+        server, self._control = self._control, None
+        if server is not None:
+            server.close()
+        self.engine.drain(0.2)
+        self.engine.close(0.8)  # closing an rfc2217:// port alone takes pyserial 0.3 s
+        line, self._set_line = self._set_line, None
+        if line is not None:
+            try:
+                line.release()
+            except Exception:
+                log.debug("%s: releasing SET failed", self.name, exc_info=True)
+
+    # -- hooks ---------------------------------------------------------------------------------
+
+    def _loops_back(self, origin: str) -> bool:
+        return bool(origin) and origin in (self.url, self.name)
+
+    def _frame(self, msg: SmUpdate | Status | RawFrame) -> bytes:
+        if self.mode == "relay" and msg.raw:
+            return msg.raw
+        self.encoded += 1
+        if isinstance(msg, SmUpdate) and self.mode == "generate":
+            return encode(msg._replace(payload_len=self.revision))
+        return encode(msg)
+
+    def _submit(self, data: bytes, *, rate_limited: bool, priority: bool) -> Outcome:
+        now = self._clock()
+        if not self.budget.admit(len(data), priority=priority, now=now):
+            return Outcome.THROTTLED
+        outcome = self.engine.submit(data, rate_limited=rate_limited)
+        if outcome is Outcome.ACCEPTED:
+            self.budget.commit(len(data), now=now)
+        return outcome
+
+    def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        self.watch.observe(msg)
+        if self._loops_back(msg.origin):
+            self.skipped_loop += 1
+            return Outcome.ACCEPTED
+        return self._submit(self._frame(msg), rate_limited=True, priority=False)
+
+    def send_status(self, msg: Status) -> Outcome:
+        self.watch.observe(msg)
+        if self._loops_back(msg.origin):
+            self.skipped_loop += 1
+            return Outcome.ACCEPTED
+        return self._submit(self._frame(msg), rate_limited=False, priority=True)
+
+    def send_raw(self, msg: RawFrame) -> Outcome:
+        if self._loops_back(msg.origin):
+            self.skipped_loop += 1
+            return Outcome.ACCEPTED
+        return self._submit(self._frame(msg), rate_limited=False, priority=False)
+
+    # -- provisioning ----------------------------------------------------------------------------
+
+    def provision(self, op: str, arg: Any = None, bench: bool = False) -> Result:
+        """Run one provisioning request under the TX worker's lock (see provision.py)."""
+        with self._provision_lock:
+            try:
+                plan(op, arg)
+            except at.AtUsageError as exc:
+                return Result(False, op, error=str(exc), kind="usage")
+            engine_lock = self.engine.lock
+            if not engine_lock.acquire(timeout=5.0):
+                return Result(False, op, kind="failed",
+                              error="the HC-12 port stayed busy; nothing was sent")
+            try:
+                port = self._port
+                if port is None or not getattr(port, "is_open", False):
+                    return Result(False, op, kind="failed",
+                                  error=f"{self.url} is not open (the gateway keeps retrying "
+                                        f"it); nothing was sent")
+                if self._set_line is None or getattr(self._set_line, "port", port) is not port:
+                    self._set_line = make_set_line(self.set_spec, port)
+                set_line = self._set_line
+                try:
+                    check_allowed(set_line, self.watch, bench)
+                except Refused as exc:
+                    self.at_refused += 1
+                    return Result(False, op, error=str(exc), kind="refused")
+                except ProvisionError as exc:
+                    self.at_failures += 1
+                    return Result(False, op, error=str(exc), kind="failed")
+                result = run_request(port, set_line, engine_lock, op, arg,
+                                     host_baud=self.baudrate, at_baud=self.at_baud,
+                                     timing=self.timing)
+            finally:
+                engine_lock.release()
+            self.at_exchanges += 1
+            if not result.ok:
+                self.at_failures += 1
+            return result
+
+    def handle_control(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A control-socket request → a JSON-able reply."""
+        op = str(request.get("op", ""))
+        arg = request.get("arg")
+        bench = request.get("bench") is True
+        return self.provision(op, arg, bench).as_dict()
+
+    # -- reporting -----------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        s = self.engine.stats
+        b = self.budget
+        return {
+            "sent": s.sent_frames,
+            "sent_bytes": s.sent_bytes,
+            "dropped": s.dropped + b.refused_frames,
+            "dropped_budget": b.refused_frames,
+            "dropped_throttled": s.dropped_throttled,
+            "dropped_queue_full": s.dropped_queue_full,
+            "dropped_not_ready": s.dropped_not_ready,
+            "utilisation_pct": round(b.utilisation_pct(), 1),
+            "peak_1s_bytes": b.peak_1s_bytes,
+            "budget_bytes_per_s": round(b.fig.rate_bps, 1),
+            "capacity_bytes_per_s": round(b.fig.capacity_bps, 1),
+            "write_errors": s.write_errors,
+            "encoded": self.encoded,
+            "skipped_loop": self.skipped_loop,
+            "at_exchanges": self.at_exchanges,
+            "at_failures": self.at_failures,
+            "at_refused": self.at_refused,
+        }
