@@ -1,0 +1,255 @@
+"""The MAVLink backend: the rocket as a MAVLink vehicle on any number of endpoints, with
+mavlink-router-style routing between them and optional MAVLink 2 signing."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import threading
+from collections import deque
+from typing import Any, ClassVar
+
+from backends.mavlink import signing
+from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
+from backends.mavlink.ioloop import IoLoop
+from backends.mavlink.router import Router
+from backends.mavlink.translate import DEFAULT_RATES, AuroraVehicle
+from gateway import __version__
+from gateway.backend import Backend, BackendError, Outcome
+from gateway.config import Key, Schema
+from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
+
+log = logging.getLogger(__name__)
+
+QGC_UDP = "udpout:127.0.0.1:14550"
+INBOX_DEPTH = 256
+POLL_S = 0.02
+
+
+def _rate_key(key: str, help_text: str) -> Key:
+    return Key(float, DEFAULT_RATES[key], help_text + " (Hz, 0 = off)", minimum=0, maximum=1000)
+
+
+class MavlinkBackend(Backend):
+    """Streams the rocket to ground stations (QGroundControl, MAVProxy, MAVSDK) and routes
+    MAVLink between its endpoints.  Options: see :attr:`CONFIG` and the README."""
+
+    NAME = "mavlink"
+    CONFIG = Schema(
+        endpoints=Key(list, [QGC_UDP], "endpoints: udpout:/udpin:/tcpin:/tcp:HOST:PORT, "
+                      "serial:DEVICE[,BAUD]"),
+        sysid=Key(int, 1, "MAVLink system id of the rocket", minimum=1, maximum=254),
+        compid=Key(int, 1, "component id (1 = autopilot: what QGroundControl needs)",
+                   minimum=1, maximum=255),
+        route=Key(bool, True, "forward traffic between endpoints (mavlink-router style)"),
+        stale_after_s=Key(float, 3.0, "no update for this long: system status 'uninit'",
+                          minimum=0.1),
+        pad_altitude_amsl_m=Key(float, 0.0, "pad altitude above mean sea level, added to "
+                                "the rocket's altitude above the pad for AMSL fields"),
+        signing_key_file=Key(str, "", "MAVLink 2 signing key: 32 raw bytes or 64 hex digits"),
+        signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase (key = SHA-256 of it, "
+                               "as MAVProxy and QGroundControl derive it)"),
+        serial_queue_depth=Key(int, 256, "frames queued per serial/TCP-client endpoint",
+                               minimum=1),
+        heartbeat_hz=_rate_key("heartbeat_hz", "HEARTBEAT"),
+        sys_status_hz=_rate_key("sys_status_hz", "SYS_STATUS"),
+        extended_sys_state_hz=_rate_key("extended_sys_state_hz", "EXTENDED_SYS_STATE"),
+        attitude_hz=_rate_key("attitude_hz", "ATTITUDE, at most"),
+        altitude_hz=_rate_key("altitude_hz", "ALTITUDE, at most"),
+        vfr_hud_hz=_rate_key("vfr_hud_hz", "VFR_HUD, at most"),
+        named_value_hz=_rate_key("named_value_hz", "NAMED_VALUE_FLOAT accel/accel_vert, at most"),
+        position_hz=_rate_key("position_hz", "GLOBAL_POSITION_INT/GPS_RAW_INT, at most"),
+        battery_hz=_rate_key("battery_hz", "BATTERY_STATUS, at most"),
+        aurora_sm_update_hz=_rate_key("aurora_sm_update_hz", "AURORA_SM_UPDATE, at most"),
+        aurora_status_hz=_rate_key("aurora_status_hz", "AURORA_STATUS, at most"),
+    )
+    #: The default run shows the rocket in a QGroundControl on this machine.
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
+
+    def __init__(self, endpoints: list[str] | tuple[str, ...] = (QGC_UDP,), sysid: int = 1,
+                 compid: int = 1, route: bool = True, stale_after_s: float = 3.0,
+                 pad_altitude_amsl_m: float = 0.0, signing_key_file: str = "",
+                 signing_passphrase: str = "", serial_queue_depth: int = 256,
+                 name: str | None = None, **rates: float) -> None:
+        super().__init__(name)
+        unknown = set(rates) - set(DEFAULT_RATES)
+        if unknown:
+            raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
+        if not endpoints:
+            raise ValueError("endpoints: give at least one MAVLink endpoint")
+        if not isinstance(endpoints, list | tuple) or not all(
+                isinstance(e, str) for e in endpoints):
+            raise ValueError(f"endpoints: expected a list of strings, got {endpoints!r}")
+        self.specs = [parse_endpoint(e) for e in endpoints]  # ValueError names the endpoint
+        if signing_key_file and signing_passphrase:
+            raise ValueError("signing_key_file and signing_passphrase: give one, not both")
+        self.sysid = sysid
+        self.compid = compid
+        self.route = route
+        self.signing_key_file = signing_key_file
+        self.signing_passphrase = signing_passphrase
+        self.serial_queue_depth = serial_queue_depth
+        # A key that cannot be read is a configuration error, reported before anything starts.
+        self.signing_key = self._signing_key()
+        self.vehicle = AuroraVehicle(sysid, compid, rates={**DEFAULT_RATES, **rates},
+                                     stale_after_s=stale_after_s,
+                                     pad_altitude_amsl_m=pad_altitude_amsl_m,
+                                     version=__version__)
+        self.router: Router | None = None
+        self.loop: IoLoop | None = None
+        self.endpoints: list[Endpoint] = []
+        self._inbox: deque[Any] = deque()
+        self._inbox_lock = threading.Lock()
+        self.dropped_inbox = 0
+        self.ignored_origins: set[str] = set()
+
+    # -- CLI ---------------------------------------------------------------------------------
+
+    @classmethod
+    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--mavlink", action="append", metavar="ENDPOINT",
+                            help="MAVLink endpoint (repeatable; replaces the configured ones): "
+                                 "udpout:HOST:PORT, udpin:HOST:PORT, tcpin:HOST:PORT, "
+                                 "tcp:HOST:PORT, serial:DEVICE[,BAUD] "
+                                 f"(default {QGC_UDP}, QGroundControl on this machine)")
+        parser.add_argument("--mavlink-sysid", type=int, metavar="N",
+                            help="MAVLink system id of the rocket (default 1)")
+        parser.add_argument("--mavlink-signing-key", metavar="FILE",
+                            help="sign MAVLink 2 traffic with this key file and require "
+                                 "signed commands")
+
+    @classmethod
+    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
+        opts: dict[str, Any] = {}
+        if getattr(args, "mavlink", None):
+            opts["endpoints"] = list(args.mavlink)
+        if getattr(args, "mavlink_sysid", None) is not None:
+            opts["sysid"] = args.mavlink_sysid
+        if getattr(args, "mavlink_signing_key", None):
+            opts["signing_key_file"] = args.mavlink_signing_key
+        return opts or None
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    def _signing_key(self) -> bytes | None:
+        """The signing key, or None; raises SigningError (a ValueError) naming the file."""
+        if self.signing_key_file:
+            return signing.key_from_file(self.signing_key_file)
+        if self.signing_passphrase:
+            return signing.key_from_passphrase(self.signing_passphrase)
+        return None
+
+    def init(self) -> None:
+        key = self.signing_key
+        from backends.mavlink.source import MavlinkSource  # loop prevention: see send_position
+
+        self.ignored_origins = MavlinkSource.live_names
+        loop = IoLoop(self.name)
+        router = Router(self.vehicle, forward=self.route, signing_key=key)
+        started: list[Endpoint] = []
+        try:
+            for spec in self.specs:
+                ep = make_endpoint(spec, self.serial_queue_depth)
+                ep.start(loop, router)
+                started.append(ep)
+        except OSError as exc:
+            for ep in started:
+                ep.close()
+            loop.close()
+            raise BackendError(str(exc)) from None
+        self.loop, self.router, self.endpoints = loop, router, started
+        loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
+        loop.start()
+        log.info("%s: MAVLink system %d on %s%s", self.name, self.sysid,
+                 ", ".join(s.text for s in self.specs), " (signed)" if key else "")
+
+    def close(self) -> None:
+        loop, self.loop = self.loop, None
+        if loop is None:
+            return
+        loop.stop(0.5)
+        for ep in self.endpoints:
+            try:
+                ep.close()
+            except Exception:
+                log.debug("%s: closing %s failed", self.name, ep.name, exc_info=True)
+        loop.close()
+
+    # -- the loop thread -----------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        router = self.router
+        if router is None:
+            return
+        with router.lock:
+            out = self._drain()
+            out.extend(self.vehicle.poll())
+            if out:
+                router.broadcast(out)
+
+    def _drain(self) -> list[Any]:
+        out: list[Any] = []
+        inbox = self._inbox
+        update = self.vehicle.update
+        while inbox:
+            out.extend(update(inbox.popleft()))
+        return out
+
+    def _flush_inbox(self) -> None:
+        router = self.router
+        if router is None:
+            return
+        with router.lock:
+            out = self._drain()
+            if out:
+                router.broadcast(out)
+
+    # -- hooks (the dispatcher's thread: never block) ------------------------------------------
+
+    def _post(self, msg: Any) -> Outcome:
+        loop = self.loop
+        if loop is None:
+            return Outcome.NOT_READY
+        if len(self._inbox) >= INBOX_DEPTH:
+            self.dropped_inbox += 1
+            return Outcome.QUEUE_FULL
+        self._inbox.append(msg)
+        loop.call_soon(self._flush_inbox)
+        return Outcome.ACCEPTED
+
+    def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        return self._post(msg)
+
+    def send_status(self, msg: Status) -> Outcome:
+        return self._post(msg)
+
+    def send_position(self, msg: Position) -> Outcome:
+        if msg.origin in self.ignored_origins:
+            return Outcome.ACCEPTED  # it came from a MAVLink vehicle: it speaks for itself
+        return self._post(msg)
+
+    def send_battery(self, msg: Battery) -> Outcome:
+        if msg.origin in self.ignored_origins:
+            return Outcome.ACCEPTED
+        return self._post(msg)
+
+    def on_link(self, ev: LinkEvent) -> Outcome:
+        return Outcome.ACCEPTED  # staleness is judged from the updates themselves
+
+    # -- reporting -------------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        router = self.router
+        with router.lock if router is not None else contextlib.nullcontext():
+            eps = {ep.name: ep.stats() for ep in self.endpoints}  # sets change under routing
+        sent = sum(s.get("tx_frames", 0) for s in eps.values())
+        dropped = sum(s.get("tx_dropped", 0) for s in eps.values()) + self.dropped_inbox
+        d: dict[str, Any] = {"sent": sent, "dropped": dropped,
+                             "dropped_inbox": self.dropped_inbox, "endpoints": eps}
+        if self.router is not None:
+            d["router"] = self.router.stats.as_dict()
+            if self.router.verifier is not None:
+                d["signing"] = self.router.verifier.stats.as_dict()
+        d["vehicle"] = dict(self.vehicle.stats.__dict__)
+        return d

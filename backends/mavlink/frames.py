@@ -1,0 +1,228 @@
+"""Sans-I/O MAVLink framing for the router: split bytes into whole frames without decoding them.
+
+Only the header is read: version, length, flags, sequence, source, message id, and, for
+messages that have them, the target system/component bytes at their payload offsets.  A frame
+stays the exact bytes that arrived (``raw``), so forwarding never re-encodes.
+
+Validation follows the project's one resync rule: find a start marker (0xFD MAVLink 2, 0xFE
+MAVLink 1), check the header (a MAVLink 2 frame with unknown incompatibility flags, or a
+payload longer than its message allows, is not a frame), check the CRC (with the message's
+CRC_EXTRA); on any failure drop **one** byte and look for the next marker.  A message id the
+dialect does not know cannot have its CRC checked: like mavlink-router, such frames are
+passed on unvalidated (and counted as ``unknown_ids``) rather than dropped — but only while
+the framer is *in sync*: at the start of a datagram, or right after a frame that was
+validated (or accepted) ended.  After skipped bytes (garbage, a CRC failure, the start of a
+stream joined mid-frame) a frame with an unknown id could be anything, so the framer hunts
+byte by byte until a frame with a valid CRC puts it back in sync.
+
+:class:`StreamFramer` keeps a small buffer across reads (serial, TCP); :func:`split_datagram`
+frames one UDP datagram (a frame never spans datagrams).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import NamedTuple
+
+from fastcrc.crc16 import mcrf4xx
+
+from backends.mavlink.dialect import MESSAGES
+
+STX_V2 = 0xFD
+STX_V1 = 0xFE
+IFLAG_SIGNED = 0x01
+HEADER_V2 = 10
+HEADER_V1 = 6
+SIGNATURE_LEN = 13
+MAX_FRAME = HEADER_V2 + 255 + 2 + SIGNATURE_LEN  # 280
+STREAM_BUFFER_CAP = 4 * MAX_FRAME
+
+_MARKER = re.compile(rb"[\xfd\xfe]")
+
+# id → (CRC_EXTRA as one byte, max payload length, target_system offset, target_comp offset)
+_INFO: dict[int, tuple[bytes, int, int, int]] = {
+    i: (bytes((m.crc_extra,)), m.max_len, m.target_system_ofs, m.target_component_ofs)
+    for i, m in MESSAGES.items()
+}
+
+
+class Frame(NamedTuple):
+    """One MAVLink frame as it arrived.  ``target_system``/``target_component`` are -1 when
+    the message has no such field (or its id is unknown), 0 for broadcast."""
+
+    raw: bytes
+    msgid: int
+    sysid: int
+    compid: int
+    seq: int
+    target_system: int
+    target_component: int
+    signed: bool
+    version: int  # 1 or 2
+
+
+@dataclass
+class FramerStats:
+    frames: int = 0
+    bytes_in: int = 0
+    crc_errors: int = 0
+    bad_headers: int = 0
+    bytes_skipped: int = 0
+    unknown_ids: int = 0
+    truncated: int = 0  # a datagram ended inside a frame
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],
+          synced: bool = True) -> tuple[int, bool]:
+    """Append every whole frame of ``buf`` to ``out``; return the offset of the first byte not
+    consumed (the start of an incomplete frame, or ``len(buf)``) and whether the framer is
+    in sync there (see the module docstring)."""
+    n = len(buf)
+    mv = memoryview(buf)
+    info_of = _INFO
+    i = 0
+    while i < n:
+        b = buf[i]
+        if b == STX_V2:
+            if n - i < HEADER_V2:
+                break
+            plen = buf[i + 1]
+            inc = buf[i + 2]
+            if inc & ~IFLAG_SIGNED:
+                stats.bad_headers += 1
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            msgid = buf[i + 7] | (buf[i + 8] << 8) | (buf[i + 9] << 16)
+            signed = inc & IFLAG_SIGNED
+            flen = HEADER_V2 + plen + 2 + (SIGNATURE_LEN if signed else 0)
+            info = info_of.get(msgid)
+            if info is not None and plen > info[1]:
+                stats.bad_headers += 1
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            if n - i < flen:
+                break
+            pstart = i + HEADER_V2
+            crc_at = pstart + plen
+            if info is not None:
+                crc = mcrf4xx(info[0], initial=mcrf4xx(mv[i + 1:crc_at]))
+                if crc != buf[crc_at] | (buf[crc_at + 1] << 8):
+                    stats.crc_errors += 1
+                    i, synced = i + 1, False
+                    stats.bytes_skipped += 1
+                    continue
+                so = info[2]
+                if so >= 0:
+                    tsys = buf[pstart + so] if so < plen else 0
+                    co = info[3]
+                    tcomp = (buf[pstart + co] if co < plen else 0) if co >= 0 else -1
+                else:
+                    tsys = tcomp = -1
+                synced = True
+            elif synced:
+                stats.unknown_ids += 1
+                tsys = tcomp = -1
+            else:
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            raw = buf if (i == 0 and flen == n and type(buf) is bytes) else bytes(mv[i:i + flen])
+            out.append(Frame(raw, msgid, buf[i + 5], buf[i + 6], buf[i + 4], tsys, tcomp,
+                             bool(signed), 2))
+            stats.frames += 1
+            i += flen
+        elif b == STX_V1:
+            if n - i < HEADER_V1:
+                break
+            plen = buf[i + 1]
+            msgid = buf[i + 5]
+            info = info_of.get(msgid)
+            if info is not None and plen > info[1]:
+                stats.bad_headers += 1
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            flen = HEADER_V1 + plen + 2
+            if n - i < flen:
+                break
+            pstart = i + HEADER_V1
+            crc_at = pstart + plen
+            if info is not None:
+                crc = mcrf4xx(info[0], initial=mcrf4xx(mv[i + 1:crc_at]))
+                if crc != buf[crc_at] | (buf[crc_at + 1] << 8):
+                    stats.crc_errors += 1
+                    i, synced = i + 1, False
+                    stats.bytes_skipped += 1
+                    continue
+                so = info[2]
+                if so >= 0 and so < plen:
+                    tsys = buf[pstart + so]
+                    co = info[3]
+                    tcomp = buf[pstart + co] if 0 <= co < plen else -1
+                else:
+                    tsys = tcomp = -1
+                synced = True
+            elif synced:
+                stats.unknown_ids += 1
+                tsys = tcomp = -1
+            else:
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            raw = buf if (i == 0 and flen == n and type(buf) is bytes) else bytes(mv[i:i + flen])
+            out.append(Frame(raw, msgid, buf[i + 3], buf[i + 4], buf[i + 2], tsys, tcomp,
+                             False, 1))
+            stats.frames += 1
+            i += flen
+        else:
+            m = _MARKER.search(buf, i)
+            j = m.start() if m is not None else n
+            stats.bytes_skipped += j - i
+            i = j
+            synced = False
+    mv.release()
+    return i, synced
+
+
+def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
+    """Every frame in one UDP datagram; a trailing partial frame is counted and dropped."""
+    stats.bytes_in += len(data)
+    out: list[Frame] = []
+    end, _ = split(data, stats, out)
+    if end < len(data):
+        stats.truncated += 1
+        stats.bytes_skipped += len(data) - end
+    return out
+
+
+class StreamFramer:
+    """Frames from a byte stream fed in arbitrary pieces (serial port, TCP connection)."""
+
+    def __init__(self) -> None:
+        self.stats = FramerStats()
+        self._buf = bytearray()
+        self._synced = False  # joined mid-stream: in sync after the first valid frame
+
+    def feed(self, data: bytes) -> list[Frame]:
+        """Whole frames completed by ``data``, in order."""
+        self.stats.bytes_in += len(data)
+        buf = self._buf
+        buf += data
+        out: list[Frame] = []
+        end, self._synced = split(buf, self.stats, out, self._synced)
+        if end:
+            del buf[:end]
+        if len(buf) > STREAM_BUFFER_CAP:  # cannot happen with a sane splitter; stay bounded
+            self.stats.bytes_skipped += len(buf)
+            buf.clear()
+        return out
+
+    def pending(self) -> int:
+        """Bytes held back as the start of an incomplete frame."""
+        return len(self._buf)

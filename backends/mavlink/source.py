@@ -1,0 +1,377 @@
+"""MAVLink in: a MAVLink vehicle (ArduPilot, PX4, or another Aurora gateway) as a source.
+
+The source runs a small router (:mod:`.router`) whose local node is :class:`VehicleListener`,
+a ground-station-like component that decodes only what it uses from one vehicle — its
+heartbeat, attitude, altitude, position and battery — and turns it into gateway messages:
+
+* :class:`~gateway.model.VehicleState` (armed, mode name, attitude, altitude, climb);
+* :class:`~gateway.model.Position` (GLOBAL_POSITION_INT, with GPS_RAW_INT's fix and satellites);
+* :class:`~gateway.model.Battery` (BATTERY_STATUS, else SYS_STATUS's battery fields);
+* :class:`~gateway.model.SmUpdate` / :class:`~gateway.model.Status` from AURORA_SM_UPDATE /
+  AURORA_STATUS, so one gateway can feed another over MAVLink losslessly.
+
+Mode names come from the vehicle's own AVAILABLE_MODES answers (what QGroundControl uses),
+else from the classic ArduPilot/PX4 tables, else ``MODE_<n>``.  Extra ``endpoints`` are
+routed to and from the vehicle, so a ground station can share the link.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+from backends.mavlink import signing
+from backends.mavlink.dialect import mav
+from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
+from backends.mavlink.ioloop import IoLoop
+from backends.mavlink.router import Router
+from backends.mavlink.translate import RateGate, sm_update_from_mavlink, status_from_mavlink
+from gateway.config import Key, Schema
+from gateway.model import Battery, Position, VehicleState
+from gateway.sources import Source
+
+log = logging.getLogger(__name__)
+
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+_GCS_TYPES = frozenset({mav.MAV_TYPE_GCS, mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_TYPE_GIMBAL,
+                        mav.MAV_TYPE_ADSB, mav.MAV_TYPE_CAMERA, mav.MAV_TYPE_ANTENNA_TRACKER})
+
+# Classic custom_mode tables (for firmware that does not answer AVAILABLE_MODES).
+_ARDUCOPTER = {0: "STABILIZE", 1: "ACRO", 2: "ALT_HOLD", 3: "AUTO", 4: "GUIDED", 5: "LOITER",
+               6: "RTL", 7: "CIRCLE", 9: "LAND", 11: "DRIFT", 13: "SPORT", 14: "FLIP",
+               15: "AUTOTUNE", 16: "POSHOLD", 17: "BRAKE", 18: "THROW", 19: "AVOID_ADSB",
+               20: "GUIDED_NOGPS", 21: "SMART_RTL", 22: "FLOWHOLD", 23: "FOLLOW", 24: "ZIGZAG",
+               25: "SYSTEMID", 26: "AUTOROTATE", 27: "AUTO_RTL"}
+_ARDUPLANE = {0: "MANUAL", 1: "CIRCLE", 2: "STABILIZE", 3: "TRAINING", 4: "ACRO", 5: "FBWA",
+              6: "FBWB", 7: "CRUISE", 8: "AUTOTUNE", 10: "AUTO", 11: "RTL", 12: "LOITER",
+              13: "TAKEOFF", 14: "AVOID_ADSB", 15: "GUIDED", 17: "QSTABILIZE", 18: "QHOVER",
+              19: "QLOITER", 20: "QLAND", 21: "QRTL", 22: "QAUTOTUNE", 23: "QACRO",
+              24: "THERMAL", 25: "LOITER_ALT_QLAND"}
+_ARDUROVER = {0: "MANUAL", 1: "ACRO", 3: "STEERING", 4: "HOLD", 5: "LOITER", 6: "FOLLOW",
+              7: "SIMPLE", 8: "DOCK", 9: "CIRCLE", 10: "AUTO", 11: "RTL", 12: "SMART_RTL",
+              15: "GUIDED"}
+_PX4_MAIN = {1: "MANUAL", 2: "ALTCTL", 3: "POSCTL", 4: "AUTO", 5: "ACRO", 6: "OFFBOARD",
+             7: "STABILIZED", 8: "RATTITUDE"}
+_PX4_AUTO = {1: "AUTO_READY", 2: "AUTO_TAKEOFF", 3: "AUTO_LOITER", 4: "AUTO_MISSION",
+             5: "AUTO_RTL", 6: "AUTO_LAND", 8: "AUTO_FOLLOW", 9: "AUTO_PRECLAND"}
+_PLANES = frozenset({mav.MAV_TYPE_FIXED_WING, mav.MAV_TYPE_VTOL_DUOROTOR,
+                     mav.MAV_TYPE_VTOL_QUADROTOR, mav.MAV_TYPE_VTOL_TILTROTOR})
+_ROVERS = frozenset({mav.MAV_TYPE_GROUND_ROVER, mav.MAV_TYPE_SURFACE_BOAT})
+
+
+def classic_mode_name(autopilot: int, vehicle_type: int, base_mode: int, custom_mode: int) -> str:
+    """A mode name from the well-known ArduPilot and PX4 tables; ``MODE_<n>`` otherwise."""
+    if base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+        if autopilot == mav.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            table = (_ARDUPLANE if vehicle_type in _PLANES
+                     else _ARDUROVER if vehicle_type in _ROVERS else _ARDUCOPTER)
+            name = table.get(custom_mode)
+            if name:
+                return name
+        elif autopilot == mav.MAV_AUTOPILOT_PX4:
+            main = (custom_mode >> 16) & 0xFF
+            sub = (custom_mode >> 24) & 0xFF
+            if main == 4 and sub in _PX4_AUTO:
+                return _PX4_AUTO[sub]
+            if main in _PX4_MAIN:
+                return _PX4_MAIN[main]
+    return f"MODE_{custom_mode}"
+
+
+class VehicleListener:
+    """The source's local MAVLink node: decodes one vehicle's telemetry into gateway messages
+    (sans-I/O: messages go to ``emit``; requests to the vehicle are returned as replies)."""
+
+    CONSUMED: frozenset[int] = frozenset({
+        mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_SYS_STATUS, mav.MAVLINK_MSG_ID_ATTITUDE,
+        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mav.MAVLINK_MSG_ID_VFR_HUD,
+        mav.MAVLINK_MSG_ID_ALTITUDE, mav.MAVLINK_MSG_ID_BATTERY_STATUS,
+        mav.MAVLINK_MSG_ID_GPS_RAW_INT, mav.MAVLINK_MSG_ID_AVAILABLE_MODES,
+        mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE, mav.MAVLINK_MSG_ID_AURORA_STATUS,
+    })
+
+    def __init__(self, emit: Callable[[Any], None], origin: str, *, sysid: int = 255,
+                 compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
+                 rate_hz: float = 10.0, request_streams: bool = True,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.emit = emit
+        self.origin = origin
+        self.sysid = sysid
+        self.compid = compid
+        self.consumed = self.CONSUMED
+        self.target_system = target_system  # 0 until locked on the first autopilot
+        self.request_streams = request_streams
+        self.clock = clock
+        self.vehicle_type = 0
+        self.autopilot = 0
+        self.base_mode = 0
+        self.custom_mode: int | None = None
+        self.armed = False
+        self.mode_names: dict[int, str] = {}
+        self.attitude: tuple[float, float, float] | None = None
+        self.altitude_m: float | None = None
+        self.climb_mps: float | None = None
+        self.gps: Any = None
+        self.saw_battery_status = False
+        self.requested = False
+        self._state_gate = RateGate(rate_hz)
+        self._position_gate = RateGate(rate_hz)
+        self.heard = 0
+
+    def _from_vehicle(self, sysid: int, compid: int, msg: Any) -> bool:
+        if self.target_system == 0:
+            if (msg.get_msgId() == mav.MAVLINK_MSG_ID_HEARTBEAT and compid == 1
+                    and msg.type not in _GCS_TYPES
+                    and msg.autopilot != mav.MAV_AUTOPILOT_INVALID):
+                self.target_system = sysid
+                log.info("%s: following vehicle %d", self.origin, sysid)
+            else:
+                return False
+        return sysid == self.target_system and compid == 1
+
+    def handle(self, msg: Any, src_sysid: int, src_compid: int) -> list[Any]:
+        if not self._from_vehicle(src_sysid, src_compid, msg):
+            return []
+        self.heard += 1
+        name = _HANDLERS.get(msg.get_msgId())
+        if name is None:
+            return []
+        return getattr(self, name)(msg)
+
+    # -- per message -----------------------------------------------------------------------------
+
+    def _heartbeat(self, m: Any) -> list[Any]:
+        changed = (m.custom_mode != self.custom_mode
+                   or bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED) != self.armed)
+        self.vehicle_type, self.autopilot = m.type, m.autopilot
+        self.base_mode, self.custom_mode = m.base_mode, m.custom_mode
+        self.armed = bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+        if changed:
+            self._emit_state(force=True)
+        if self.requested or not self.request_streams:
+            return []
+        self.requested = True
+        t, c = self.target_system, 1
+        return [
+            # Ask for the mode table (newer ArduPilot and PX4 answer; others ACK unsupported).
+            mav.MAVLink_command_long_message(t, c, mav.MAV_CMD_REQUEST_MESSAGE, 0,
+                                             mav.MAVLINK_MSG_ID_AVAILABLE_MODES, 0, 0, 0, 0, 0,
+                                             0),
+            # ArduPilot streams on request (SRx rates); PX4 ignores it and streams anyway.
+            mav.MAVLink_request_data_stream_message(t, c, mav.MAV_DATA_STREAM_ALL, 10, 1),
+        ]
+
+    def _available_modes(self, m: Any) -> list[Any]:
+        name = m.mode_name if isinstance(m.mode_name, str) else m.mode_name.decode(errors="replace")
+        if name:
+            self.mode_names[m.custom_mode] = name
+        return []
+
+    def mode_name(self) -> str:
+        cm = self.custom_mode or 0
+        name = self.mode_names.get(cm)
+        if name:
+            return name
+        return classic_mode_name(self.autopilot, self.vehicle_type, self.base_mode, cm)
+
+    def _attitude(self, m: Any) -> list[Any]:
+        self.attitude = (m.roll, m.pitch, m.yaw)
+        self._emit_state()
+        return []
+
+    def _emit_state(self, force: bool = False) -> None:
+        if self.custom_mode is None:
+            return  # no heartbeat yet: armed and mode unknown
+        if not self._state_gate.ready(self.clock()) and not force:
+            return
+        r, p, y = self.attitude if self.attitude is not None else (None, None, None)
+        self.emit(VehicleState(self.armed, self.mode_name(), self.custom_mode, r, p, y,
+                               self.altitude_m, self.climb_mps, origin=self.origin))
+
+    def _altitude(self, m: Any) -> list[Any]:
+        if math.isfinite(m.altitude_relative):
+            self.altitude_m = m.altitude_relative
+        return []
+
+    def _vfr_hud(self, m: Any) -> list[Any]:
+        self.climb_mps = m.climb
+        return []
+
+    def _gps_raw_int(self, m: Any) -> list[Any]:
+        self.gps = m
+        return []
+
+    def _global_position_int(self, m: Any) -> list[Any]:
+        self.altitude_m = m.relative_alt / 1000.0
+        if self.climb_mps is None:
+            self.climb_mps = -m.vz / 100.0
+        if not self._position_gate.ready(self.clock()):
+            return []
+        gs = math.hypot(m.vx, m.vy) / 100.0
+        course = (m.hdg / 100.0) if m.hdg != 0xFFFF else None
+        g = self.gps
+        self.emit(Position(m.lat / 1e7, m.lon / 1e7, m.alt / 1000.0, m.relative_alt / 1000.0, gs,
+                           course, g.satellites_visible if g is not None else None,
+                           g.fix_type if g is not None else None, origin=self.origin))
+        return []
+
+    def _battery_status(self, m: Any) -> list[Any]:
+        self.saw_battery_status = True
+        cells = [v for v in m.voltages if v != 0xFFFF]
+        ext = [v for v in getattr(m, "voltages_ext", []) or [] if v]
+        volts = (sum(cells) + sum(ext)) / 1000.0 if cells else math.nan
+        self.emit(Battery(volts,
+                          m.current_battery / 100.0 if m.current_battery != -1 else None,
+                          float(m.current_consumed) if m.current_consumed != -1 else None,
+                          m.battery_remaining if m.battery_remaining != -1 else None,
+                          m.id, origin=self.origin))
+        return []
+
+    def _sys_status(self, m: Any) -> list[Any]:
+        if self.saw_battery_status or m.voltage_battery == 0xFFFF:
+            return []
+        self.emit(Battery(m.voltage_battery / 1000.0,
+                          m.current_battery / 100.0 if m.current_battery != -1 else None, None,
+                          m.battery_remaining if m.battery_remaining != -1 else None, 0,
+                          origin=self.origin))
+        return []
+
+    def _aurora_sm_update(self, m: Any) -> list[Any]:
+        self.emit(sm_update_from_mavlink(m, self.origin))
+        return []
+
+    def _aurora_status(self, m: Any) -> list[Any]:
+        self.emit(status_from_mavlink(m, self.origin))
+        return []
+
+
+_HANDLERS = {
+    mav.MAVLINK_MSG_ID_HEARTBEAT: "_heartbeat",
+    mav.MAVLINK_MSG_ID_AVAILABLE_MODES: "_available_modes",
+    mav.MAVLINK_MSG_ID_ATTITUDE: "_attitude",
+    mav.MAVLINK_MSG_ID_ALTITUDE: "_altitude",
+    mav.MAVLINK_MSG_ID_VFR_HUD: "_vfr_hud",
+    mav.MAVLINK_MSG_ID_GPS_RAW_INT: "_gps_raw_int",
+    mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: "_global_position_int",
+    mav.MAVLINK_MSG_ID_BATTERY_STATUS: "_battery_status",
+    mav.MAVLINK_MSG_ID_SYS_STATUS: "_sys_status",
+    mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE: "_aurora_sm_update",
+    mav.MAVLINK_MSG_ID_AURORA_STATUS: "_aurora_status",
+}
+
+
+class MavlinkSource(Source):
+    """A MAVLink vehicle as a gateway source (``[[sources]] type = "mavlink"``)."""
+
+    NAME = "mavlink"
+    CONFIG = Schema(
+        url=Key(str, help="the vehicle's endpoint: udpin:0.0.0.0:14551, "
+                "serial:/dev/ttyACM0,115200, tcp:HOST:5760 …"),
+        endpoints=Key(list, [], "more endpoints routed to and from the vehicle (a ground "
+                      "station sharing the link)"),
+        sysid=Key(int, 255, "our system id towards the vehicle", minimum=1, maximum=255),
+        compid=Key(int, MAV_COMP_ID_ONBOARD_COMPUTER, "our component id", minimum=1,
+                   maximum=255),
+        target_system=Key(int, 0, "the vehicle's system id; 0 = the first autopilot heard",
+                          minimum=0, maximum=255),
+        rate_hz=Key(float, 10.0, "most vehicle-state and position messages per second",
+                    minimum=0.1, maximum=1000),
+        heartbeat_hz=Key(float, 1.0, "our heartbeat (ground stations are recognised by it); "
+                         "0 = none", minimum=0, maximum=10),
+        request_streams=Key(bool, True, "ask the vehicle for its telemetry and mode names"),
+        signing_key_file=Key(str, "", "MAVLink 2 signing key file"),
+        signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase"),
+    )
+    #: Names of running MAVLink sources: the MAVLink backend does not echo their positions
+    #: and batteries back as the rocket's.
+    live_names: ClassVar[set[str]] = set()
+
+    @staticmethod
+    def default_name(options: dict[str, Any]) -> str:
+        return f"mavlink:{options['url']}"
+
+    def __init__(self, url: str, endpoints: list[str] | None = None, sysid: int = 255,
+                 compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
+                 rate_hz: float = 10.0, heartbeat_hz: float = 1.0, request_streams: bool = True,
+                 signing_key_file: str = "", signing_passphrase: str = "",
+                 name: str | None = None) -> None:
+        super().__init__(name)
+        self.specs = [parse_endpoint(url)] + [parse_endpoint(e) for e in endpoints or []]
+        if signing_key_file and signing_passphrase:
+            raise ValueError("signing_key_file and signing_passphrase: give one, not both")
+        self.heartbeat_hz = heartbeat_hz
+        self.signing_key: bytes | None = None
+        if signing_key_file:
+            self.signing_key = signing.key_from_file(signing_key_file)
+        elif signing_passphrase:
+            self.signing_key = signing.key_from_passphrase(signing_passphrase)
+        self._pending: deque[Any] = deque()
+        self._ready = threading.Event()
+        self.listener = VehicleListener(self._queue, self.name, sysid=sysid, compid=compid,
+                                        target_system=target_system, rate_hz=rate_hz,
+                                        request_streams=request_streams)
+        self.router: Router | None = None
+        self.endpoints: list[Endpoint] = []
+        self.emitted = 0
+        self.started = threading.Event()
+        self.start_error: str | None = None
+
+    def _queue(self, msg: Any) -> None:  # router threads, under the router lock
+        self._pending.append(msg)
+        self._ready.set()
+
+    def _heartbeat(self) -> None:
+        router = self.router
+        if router is not None:
+            router.broadcast([mav.MAVLink_heartbeat_message(
+                mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
+                mav.MAV_STATE_ACTIVE, 3)])
+
+    def run(self, stop: threading.Event) -> None:
+        loop = IoLoop(self.name)
+        router = Router(self.listener, signing_key=self.signing_key)
+        try:
+            for spec in self.specs:
+                ep = make_endpoint(spec)
+                ep.start(loop, router)
+                self.endpoints.append(ep)
+        except OSError as exc:
+            self.start_error = str(exc)
+            log.error("source %s: %s", self.name, exc)
+            for ep in self.endpoints:
+                ep.close()
+            loop.close()
+            self.started.set()
+            return
+        self.router = router
+        if self.heartbeat_hz > 0:
+            loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat)
+        loop.start()
+        MavlinkSource.live_names.add(self.name)
+        self.started.set()
+        try:
+            while not stop.is_set():
+                self._ready.wait(0.1)
+                self._ready.clear()
+                while self._pending:
+                    self.emit(self._pending.popleft())
+                    self.emitted += 1
+        finally:
+            MavlinkSource.live_names.discard(self.name)
+            loop.stop(0.5)
+            for ep in self.endpoints:
+                ep.close()
+            loop.close()
+
+    def stats(self) -> dict[str, Any]:
+        router = self.router
+        with router.lock if router is not None else contextlib.nullcontext():
+            eps = {ep.name: ep.stats() for ep in self.endpoints}
+        return {"emitted": self.emitted, "target_system": self.listener.target_system,
+                "endpoints": eps}
