@@ -29,6 +29,8 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python tools/bench/bench_decode.py
 	$(BIN)/python tools/bench/bench_fanout.py
+	$(BIN)/python tools/bench/bench_mavlink_router.py
+	$(BIN)/python tools/bench/bench_zenoh.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

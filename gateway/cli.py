@@ -54,7 +54,8 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
     if sources:
         p.add_argument("--source", "-s", action="append", metavar="URL",
                        help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
-                            "e.g. mavlink:udpin:0.0.0.0:14551) or a pyserial URL "
+                            "e.g. mavlink:udpin:0.0.0.0:14551), 'zenoh:[VEHICLE@]ENDPOINT' "
+                            "(another gateway's frames over Zenoh) or a pyserial URL "
                             "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
                             "repeatable; replaces the configured sources")
         p.add_argument("--baud", type=int, metavar="N", help="baud rate of serial sources")

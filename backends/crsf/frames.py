@@ -338,11 +338,13 @@ def pack_baro_altitude(altitude_m: float | None) -> int:
     whole metres with the MSB set above, up to 32766 m; −1000 m at the bottom."""
     if altitude_m is None or altitude_m != altitude_m:
         return 0xFFFF
-    dm = quantize(altitude_m, 10, 4, True)
-    if dm < -BARO_DM_OFFSET:
+    x = altitude_m * 10
+    if x <= -BARO_DM_OFFSET:
         return 0
-    if dm <= BARO_MAX_DM_FORM:
-        return dm + BARO_DM_OFFSET
+    if x < BARO_MAX_DM_FORM + 0.5:
+        # Plain rounding: −1 dm packs as 9999, so the all-0xFF escape of quantize() must not
+        # apply to this intermediate value.
+        return _round(x) + BARO_DM_OFFSET
     return BARO_METRES_FLAG | quantize(altitude_m, 1, 2, False, hi=BARO_MAX_METRES)
 
 

@@ -74,8 +74,8 @@ class Source:
 
 
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
-    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT`` or a pyserial URL → (source type,
-    options)."""
+    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
+    pyserial URL → (source type, options)."""
     if url in ("sim", "sim:"):
         return "sim", {}
     if url.startswith("replay:"):
@@ -88,6 +88,8 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
         if not endpoint:
             raise ValueError("mavlink: needs an endpoint, e.g. mavlink:udpin:0.0.0.0:14551")
         return "mavlink", {"url": endpoint}
+    if url == "zenoh" or url.startswith("zenoh:"):
+        return "zenoh", {"url": url}  # zenoh:[VEHICLE@][ENDPOINT,…], parsed by the source
     if not url:
         raise ValueError("empty source URL")
     return "serial", {"url": url}

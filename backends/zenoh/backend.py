@@ -1,0 +1,480 @@
+"""Zenoh backend: every update the gateway handles, published on Zenoh.
+
+Hooks never block: they hand the message to a bounded queue (``queue_depth``) and return.
+One worker thread opens the session (retrying with backoff while, e.g., a client's router
+is down), encodes, and puts.  Where messages can be lost, and how each loss is counted:
+
+* the hand-off queue is full → ``dropped_queue_full`` (the hook returns QUEUE_FULL);
+* no session yet (router down at start-up) → ``dropped_not_ready`` (NOT_READY);
+* ``congestion_control = "drop"`` (default): Zenoh drops inside its own transmit queue when
+  the network cannot keep up; ``put`` does not report it, so the backend cannot count it.
+  Subscribers can: every publication carries ``seq`` (per key) in its attachment, and
+  ``aurora-gateway listen`` reports the gaps;
+* ``congestion_control = "block"``: Zenoh never drops; the worker waits instead, the queue
+  fills, and every loss is a counted ``dropped_queue_full``;
+* the session has no connection at all (a client whose router is down, a peer nobody
+  listens to): the put reaches no one outside this process; counted as ``unrouted`` (not a
+  drop: with nobody listening there is nothing to lose).
+
+The session also declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>`` and a
+queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of each
+key, so late joiners need not wait for the next update.
+
+Loop prevention: messages that a Zenoh source of this process received are never
+published again (``skipped_from_zenoh``), and the attachment names this gateway so a Zenoh
+source ignores its own gateway's publications.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import threading
+import time
+from typing import Any, ClassVar
+
+from backends.zenoh import encoding as enc
+from backends.zenoh.keys import (
+    DEFAULT_PREFIX,
+    DEFAULT_VEHICLE,
+    LOCAL,
+    KeyLayout,
+    check_chunk,
+    check_prefix,
+    default_gateway_id,
+    make_attachment,
+)
+from backends.zenoh.session import SESSION_KEYS, SessionOptions, zerror_text
+from gateway.backend import Backend, Outcome
+from gateway.backoff import Backoff
+from gateway.config import ConfigError, Key, Schema
+from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+
+log = logging.getLogger(__name__)
+
+PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data",
+              "data_low", "background")
+START_WAIT_S = 1.0  # init() waits this long for the session so the first updates are not lost
+_STOP = object()
+
+ACCEPTED = Outcome.ACCEPTED
+QUEUE_FULL = Outcome.QUEUE_FULL
+NOT_READY = Outcome.NOT_READY
+
+
+class _Key:
+    """One published key: its publisher and sequence counter."""
+
+    __slots__ = ("key", "publisher", "seq")
+
+    def __init__(self, key: str, publisher: Any) -> None:
+        self.key = key
+        self.publisher = publisher
+        self.seq = 0
+
+
+class ZenohBackend(Backend):
+    """Publishes every message on Zenoh; see the module docstring and README.md."""
+
+    NAME = "zenoh"
+    CONFIG = Schema(
+        prefix=Key(str, DEFAULT_PREFIX, "first chunk(s) of every key"),
+        vehicle=Key(str, DEFAULT_VEHICLE, "this vehicle's key chunk"),
+        gateway_id=Key(str, "", "this gateway's id in attachments and its liveliness token "
+                       "(default <host>-<pid>)"),
+        encoding=Key(str, "json", "payload of sm_update/status", choices=enc.ENCODINGS),
+        raw=Key(bool, True, "also publish each untouched wire frame on raw/<type>"),
+        congestion_control=Key(str, "drop", "when the network cannot keep up: drop "
+                               "(latest data first) or block (never lose in Zenoh)",
+                               choices=("drop", "block")),
+        priority=Key(str, "data", "Zenoh priority of the publications", choices=PRIORITIES),
+        queue_depth=Key(int, 1024, "updates waiting for the worker before new ones are "
+                        "dropped", minimum=1, maximum=1_000_000),
+        liveliness=Key(bool, True, "declare a liveliness token for this gateway"),
+        queryable=Key(bool, True, "answer get() with the latest value of each key"),
+        **SESSION_KEYS,
+    )
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
+
+    def __init__(self, name: str | None = None, *, prefix: str = DEFAULT_PREFIX,
+                 vehicle: str = DEFAULT_VEHICLE, gateway_id: str = "", encoding: str = "json",
+                 raw: bool = True, congestion_control: str = "drop", priority: str = "data",
+                 queue_depth: int = 1024, liveliness: bool = True, queryable: bool = True,
+                 **session: Any) -> None:
+        super().__init__(name)
+        try:
+            check_prefix(prefix)
+        except ValueError as exc:
+            raise ConfigError(f"prefix: {exc}") from None
+        try:
+            check_chunk(vehicle, "vehicle")
+        except ValueError as exc:
+            raise ConfigError(f"vehicle: {exc}") from None
+        self.layout = KeyLayout(prefix, vehicle)
+        try:
+            self.gateway_id = check_chunk(gateway_id or default_gateway_id(), "gateway_id")
+        except ValueError as exc:
+            raise ConfigError(f"gateway_id: {exc}") from None
+        if encoding not in enc.ENCODINGS:
+            raise ConfigError(f"encoding: expected one of {', '.join(enc.ENCODINGS)}, "
+                              f"got {encoding!r}")
+        if congestion_control not in ("drop", "block"):
+            raise ConfigError(f"congestion_control: expected 'drop' or 'block', "
+                              f"got {congestion_control!r}")
+        if priority not in PRIORITIES:
+            raise ConfigError(f"priority: expected one of {', '.join(PRIORITIES)}")
+        unknown = set(session) - set(SESSION_KEYS)
+        if unknown:
+            raise ConfigError(f"{sorted(unknown)[0]}: unknown key")
+        self.session_options = SessionOptions.from_options(session)
+        self.encoding = encoding
+        self.publish_raw = raw
+        self.congestion_control = congestion_control
+        self.priority = priority
+        self.queue_depth = queue_depth
+        self.declare_token = liveliness
+        self.declare_queryable = queryable
+
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._ready = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._session: Any = None
+        self._keys: dict[str, _Key] = {}
+        self._encodings: dict[str, Any] = {}
+        self._latest: dict[str, tuple[bytes, Any, bytes]] = {}
+        self._entities: list[Any] = []
+        self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
+        self._zenoh_origins = LOCAL  # the registry, read on every message
+        # counters
+        self.submitted = 0
+        self.accepted = 0
+        self.processed = 0
+        self.sent = 0
+        self.puts = 0
+        self.put_errors = 0
+        self.publish_errors = 0
+        self.dropped_queue_full = 0
+        self.dropped_not_ready = 0
+        self.skipped_from_zenoh = 0
+        self.queries = 0
+        self.session_opens = 0
+        self.open_failures = 0
+        self.transports = 0
+        self.unrouted = 0
+
+    # -- configuration -----------------------------------------------------------------------
+
+    @classmethod
+    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        g = parser.add_argument_group("zenoh backend")
+        g.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT",
+                       help="connect to this Zenoh router or peer, e.g. tcp/10.0.0.5:7447 "
+                            "(repeatable; then nothing listens unless --zenoh-listen)")
+        g.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
+                       help="listen on this endpoint (repeatable; default "
+                            "tcp/127.0.0.1:7450)")
+        g.add_argument("--zenoh-mode", choices=("peer", "client", "router"),
+                       help="Zenoh mode (default peer)")
+        g.add_argument("--zenoh-vehicle", metavar="ID",
+                       help=f"vehicle key chunk (default {DEFAULT_VEHICLE})")
+        g.add_argument("--zenoh-prefix", metavar="PREFIX",
+                       help=f"key prefix (default {DEFAULT_PREFIX})")
+        g.add_argument("--zenoh-config", metavar="FILE",
+                       help="a full Zenoh JSON5 configuration for the session")
+
+    @classmethod
+    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
+        flags = {
+            "connect": getattr(args, "zenoh_connect", None),
+            "listen": getattr(args, "zenoh_listen", None),
+            "mode": getattr(args, "zenoh_mode", None),
+            "vehicle": getattr(args, "zenoh_vehicle", None),
+            "prefix": getattr(args, "zenoh_prefix", None),
+            "config_file": getattr(args, "zenoh_config", None),
+        }
+        opts = {k: v for k, v in flags.items() if v is not None}
+        return opts or None
+
+    # -- life cycle ------------------------------------------------------------------------------
+
+    def init(self) -> None:
+        """Start the worker (it opens the session); wait briefly for the session."""
+        if self._thread is not None:
+            return
+        LOCAL.add_gateway(self.gateway_id)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(self._stop,),
+                                        name=f"zenoh-{self.name}", daemon=True)
+        self._thread.start()
+        self._ready.wait(START_WAIT_S)
+
+    def wait_ready(self, timeout: float) -> bool:
+        """Block until the session is open (for tools and tests)."""
+        return self._ready.wait(timeout)
+
+    @property
+    def ready(self) -> bool:
+        return self._ready.is_set()
+
+    def close(self, timeout: float = 0.5) -> None:
+        """Publish what is queued (within ``timeout``), then close the session; safe twice."""
+        thread = self._thread
+        if thread is None:
+            return
+        self._thread = None
+        self._stop.set()
+        self._queue.put(_STOP)
+        thread.join(timeout)
+        if thread.is_alive():
+            log.warning("zenoh %s: worker still busy after %.1f s; closing the session under "
+                        "it", self.name, timeout)
+        self._close_session()
+        leftover = 0
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not _STOP:
+                leftover += 1
+        self.dropped_not_ready += leftover
+        LOCAL.remove_gateway(self.gateway_id)
+
+    def _close_session(self) -> None:
+        self._ready.clear()
+        session, self._session = self._session, None
+        if session is None:
+            return
+        for ent in reversed(self._entities):
+            try:
+                ent.undeclare()
+            except Exception:
+                log.debug("zenoh %s: undeclare failed", self.name, exc_info=True)
+        self._entities = []
+        self._keys = {}
+        try:
+            session.close()
+        except Exception:
+            log.debug("zenoh %s: session close failed", self.name, exc_info=True)
+
+    # -- hooks (dispatcher thread; never block) -------------------------------------------------
+
+    def _submit(self, msg: Any) -> Outcome:
+        self.submitted += 1
+        names = self._zenoh_origins.source_names
+        if names and (msg.origin in names
+                      or (type(msg) is LinkEvent and msg.source in names)):
+            self.skipped_from_zenoh += 1
+            return ACCEPTED
+        if not self._ready.is_set():
+            self.dropped_not_ready += 1
+            return NOT_READY
+        q = self._queue
+        if q.qsize() >= self.queue_depth:
+            self.dropped_queue_full += 1
+            return QUEUE_FULL
+        q.put(msg)
+        self.accepted += 1
+        return ACCEPTED
+
+    send_sm_update = send_status = on_link = _submit
+    send_link_stats = send_position = send_battery = send_vehicle_state = _submit
+
+    def send_raw(self, msg: RawFrame) -> Outcome:
+        """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
+        if not self.publish_raw:
+            return ACCEPTED
+        return self._submit(msg)
+
+    # -- worker --------------------------------------------------------------------------------
+
+    def _run(self, stop: threading.Event) -> None:
+        try:
+            while not stop.is_set():
+                if self._session is None and not self._open(stop):
+                    stop.wait(self._backoff.next())
+                    continue
+                try:
+                    item = self._queue.get(timeout=0.25)
+                except queue.Empty:
+                    continue
+                if item is _STOP:
+                    break
+                self._publish(item)
+            # Stopping: publish what is already queued, then leave.
+            while self._session is not None:
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if item is not _STOP:
+                    self._publish(item)
+        except Exception:
+            log.exception("zenoh %s: worker failed", self.name)
+            self._ready.clear()
+
+    def _open(self, stop: threading.Event) -> bool:
+        import zenoh
+
+        try:
+            session = self.session_options.open()
+        except (zenoh.ZError, ConfigError) as exc:
+            self.open_failures += 1
+            if self.open_failures == 1 or self.session_opens:
+                log.warning("zenoh %s: cannot open the session (%s): %s; retrying",
+                            self.name, self.session_options.describe(), zerror_text(exc))
+            return False
+        if stop.is_set():  # close() gave up waiting while the session was opening
+            session.close()
+            return False
+        try:
+            self._declare(session)
+        except Exception as exc:
+            self.open_failures += 1
+            log.warning("zenoh %s: declaring on the session failed: %s; retrying", self.name,
+                        zerror_text(exc))
+            self._entities = []
+            session.close()
+            return False
+        self._session = session
+        self._keys = {}
+        self.session_opens += 1
+        self._backoff.reset()
+        self._ready.set()
+        log.info("zenoh %s: publishing %s/** as gateway %s (%s)", self.name, self.layout.base,
+                 self.gateway_id, self.session_options.describe())
+        return True
+
+    def _declare(self, session: Any) -> None:
+        import zenoh
+
+        self._entities = []
+        self._congestion = (zenoh.CongestionControl.BLOCK if self.congestion_control == "block"
+                            else zenoh.CongestionControl.DROP)
+        self._priority = getattr(zenoh.Priority, self.priority.upper())
+        self._encodings = {s: zenoh.Encoding(s) for s in
+                           (enc.JSON, enc.SM_UPDATE_PACKED, enc.STATUS_PACKED, enc.WIRE)}
+        try:
+            self._entities.append(session.info.declare_transport_events_listener(
+                self._on_transport, history=True))
+        except Exception:  # an observer only: never a reason not to publish
+            log.debug("zenoh %s: no transport events", self.name, exc_info=True)
+        if self.declare_token:
+            self._entities.append(
+                session.liveliness().declare_token(self.layout.token(self.gateway_id)))
+        if self.declare_queryable:
+            self._entities.append(
+                session.declare_queryable(self.layout.everything, self._on_query))
+
+    def _key(self, key: str, encoding: str) -> _Key:
+        k = self._keys.get(key)
+        if k is None:
+            pub = self._session.declare_publisher(
+                key, encoding=self._encodings[encoding], congestion_control=self._congestion,
+                priority=self._priority)
+            self._entities.append(pub)
+            k = self._keys[key] = _Key(key, pub)
+        return k
+
+    def _put(self, key: str, payload: bytes, encoding: str) -> bool:
+        k = self._key(key, encoding)
+        att = make_attachment(self.gateway_id, k.seq)
+        k.seq += 1
+        try:
+            k.publisher.put(payload, attachment=att)
+        except Exception as exc:
+            self.put_errors += 1
+            if self.put_errors == 1:
+                log.warning("zenoh %s: put on %s failed: %s", self.name, key, zerror_text(exc))
+            return False
+        self.puts += 1
+        if not self.transports:
+            self.unrouted += 1
+        self._latest[key] = (payload, self._encodings[encoding], att)
+        return True
+
+    def _publish(self, msg: Any) -> None:
+        try:
+            self._publish_one(msg)
+        except Exception as exc:  # e.g. a message that cannot be encoded: skip it, go on
+            self.publish_errors += 1
+            if self.publish_errors == 1:
+                log.warning("zenoh %s: cannot publish %s: %s: %s", self.name,
+                            type(msg).__name__, type(exc).__name__, exc)
+        finally:
+            self.processed += 1
+
+    def _publish_one(self, msg: Any) -> None:
+        ok = False
+        t = type(msg)
+        layout = self.layout
+        if t is not RawFrame:
+            payload, encoding = enc.encode(msg, self.encoding)
+            ok = self._put(layout.kind(msg.KIND), payload, encoding)
+        if self.publish_raw and (t is RawFrame or t is SmUpdate or t is Status):
+            frame = enc.wire_frame(msg)
+            ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok
+        if ok:
+            self.sent += 1
+
+    # -- zenoh callbacks (zenoh's threads) -------------------------------------------------------
+
+    def _on_query(self, query: Any) -> None:
+        self.queries += 1
+        with query:
+            ke = query.key_expr
+            for key, (payload, encoding, att) in self._latest.copy().items():
+                if ke.intersects(key):
+                    query.reply(key, payload, encoding=encoding, attachment=att)
+
+    def _on_transport(self, event: Any) -> None:
+        """Count connections; a router coming and going is news, a dashboard is not."""
+        import zenoh
+
+        t = event.transport
+        router = t.whatami == zenoh.WhatAmI.ROUTER
+        if event.kind == zenoh.SampleKind.PUT:
+            self.transports += 1
+            log.log(logging.INFO if router else logging.DEBUG, "zenoh %s: connected to %s %s",
+                    self.name, t.whatami, t.zid)
+        else:
+            self.transports = max(0, self.transports - 1)
+            log.log(logging.WARNING if router else logging.DEBUG, "zenoh %s: lost %s %s "
+                    "(reconnecting)" if router else "zenoh %s: %s %s left", self.name,
+                    t.whatami, t.zid)
+
+    # -- reporting ---------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "sent": self.sent,
+            "dropped": (self.dropped_queue_full + self.dropped_not_ready + self.put_errors
+                        + self.publish_errors),
+            "dropped_queue_full": self.dropped_queue_full,
+            "dropped_not_ready": self.dropped_not_ready,
+            "put_errors": self.put_errors,
+            "publish_errors": self.publish_errors,
+            "puts": self.puts,
+            "unrouted": self.unrouted,
+            "skipped_from_zenoh": self.skipped_from_zenoh,
+            "queued": self._queue.qsize(),
+            "queries": self.queries,
+            "connected": self.transports,
+            "session_opens": self.session_opens,
+            "open_failures": self.open_failures,
+        }
+
+    def latest(self) -> dict[str, bytes]:
+        """The latest payload published on each key (what the queryable answers)."""
+        return {k: v[0] for k, v in self._latest.copy().items()}
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until everything accepted so far is published (for tools and benchmarks)."""
+        deadline = time.monotonic() + timeout
+        while self.processed < self.accepted:
+            if time.monotonic() >= deadline or self._thread is None:
+                return False
+            time.sleep(0.002)
+        return True

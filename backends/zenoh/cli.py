@@ -1,0 +1,284 @@
+"""``aurora-gateway listen [KEY]``: watch what gateways publish on Zenoh, without code.
+
+Prints one JSON line per update (``--compact``: one live status line instead), after first
+asking the gateways for the latest value of every matching key, so something shows at once.
+Counts publications lost on the way from the gateways' sequence numbers and reports them at
+the end (stderr).  Also runnable as ``python -m backends.zenoh.cli listen …``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any, TextIO
+
+from backends.zenoh import encoding as enc
+from backends.zenoh.keys import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_PREFIX,
+    RAW,
+    SeqTracker,
+    parse_attachment,
+    parse_key,
+)
+from backends.zenoh.session import SessionOptions, zerror_text
+from gateway.backoff import Backoff
+from gateway.config import ConfigError
+from gateway.wire import decode_all, to_wire_dict
+
+EXIT_USAGE = 2
+QUERY_TIMEOUT_S = 2.0
+COMPACT_INTERVAL_S = 0.1
+
+
+def add_command(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``listen`` to the ``aurora-gateway`` subcommands."""
+    p = subparsers.add_parser(
+        "listen", help="print what gateways publish on Zenoh (JSON lines or a live line)",
+        description="Subscribe to KEY on Zenoh and print every update as a JSON line.")
+    p.add_argument("key", nargs="?", default=None,
+                   help="key expression (default <prefix>/*/* : every vehicle's JSON "
+                        "documents; <prefix>/** adds the raw frames, decoded)")
+    p.add_argument("--connect", "-e", action="append", metavar="ENDPOINT",
+                   help=f"router or gateway to connect to (repeatable; default "
+                        f"{DEFAULT_ENDPOINT}, the local gateway)")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="Zenoh mode (default peer)")
+    p.add_argument("--config", metavar="FILE", help="a full Zenoh JSON5 configuration")
+    p.add_argument("--user", help="user name (user/password authentication)")
+    p.add_argument("--password", help="password (visible to other users of this machine: "
+                   "prefer --config)")
+    p.add_argument("--prefix", default=DEFAULT_PREFIX,
+                   help=f"key prefix the gateways use (default {DEFAULT_PREFIX})")
+    p.add_argument("--compact", action="store_true",
+                   help="one live status line per vehicle instead of JSON lines")
+    p.add_argument("--gateways", action="store_true",
+                   help="also print gateways appearing and vanishing (liveliness)")
+    p.add_argument("--no-query", dest="query", action="store_false",
+                   help="do not ask for the latest values first")
+    p.add_argument("--count", type=int, default=0, metavar="N",
+                   help="exit after N updates (0 = never)")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S",
+                   help="exit after S seconds (0 = never)")
+    p.set_defaults(handler=run_listen)
+    return p
+
+
+# -- formatting --------------------------------------------------------------------------------
+
+def _json_safe(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in d.items()}
+
+
+def describe(key: str, payload: bytes, encoding: str, prefix: str) -> dict[str, Any]:
+    """The JSON line for one publication: where it is from and what it says."""
+    parsed = parse_key(key, prefix)
+    vehicle, kind = (parsed[0], parsed[1]) if parsed else (None, None)
+    line: dict[str, Any] = {"key": key, "vehicle": vehicle, "kind": kind}
+    if kind == RAW:
+        msgs = decode_all(payload)
+        line["value"] = _json_safe(to_wire_dict(msgs[0])) if len(msgs) == 1 else None
+        line["hex"] = payload.hex()
+    elif encoding in (enc.SM_UPDATE_PACKED, enc.STATUS_PACKED):
+        try:
+            line["value"] = _json_safe(enc.document(enc.decode(kind or "", payload, encoding)))
+        except enc.PayloadError:
+            line["value"] = None
+        line["hex"] = payload.hex()
+    else:
+        try:
+            line["value"] = json.loads(payload)
+        except (ValueError, UnicodeDecodeError):
+            line["value"] = None
+            line["hex"] = payload.hex()
+    return line
+
+
+class CompactView:
+    """One status line for every vehicle seen, rewritten in place at most 10 times a second."""
+
+    def __init__(self, out: TextIO) -> None:
+        self.out = out
+        self.vehicles: dict[str, str] = {}
+        self._last = 0.0
+
+    def update(self, line: dict[str, Any], stats: str) -> None:
+        v, kind, value = line.get("vehicle"), line.get("kind"), line.get("value")
+        if v is None or not isinstance(value, dict):
+            return
+        if kind == "sm_update":
+            self.vehicles[v] = (
+                f"{v} {value.get('state_name', '?'):<9} "
+                f"{'ARMED' if value.get('armed') else 'safe '} "
+                f"alt {_num(value.get('altitude_m')):8.1f} m "
+                f"vel {_num(value.get('velocity_mps')):7.1f} m/s")
+        elif kind == "link" and not value.get("up"):
+            self.vehicles[v] = f"{v} LINK DOWN ({value.get('source')})"
+        else:
+            return
+        now = time.monotonic()
+        if now - self._last >= COMPACT_INTERVAL_S:
+            self._last = now
+            self.render(stats)
+
+    def render(self, stats: str) -> None:
+        text = " | ".join(self.vehicles[v] for v in sorted(self.vehicles)) or "waiting"
+        self.out.write(f"\r{text} | {stats}\x1b[K")
+        self.out.flush()
+
+
+def _num(v: Any) -> float:
+    return float(v) if isinstance(v, int | float) else math.nan
+
+
+# -- the command -------------------------------------------------------------------------------
+
+def run_listen(args: argparse.Namespace, out: TextIO | None = None,
+               stop: threading.Event | None = None) -> int:
+    """The ``listen`` handler; returns the exit status."""
+    import zenoh
+
+    out = out if out is not None else sys.stdout
+    err = sys.stderr
+    prefix = args.prefix
+    key = args.key or f"{prefix}/*/*"
+    try:
+        zenoh.KeyExpr(key)
+    except zenoh.ZError as exc:
+        print(f"aurora-gateway listen: KEY: {zerror_text(exc)}", file=err)
+        return EXIT_USAGE
+    if args.count < 0 or args.duration < 0 or not math.isfinite(args.duration):
+        print("aurora-gateway listen: --count and --duration must be ≥ 0", file=err)
+        return EXIT_USAGE
+    try:
+        opts = SessionOptions(
+            mode=args.mode,
+            connect=args.connect if args.connect else (None if args.config
+                                                       else [DEFAULT_ENDPOINT]),
+            config_file=args.config or "", user=args.user or "",
+            password=args.password or "", default_listen=[])
+        opts.config()
+    except ConfigError as exc:
+        print(f"aurora-gateway listen: {exc}", file=err)
+        return EXIT_USAGE
+
+    stop = stop if stop is not None else threading.Event()
+    samples: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    installed: dict[int, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            installed[sig] = signal.signal(sig, lambda *_: stop.set())
+    session = None
+    tracker = SeqTracker()
+    gateways: set[str] = set()
+    count = 0
+    compact = CompactView(out) if args.compact else None
+    deadline = time.monotonic() + args.duration if args.duration else None
+
+    def on_sample(sample: Any) -> None:
+        att = sample.attachment
+        samples.put((False, str(sample.key_expr), sample.payload.to_bytes(),
+                     str(sample.encoding), att.to_bytes() if att is not None else None))
+
+    def on_token(sample: Any) -> None:
+        samples.put((None, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, "", None))
+
+    def stats_text() -> str:
+        return f"{count} rx, {tracker.lost} lost, {len(gateways)} gateway(s)"
+
+    try:
+        backoff = Backoff(0.2, 2.0)
+        failures = 0
+        while session is None and not stop.is_set():
+            try:
+                session = opts.open()
+            except zenoh.ZError as exc:
+                failures += 1
+                if failures == 1:
+                    print(f"aurora-gateway listen: cannot connect ({opts.describe()}): "
+                          f"{zerror_text(exc)}; retrying", file=err)
+                stop.wait(backoff.next())
+        if session is None:
+            return 0
+        session.declare_subscriber(key, on_sample)
+        if args.gateways:
+            session.liveliness().declare_subscriber(f"{prefix}/*/gateway/*", on_token,
+                                                    history=True)
+        print(f"aurora-gateway listen: {key} ({opts.describe()})", file=err)
+        if args.query:
+            try:
+                for reply in session.get(key, timeout=QUERY_TIMEOUT_S):
+                    s = reply.ok
+                    if s is not None:
+                        att = s.attachment
+                        samples.put((True, str(s.key_expr), s.payload.to_bytes(),
+                                     str(s.encoding), att.to_bytes() if att is not None else None))
+            except zenoh.ZError as exc:
+                print(f"aurora-gateway listen: query failed: {zerror_text(exc)}", file=err)
+        while not stop.is_set():
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            try:
+                item = samples.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            from_query, k, payload, encoding, att = item
+            if from_query is None:  # liveliness
+                line = {"gateway_token": k, "alive": payload}
+                if compact is None:
+                    out.write(json.dumps(line) + "\n")
+                    out.flush()
+                continue
+            gw, seq = parse_attachment(att)
+            if gw is not None:
+                gateways.add(gw)
+            if not from_query:
+                tracker.see(gw, k, seq)
+            line = describe(k, payload, encoding, prefix)
+            line["gateway"] = gw
+            line["seq"] = seq
+            if from_query:
+                line["latest"] = True
+            line["rx_time"] = round(time.time(), 6)
+            count += 1
+            if compact is not None:
+                compact.update(line, stats_text())
+            else:
+                out.write(json.dumps(line) + "\n")
+                out.flush()
+            if args.count and count >= args.count:
+                break
+    except BrokenPipeError:
+        return 0
+    finally:
+        for sig, old in installed.items():
+            signal.signal(sig, old)
+        if session is not None:
+            session.close()
+        if compact is not None:
+            compact.render(stats_text())
+            out.write("\n")
+    print(f"aurora-gateway listen: {count} updates from {len(gateways)} gateway(s); "
+          f"{tracker.lost} lost (sequence gaps), {tracker.restarts} publisher restarts",
+          file=err)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="aurora-gateway")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_command(sub)
+    args = parser.parse_args(argv)
+    return args.handler(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

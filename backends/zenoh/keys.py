@@ -1,0 +1,199 @@
+"""The Zenoh key layout, the attachment that identifies a publication, and loop prevention.
+
+Keys (``prefix`` default ``aurora``, ``vehicle`` default ``rocket1``)::
+
+    <prefix>/<vehicle>/sm_update        state-machine snapshot (JSON, or packed)
+    <prefix>/<vehicle>/status           health heartbeat (JSON, or packed)
+    <prefix>/<vehicle>/link             a source's link went up / down (JSON)
+    <prefix>/<vehicle>/link_stats       radio link quality (JSON)
+    <prefix>/<vehicle>/position         GNSS fix (JSON)
+    <prefix>/<vehicle>/battery          battery (JSON)
+    <prefix>/<vehicle>/vehicle_state    non-Aurora vehicle state (JSON)
+    <prefix>/<vehicle>/raw/<type>       the untouched wire frame; <type> in decimal (1, 2, 171)
+    <prefix>/<vehicle>/gateway/<id>     liveliness token of each publishing gateway
+
+Every publication carries an attachment ``gw=<gateway id>;seq=<n>``: the gateway that
+published it and a sequence number counted per key from 0, so a subscriber can tell
+gateways apart, ignore its own publications, and count what it lost.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import threading
+
+DEFAULT_PREFIX = "aurora"
+DEFAULT_VEHICLE = "rocket1"
+#: Where the embedded default listens and where ``aurora-gateway listen`` looks first: a
+#: loopback port of its own, so it never collides with a Zenoh router (zenohd, rmw_zenoh) on
+#: the usual 7447.
+DEFAULT_PORT = 7450
+DEFAULT_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+
+RAW = "raw"
+GATEWAY = "gateway"
+#: Kinds published as JSON documents under ``<prefix>/<vehicle>/<kind>``.
+JSON_KINDS = ("sm_update", "status", "link", "link_stats", "position", "battery",
+              "vehicle_state")
+
+_FORBIDDEN = re.compile(r"[*$?#\s]")
+
+
+def check_prefix(prefix: str) -> str:
+    """A prefix is one or more key chunks without wildcards; raise ValueError otherwise."""
+    if not isinstance(prefix, str) or not prefix:
+        raise ValueError("must be a non-empty key expression such as 'aurora'")
+    if prefix.startswith("/") or prefix.endswith("/") or "//" in prefix:
+        raise ValueError(f"{prefix!r}: no leading, trailing or doubled '/'")
+    if _FORBIDDEN.search(prefix) or any(c.startswith("@") for c in prefix.split("/")):
+        raise ValueError(f"{prefix!r}: no wildcards ('*', '$'), '?', '#', spaces or '@' chunks")
+    return prefix
+
+
+def check_chunk(value: str, what: str = "vehicle", wildcard: bool = False) -> str:
+    """One key chunk (no '/'); ``wildcard`` allows exactly ``*``."""
+    if wildcard and value == "*":
+        return value
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{what} must be a non-empty name")
+    if "/" in value or _FORBIDDEN.search(value) or value.startswith("@"):
+        raise ValueError(f"{what} {value!r}: one key chunk, without '/', wildcards, '?', '#', "
+                         "spaces or a leading '@'" + (" (or exactly '*')" if wildcard else ""))
+    return value
+
+
+def default_gateway_id() -> str:
+    """``<host>-<pid>``: unique per running gateway on a network of distinct hosts."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname() or "host") or "host"
+    return f"{host}-{os.getpid()}"
+
+
+class KeyLayout:
+    """The keys of one vehicle under one prefix."""
+
+    __slots__ = ("_raw", "base", "prefix", "vehicle")
+
+    def __init__(self, prefix: str = DEFAULT_PREFIX, vehicle: str = DEFAULT_VEHICLE) -> None:
+        self.prefix = check_prefix(prefix)
+        self.vehicle = check_chunk(vehicle, "vehicle")
+        self.base = f"{prefix}/{vehicle}"
+        self._raw: dict[int, str] = {}
+
+    def kind(self, kind: str) -> str:
+        return f"{self.base}/{kind}"
+
+    def raw(self, frame_type: int) -> str:
+        key = self._raw.get(frame_type)
+        if key is None:
+            key = self._raw[frame_type] = f"{self.base}/{RAW}/{frame_type}"
+        return key
+
+    def token(self, gateway_id: str) -> str:
+        return f"{self.base}/{GATEWAY}/{gateway_id}"
+
+    @property
+    def everything(self) -> str:
+        """What the gateway's queryable answers for: ``<prefix>/<vehicle>/**``."""
+        return f"{self.base}/**"
+
+
+def parse_key(key: str, prefix: str) -> tuple[str, str, str] | None:
+    """``(vehicle, kind, rest)`` of a key under ``prefix``; None if it is not one of ours.
+
+    ``kind`` is e.g. ``sm_update`` or ``raw`` (then ``rest`` is the frame type)."""
+    head = prefix + "/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head):].split("/", 2)
+    if len(parts) < 2:
+        return None
+    return parts[0], parts[1], parts[2] if len(parts) > 2 else ""
+
+
+# -- attachments -------------------------------------------------------------------------------
+
+def make_attachment(gateway_id: str, seq: int) -> bytes:
+    return f"gw={gateway_id};seq={seq}".encode()
+
+
+def parse_attachment(data: bytes | None) -> tuple[str | None, int | None]:
+    """``(gateway id, seq)`` from an attachment; (None, None) for a foreign or missing one."""
+    if not data:
+        return None, None
+    try:
+        text = bytes(data).decode()
+    except UnicodeDecodeError:
+        return None, None
+    gw: str | None = None
+    seq: int | None = None
+    for part in text.split(";"):
+        name, _, value = part.partition("=")
+        if name == "gw":
+            gw = value or None
+        elif name == "seq":
+            try:
+                seq = int(value)
+            except ValueError:
+                seq = None
+    return gw, seq
+
+
+class SeqTracker:
+    """Counts publications lost on the way, from the per-key sequence numbers.
+
+    ``lost`` grows by the size of every forward gap; a sequence number that goes backwards
+    means the publisher restarted (``restarts``), never a loss."""
+
+    __slots__ = ("_last", "lost", "restarts")
+
+    def __init__(self) -> None:
+        self._last: dict[tuple[str, str], int] = {}
+        self.lost = 0
+        self.restarts = 0
+
+    def see(self, gateway: str | None, key: str, seq: int | None) -> int:
+        """Record one sample; return how many were lost just before it."""
+        if gateway is None or seq is None:
+            return 0
+        k = (gateway, key)
+        last = self._last.get(k)
+        self._last[k] = seq
+        if last is None:
+            return 0
+        if seq > last + 1:
+            gap = seq - last - 1
+            self.lost += gap
+            return gap
+        if seq <= last:
+            self.restarts += 1
+        return 0
+
+
+# -- loop prevention -----------------------------------------------------------------------------
+
+class _LocalRegistry:
+    """Who in this process speaks Zenoh: the ids of Zenoh backends (their publications must
+    not come back in through a Zenoh source) and the names of Zenoh sources (what they
+    emit must not go out again through a Zenoh backend)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.gateway_ids: frozenset[str] = frozenset()
+        self.source_names: frozenset[str] = frozenset()
+
+    def add_gateway(self, gateway_id: str) -> None:
+        with self._lock:
+            self.gateway_ids = self.gateway_ids | {gateway_id}
+
+    def remove_gateway(self, gateway_id: str) -> None:
+        with self._lock:
+            self.gateway_ids = self.gateway_ids - {gateway_id}
+
+    def add_source(self, name: str) -> None:
+        with self._lock:
+            self.source_names = self.source_names | {name}
+
+
+LOCAL = _LocalRegistry()

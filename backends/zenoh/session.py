@@ -1,0 +1,230 @@
+"""Session options (the same keys for the backend, the source and ``listen``) → zenoh.Config.
+
+Defaults keep everything on the machine: peer mode, listening on loopback only
+(``tcp/127.0.0.1:7450``), multicast scouting off.  Given ``connect`` endpoints and no
+``listen``, the session only connects (it joins a network rather than offering one); a client
+never listens.  ``config_file`` loads a full Zenoh JSON5 configuration as the base, and only
+the keys given explicitly here override it.
+
+When the default loopback port is already taken (a second gateway on the same machine), the
+session listens on a random loopback port instead and connects to the first: both are then
+reachable through the default endpoint (Zenoh's gossip tells the others about the newcomer).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+from typing import Any
+
+from backends.zenoh.keys import DEFAULT_ENDPOINT
+from gateway.config import ConfigError, Key
+
+log = logging.getLogger(__name__)
+
+MODES = ("peer", "client", "router")
+PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
+             "vsock")
+RETRY_INIT_MS = 100
+
+#: The session keys, shared by every Schema in this package.  ``None`` = not given.
+SESSION_KEYS: dict[str, Key] = {
+    "mode": Key(str, None, "Zenoh mode", choices=MODES, nullable=True),
+    "connect": Key((list, str), None, "endpoints to connect to, e.g. "
+                   "['tcp/192.168.1.10:7447']", nullable=True),
+    "listen": Key((list, str), None, f"endpoints to listen on (default {DEFAULT_ENDPOINT}, or none "
+                  "when connect is given)", nullable=True),
+    "multicast_scouting": Key(bool, None, "find peers and routers by UDP multicast (default "
+                              "off)", nullable=True),
+    "tls_root_ca": Key(str, "", "CA certificate (PEM) that signs the peers' certificates"),
+    "tls_certificate": Key(str, "", "this node's certificate (PEM), to listen on tls/ "
+                           "endpoints or for mutual TLS"),
+    "tls_private_key": Key(str, "", "this node's private key (PEM)"),
+    "tls_mtls": Key(bool, False, "mutual TLS: present tls_certificate when connecting and "
+                    "require one from whoever connects"),
+    "user": Key(str, "", "user name for user/password authentication"),
+    "password": Key(str, "", "password for user/password authentication"),
+    "config_file": Key(str, "", "a full Zenoh JSON5 configuration file used as the base"),
+    "reconnect_max_s": Key(float, 1.0, "longest wait between attempts to (re)connect to an "
+                           "endpoint", minimum=0.1, maximum=3600),
+}
+
+_RS_LOCATION = re.compile(r"\s+at\s+/\S+\.rs:\d+\.?")
+
+
+def zerror_text(exc: BaseException) -> str:
+    """A Zenoh error without the Rust source locations it carries."""
+    return _RS_LOCATION.sub("", str(exc)).strip()
+
+
+def check_endpoints(value: Any, key: str) -> list[str]:
+    """A list of ``<protocol>/<address>`` strings (one string is a list of one); ConfigError
+    naming the item otherwise."""
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list):
+        raise ConfigError(f"{key}: expected a list of endpoints, got {value!r}")
+    out = []
+    for i, ep in enumerate(value):
+        if not isinstance(ep, str):
+            raise ConfigError(f"{key}[{i}]: expected a string, got {ep!r}")
+        proto, slash, addr = ep.partition("/")
+        if not slash or not addr:
+            raise ConfigError(f"{key}[{i}]: {ep!r} is not <protocol>/<address>, e.g. "
+                              "tcp/127.0.0.1:7447")
+        if proto not in PROTOCOLS:
+            raise ConfigError(f"{key}[{i}]: unknown protocol {proto!r}; one of "
+                              f"{', '.join(PROTOCOLS)}")
+        out.append(ep)
+    return out
+
+
+class SessionOptions:
+    """Validated session options; :meth:`config` builds the zenoh.Config."""
+
+    def __init__(self, mode: str | None = None, connect: list[str] | None = None,
+                 listen: list[str] | None = None, multicast_scouting: bool | None = None,
+                 tls_root_ca: str = "", tls_certificate: str = "", tls_private_key: str = "",
+                 tls_mtls: bool = False, user: str = "", password: str = "",
+                 config_file: str = "", reconnect_max_s: float = 1.0,
+                 default_listen: list[str] | None = None) -> None:
+        if mode is not None and mode not in MODES:
+            raise ConfigError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
+        self.mode = mode
+        self.connect = check_endpoints(connect, "connect") if connect is not None else None
+        self.listen = check_endpoints(listen, "listen") if listen is not None else None
+        self.multicast_scouting = multicast_scouting
+        self.tls_root_ca = tls_root_ca
+        self.tls_certificate = tls_certificate
+        self.tls_private_key = tls_private_key
+        self.tls_mtls = tls_mtls
+        self.user = user
+        self.password = password
+        self.config_file = config_file
+        self.reconnect_max_s = reconnect_max_s
+        self.default_listen = ([DEFAULT_ENDPOINT] if default_listen is None
+                               else list(default_listen))
+        if bool(user) != bool(password):
+            raise ConfigError("user/password: give both or neither")
+        if bool(tls_certificate) != bool(tls_private_key):
+            raise ConfigError("tls_certificate/tls_private_key: give both or neither")
+        if tls_mtls and not (tls_certificate and tls_root_ca):
+            raise ConfigError("tls_mtls: needs tls_root_ca, tls_certificate and "
+                              "tls_private_key")
+        for key in ("tls_root_ca", "tls_certificate", "tls_private_key", "config_file"):
+            path = getattr(self, key)
+            if path and not Path(path).is_file():
+                raise ConfigError(f"{key}: no such file: {path}")
+        if self.effective_mode == "client" and not self.connect and not config_file:
+            raise ConfigError("connect: client mode needs at least one endpoint (a router)")
+        self.config()  # a bad config file or value is found now, before anything starts
+
+    @classmethod
+    def from_options(cls, options: dict[str, Any], **extra: Any) -> SessionOptions:
+        """Pick the session keys out of a backend's or source's options."""
+        return cls(**{k: options[k] for k in SESSION_KEYS if k in options}, **extra)
+
+    @property
+    def effective_mode(self) -> str:
+        return self.mode or "peer"
+
+    @property
+    def uses_default_listen(self) -> bool:
+        """True when the session listens where it does only because nothing was configured."""
+        return (self.listen is None and not self.connect and not self.config_file
+                and self.effective_mode != "client")
+
+    def listen_endpoints(self) -> list[str]:
+        if self.listen is not None:
+            return self.listen
+        if self.effective_mode == "client" or self.connect:
+            return []
+        return list(self.default_listen)
+
+    def describe(self) -> str:
+        """One line for logs: mode, listen and connect endpoints."""
+        parts = [self.effective_mode]
+        if self.config_file:
+            parts.append(f"config {self.config_file}")
+        lst = self.listen_endpoints() if not self.config_file or self.listen is not None else []
+        if lst:
+            parts.append("listen " + ",".join(lst))
+        if self.connect:
+            parts.append("connect " + ",".join(self.connect))
+        return " ".join(parts)
+
+    def config(self, listen: list[str] | None = None,
+               connect: list[str] | None = None) -> Any:
+        """The zenoh.Config; ``listen``/``connect`` override the endpoints (the fallback)."""
+        import zenoh
+
+        def put(key: str, value: Any) -> None:
+            try:
+                cfg.insert_json5(key, json.dumps(value))
+            except zenoh.ZError as exc:
+                raise ConfigError(f"{key.replace('/', '.')}: {zerror_text(exc)}") from None
+
+        if self.config_file:
+            try:
+                cfg = zenoh.Config.from_file(self.config_file)
+            except zenoh.ZError as exc:
+                raise ConfigError(f"config_file: {self.config_file}: "
+                                  f"{zerror_text(exc)}") from None
+        else:
+            cfg = zenoh.Config()
+        base = not self.config_file
+        if self.mode is not None or base:
+            put("mode", self.effective_mode)
+        if self.multicast_scouting is not None or base:
+            put("scouting/multicast/enabled", bool(self.multicast_scouting))
+        if listen is None and (self.listen is not None or base):
+            listen = self.listen_endpoints()
+        if listen is not None and self.effective_mode != "client":
+            put("listen/endpoints", listen)
+        if connect is None and self.connect is not None:
+            connect = self.connect
+        if connect is not None:
+            put("connect/endpoints", connect)
+        if base or self.reconnect_max_s != SESSION_KEYS["reconnect_max_s"].default:
+            retry = {"period_init_ms": RETRY_INIT_MS,
+                     "period_max_ms": max(RETRY_INIT_MS, round(self.reconnect_max_s * 1000)),
+                     "period_increase_factor": 2}
+            put("connect/retry", retry)
+            put("listen/retry", retry)
+        if self.tls_root_ca:
+            put("transport/link/tls/root_ca_certificate", self.tls_root_ca)
+        if self.tls_certificate:
+            put("transport/link/tls/listen_certificate", self.tls_certificate)
+            put("transport/link/tls/listen_private_key", self.tls_private_key)
+            put("transport/link/tls/connect_certificate", self.tls_certificate)
+            put("transport/link/tls/connect_private_key", self.tls_private_key)
+        if self.tls_mtls:
+            put("transport/link/tls/enable_mtls", True)
+        if self.user:
+            put("transport/auth/usrpwd/user", self.user)
+            put("transport/auth/usrpwd/password", self.password)
+        return cfg
+
+    def open(self) -> Any:
+        """Open the session (blocking: call it from a worker).  Raises zenoh.ZError when it
+        cannot (a client whose router is down); the caller retries with backoff."""
+        import zenoh
+
+        try:
+            return zenoh.open(self.config())
+        except zenoh.ZError as exc:
+            if not (self.uses_default_listen and "in use" in str(exc)):
+                raise
+        # Somebody (normally another gateway) holds the default port: join it.
+        listen = [_any_port(ep) for ep in self.default_listen]
+        log.info("zenoh: %s is taken (another gateway on this machine?); listening on %s "
+                 "and joining it", ", ".join(self.default_listen), ", ".join(listen))
+        return zenoh.open(self.config(listen=listen, connect=list(self.default_listen)))
+
+
+def _any_port(endpoint: str) -> str:
+    """The same endpoint on port 0 (any free port)."""
+    head, sep, _ = endpoint.rpartition(":")
+    return f"{head}:0" if sep else endpoint

@@ -1,0 +1,263 @@
+"""Zenoh source: another gateway's publications, fed into this gateway's dispatcher.
+
+A rocket-side gateway publishes; a ground-side one subscribes to
+``<prefix>/<vehicle>/raw/**`` (the untouched wire frames, decoded here with the same codec
+as a serial port) — or, with ``keys = "json"``, to the JSON documents — and drives its local
+tools (QGroundControl, a radio) as if the rocket were plugged in.
+
+Loop prevention, both ways:
+
+* every message emitted carries ``origin`` = this source's name, registered as a Zenoh
+  origin, so a Zenoh backend of this process never publishes it again;
+* publications whose attachment names a Zenoh backend of this process (its own
+  publications coming back) are ignored (``ignored_own``).
+
+The URL form (``--source``) is ``zenoh:[VEHICLE@][ENDPOINT[,ENDPOINT...]]``::
+
+    zenoh:                                  every vehicle, via tcp/127.0.0.1:7450
+    zenoh:tcp/10.0.0.5:7447                 every vehicle, via that router or gateway
+    zenoh:rocket1@tcp/10.0.0.5:7447         only rocket1
+
+Samples are handed from Zenoh's callback thread to the source's thread through a bounded
+queue (``queue_depth``; overflow counted as ``dropped_queue_full``); gaps in the publishers'
+sequence numbers are counted as ``lost``.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from typing import Any
+
+from backends.zenoh import encoding as enc
+from backends.zenoh.keys import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_PREFIX,
+    JSON_KINDS,
+    LOCAL,
+    RAW,
+    SeqTracker,
+    check_chunk,
+    check_prefix,
+    parse_attachment,
+    parse_key,
+)
+from backends.zenoh.session import SESSION_KEYS, SessionOptions, check_endpoints, zerror_text
+from gateway.backoff import Backoff
+from gateway.config import ConfigError, Key, Schema
+from gateway.sources import Source
+from gateway.wire import Decoder
+
+log = logging.getLogger(__name__)
+
+URL_SCHEME = "zenoh"
+KEY_SETS = ("raw", "json")
+_STOP = object()
+
+
+def parse_url(url: str) -> dict[str, Any]:
+    """Options from ``zenoh:[VEHICLE@][ENDPOINT[,ENDPOINT...]]``; ValueError if malformed."""
+    scheme, colon, rest = url.partition(":")
+    if scheme != URL_SCHEME:
+        raise ValueError(f"{url!r}: expected zenoh:[VEHICLE@][ENDPOINT,...]")
+    opts: dict[str, Any] = {}
+    if not colon or not rest:
+        return opts
+    head, at, tail = rest.partition("@")
+    if at and "/" not in head:
+        opts["vehicle"] = check_chunk(head, "vehicle", wildcard=True)
+        rest = tail
+    if rest:
+        try:
+            opts["connect"] = check_endpoints(rest.split(","), "endpoint")
+        except ConfigError as exc:
+            raise ValueError(f"{url!r}: {exc}") from None
+    return opts
+
+
+class ZenohSource(Source):
+    """Subscribes to another gateway's publications and emits them as messages."""
+
+    NAME = "zenoh"
+    CONFIG = Schema(
+        url=Key(str, "", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)"),
+        prefix=Key(str, DEFAULT_PREFIX, "key prefix of the publishing gateways"),
+        vehicle=Key(str, "*", "vehicle to follow; '*' = every vehicle (their messages are "
+                    "merged: use one source per vehicle to keep them apart)"),
+        keys=Key(str, "raw", "subscribe to the raw wire frames or to the JSON documents",
+                 choices=KEY_SETS),
+        queue_depth=Key(int, 1024, "samples waiting for the source's thread before new ones "
+                        "are dropped", minimum=1, maximum=1_000_000),
+        **SESSION_KEYS,
+    )
+
+    @staticmethod
+    def default_name(options: dict[str, Any]) -> str:
+        return options.get("url") or URL_SCHEME
+
+    def __init__(self, name: str | None = None, *, url: str = "",
+                 prefix: str = DEFAULT_PREFIX, vehicle: str = "*", keys: str = "raw",
+                 queue_depth: int = 1024, **session: Any) -> None:
+        super().__init__(name or url or URL_SCHEME)
+        if url:
+            try:
+                from_url = parse_url(url)
+            except ValueError as exc:
+                raise ConfigError(f"url: {exc}") from None
+            vehicle = from_url.get("vehicle", vehicle)
+            if "connect" in from_url:
+                session["connect"] = from_url["connect"]
+        try:
+            self.prefix = check_prefix(prefix)
+        except ValueError as exc:
+            raise ConfigError(f"prefix: {exc}") from None
+        try:
+            self.vehicle = check_chunk(vehicle, "vehicle", wildcard=True)
+        except ValueError as exc:
+            raise ConfigError(f"vehicle: {exc}") from None
+        if keys not in KEY_SETS:
+            raise ConfigError(f"keys: expected 'raw' or 'json', got {keys!r}")
+        unknown = set(session) - set(SESSION_KEYS)
+        if unknown:
+            raise ConfigError(f"{sorted(unknown)[0]}: unknown key")
+        if session.get("connect") is None and not session.get("config_file"):
+            session["connect"] = [DEFAULT_ENDPOINT]
+        self.session_options = SessionOptions.from_options(session, default_listen=[])
+        self.keys = keys
+        self.queue_depth = queue_depth
+        self.key_expr = (f"{self.prefix}/{self.vehicle}/{RAW}/**" if keys == "raw"
+                         else f"{self.prefix}/{self.vehicle}/*")
+        self.decoder = Decoder(origin=self.name)
+        self.tracker = SeqTracker()
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
+        self.ready = threading.Event()
+        self.received = 0
+        self.emitted = 0
+        self.ignored_own = 0
+        self.ignored_other = 0
+        self.bad_payloads = 0
+        self.dropped_queue_full = 0
+        self.session_opens = 0
+        self.open_failures = 0
+        LOCAL.add_source(self.name)
+
+    # -- zenoh's callback thread ------------------------------------------------------------------
+
+    def _on_sample(self, sample: Any) -> None:
+        att = sample.attachment
+        gw, seq = parse_attachment(att.to_bytes() if att is not None else None)
+        if gw is not None and gw in LOCAL.gateway_ids:
+            self.ignored_own += 1
+            return
+        self.received += 1
+        key = str(sample.key_expr)
+        self.tracker.see(gw, key, seq)
+        q = self._queue
+        if q.qsize() >= self.queue_depth:
+            self.dropped_queue_full += 1
+            return
+        q.put((key, sample.payload.to_bytes(), str(sample.encoding)))
+
+    # -- the source's thread ------------------------------------------------------------------
+
+    def run(self, stop: threading.Event) -> None:
+        session = None
+        try:
+            while not stop.is_set():
+                session = self._open()
+                if session is not None:
+                    break
+                stop.wait(self._backoff.next())
+            if session is None:
+                return
+            while not stop.is_set():
+                try:
+                    item = self._queue.get(timeout=0.1)
+                except queue.Empty:
+                    continue
+                if item is _STOP:
+                    break
+                self._handle(*item)
+        finally:
+            self.ready.clear()
+            if session is not None:
+                try:
+                    session.close()
+                except Exception:
+                    log.debug("source %s: session close failed", self.name, exc_info=True)
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self._queue.put(_STOP)
+        super().stop(timeout)
+
+    def _open(self) -> Any:
+        import zenoh
+
+        try:
+            session = self.session_options.open()
+        except (zenoh.ZError, ConfigError) as exc:
+            self.open_failures += 1
+            if self.open_failures == 1:
+                log.warning("source %s: cannot open the Zenoh session (%s): %s; retrying",
+                            self.name, self.session_options.describe(), zerror_text(exc))
+            return None
+        if self._stop.is_set():
+            session.close()
+            return None
+        try:
+            session.declare_subscriber(self.key_expr, self._on_sample)
+        except zenoh.ZError as exc:
+            self.open_failures += 1
+            log.warning("source %s: cannot subscribe to %s: %s", self.name, self.key_expr,
+                        zerror_text(exc))
+            session.close()
+            return None
+        self.session_opens += 1
+        log.info("source %s: subscribed to %s (%s)", self.name, self.key_expr,
+                 self.session_options.describe())
+        self.ready.set()
+        return session
+
+    def _handle(self, key: str, payload: bytes, encoding: str) -> None:
+        parsed = parse_key(key, self.prefix)
+        if parsed is None:
+            self.ignored_other += 1
+            return
+        _, kind, _ = parsed
+        if kind == RAW:
+            dec = self.decoder
+            before = dec.stats.frames
+            msgs = dec.feed(payload) + dec.flush()
+            if dec.stats.frames == before:
+                self.bad_payloads += 1
+            for msg in msgs:
+                self.emitted += 1
+                self.emit(msg)
+            return
+        if kind not in JSON_KINDS or kind == "link":  # link events are this gateway's own
+            self.ignored_other += 1
+            return
+        try:
+            msg = enc.decode(kind, payload, encoding, origin=self.name)
+        except enc.PayloadError as exc:
+            self.bad_payloads += 1
+            if self.bad_payloads == 1:
+                log.warning("source %s: %s: %s", self.name, key, exc)
+            return
+        self.emitted += 1
+        self.emit(msg)
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "received": self.received,
+            "emitted": self.emitted,
+            "lost": self.tracker.lost,
+            "dropped_queue_full": self.dropped_queue_full,
+            "ignored_own": self.ignored_own,
+            "bad_payloads": self.bad_payloads,
+            "crc_failures": self.decoder.stats.crc_failures,
+            "session_opens": self.session_opens,
+            "open_failures": self.open_failures,
+        }
