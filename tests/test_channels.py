@@ -5,10 +5,9 @@ real dispatcher."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
-from typing import Any
 
 import pytest
+from helpers import run_within
 
 from gateway.backend import Outcome
 from gateway.channels import RING_DEPTH, ChannelBackend, Channels, Mailbox, Ring
@@ -20,28 +19,6 @@ DEADLINE_S = 5.0
 
 def sm(t: int) -> SmUpdate:
     return SmUpdate(t, 1, False, 0, float(t), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-
-
-def run_within(fn: Callable[[], Any], timeout: float = DEADLINE_S) -> Any:
-    box: dict[str, Any] = {}
-    done = threading.Event()
-
-    def target() -> None:
-        try:
-            box["value"] = fn()
-        except BaseException as exc:
-            box["error"] = exc
-        finally:
-            done.set()
-
-    threading.Thread(target=target, daemon=True).start()
-    assert done.wait(timeout), f"did not return within {timeout} s (blocked)"
-    if "error" in box:
-        raise box["error"]
-    return box.get("value")
-
-
-# -- mailbox --------------------------------------------------------------------------------
 
 
 def test_mailbox_is_empty_until_the_first_put() -> None:

@@ -18,11 +18,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
+from helpers import Running
 
 from dialects.states import state_name
 from gateway import cli, config, recording
@@ -59,58 +60,6 @@ def gw(*args: str, stdin: bytes | None = None, timeout: float = TIMEOUT_S,
                        capture_output=True, timeout=timeout)
     return subprocess.CompletedProcess(r.args, r.returncode, r.stdout.decode(),
                                        r.stderr.decode())
-
-
-class Running:
-    """A gateway subprocess whose stdout and stderr lines are collected by reader threads;
-    ``wait_line`` blocks until a line matches (or the deadline passes)."""
-
-    def __init__(self, *args: str, cmd: Sequence[str] = GATEWAY) -> None:
-        self.proc = subprocess.Popen([*cmd, *args], cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1)
-        self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
-        self.cond = threading.Condition()
-        self.eof = 0
-        self.threads = [threading.Thread(target=self._pump, args=(name, pipe), daemon=True)
-                        for name, pipe in (("stdout", self.proc.stdout),
-                                           ("stderr", self.proc.stderr))]
-        for th in self.threads:
-            th.start()
-
-    def _pump(self, name: str, pipe: io.TextIOBase) -> None:
-        for line in pipe:
-            with self.cond:
-                self.lines[name].append(line.rstrip("\n"))
-                self.cond.notify_all()
-        with self.cond:
-            self.eof += 1
-            self.cond.notify_all()
-
-    def wait_line(self, name: str, pred: Callable[[str], bool],
-                  timeout: float = TIMEOUT_S) -> bool:
-        """Wait until a line of ``name`` matches ``pred``; False if none does by the deadline
-        or by the end of the process's output."""
-        with self.cond:
-            self.cond.wait_for(lambda: any(pred(ln) for ln in self.lines[name])
-                               or self.eof == 2, timeout)
-            return any(pred(ln) for ln in self.lines[name])
-
-    def finish(self, timeout: float = TIMEOUT_S) -> int:
-        rc = self.proc.wait(timeout)
-        for th in self.threads:
-            th.join(5)
-        return rc
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
-        for th in self.threads:
-            th.join(5)
-
-    def text(self, name: str) -> str:
-        with self.cond:
-            return "\n".join(self.lines[name])
 
 
 @pytest.fixture(scope="module")

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
 from backends.crsf import CrsfBackend
@@ -38,17 +39,6 @@ DEADLINE_S = 15.0
 REPO = Path(__file__).resolve().parents[1]
 FLIGHT = ["IDLE*", "ARMED", "BOOST", "BURNOUT", "APOGEE", "MAIN", "REDUNDANT", "LANDED"]
 LINK_STATS = LinkStatistics(-52, -61, 97, 9, 0, 7, 3, -48, 100, 11)
-
-
-def wait_for(pred: Callable[[], bool], timeout: float = DEADLINE_S) -> bool:
-    """Wait until ``pred()`` holds (checked every few ms) or ``timeout`` passes."""
-    deadline = time.monotonic() + timeout
-    ev = threading.Event()
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        ev.wait(0.005)
-    return True
 
 
 def read_until(fd: int, radio: EdgeTxRadio, pred: Callable[[], bool],

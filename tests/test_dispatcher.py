@@ -7,10 +7,10 @@ from __future__ import annotations
 import errno
 import logging
 import threading
-from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import pytest
+from helpers import run_within
 
 from gateway.backend import Backend, Outcome
 from gateway.dispatcher import Dispatcher
@@ -26,26 +26,6 @@ def sm(t: int = 0) -> SmUpdate:
 
 def status(t: int = 0) -> Status:
     return Status(t, 1, 0, 0)
-
-
-def run_within(fn: Callable[[], Any], timeout: float = DEADLINE_S) -> Any:
-    """Run ``fn`` in a helper thread; fail (instead of hanging) if it takes over ``timeout``."""
-    box: dict[str, Any] = {}
-    done = threading.Event()
-
-    def target() -> None:
-        try:
-            box["value"] = fn()
-        except BaseException as exc:
-            box["error"] = exc
-        finally:
-            done.set()
-
-    threading.Thread(target=target, daemon=True).start()
-    assert done.wait(timeout), f"did not return within {timeout} s (blocked)"
-    if "error" in box:
-        raise box["error"]
-    return box.get("value")
 
 
 class Recorder(Backend):

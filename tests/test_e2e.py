@@ -20,7 +20,6 @@ Every wait has a deadline and every process is killed in ``finally``.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import re
@@ -31,10 +30,11 @@ import sys
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from helpers import Running
 
 from gateway import recording
 from gateway.flight import FlightModel, FlightProfile
@@ -50,55 +50,6 @@ SPEED = 20.0
 def expected_frames() -> list[bytes]:
     """What ``simulate --cycles 1`` sends with its defaults (10 Hz, STATUS 1 Hz, 64 bytes)."""
     return [f for _, f in flight_frames(FlightModel(FlightProfile()), 10, 1, cycles=1)]
-
-
-class Running:
-    """A subprocess whose output lines are collected by reader threads (``wait_line``)."""
-
-    def __init__(self, args: Sequence[str]) -> None:
-        self.proc = subprocess.Popen([*GATEWAY, *args], cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1)
-        self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
-        self.cond = threading.Condition()
-        self.eof = 0
-        self.threads = [threading.Thread(target=self._pump, args=(name, pipe), daemon=True)
-                        for name, pipe in (("stdout", self.proc.stdout),
-                                           ("stderr", self.proc.stderr))]
-        for th in self.threads:
-            th.start()
-
-    def _pump(self, name: str, pipe: io.TextIOBase) -> None:
-        for line in pipe:
-            with self.cond:
-                self.lines[name].append(line.rstrip("\n"))
-                self.cond.notify_all()
-        with self.cond:
-            self.eof += 1
-            self.cond.notify_all()
-
-    def wait_line(self, name: str, pred: Callable[[str], bool],
-                  timeout: float = TIMEOUT_S) -> bool:
-        with self.cond:
-            self.cond.wait_for(lambda: any(pred(ln) for ln in self.lines[name])
-                               or self.eof == 2, timeout)
-            return any(pred(ln) for ln in self.lines[name])
-
-    def finish(self, timeout: float = TIMEOUT_S) -> int:
-        rc = self.proc.wait(timeout)
-        for th in self.threads:
-            th.join(5)
-        return rc
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
-        for th in self.threads:
-            th.join(5)
-
-    def text(self, name: str) -> str:
-        with self.cond:
-            return "\n".join(self.lines[name])
 
 
 class Relay(threading.Thread):
@@ -178,16 +129,16 @@ def test_simulate_into_run_records_exactly_the_frames_sent(
     sim_in = _listener()
     gateway = simulate = None
     try:
-        gateway = Running(["run", "--config", str(console_only), "--source", url,
-                           "--record", str(rec_path), "--duration", "60"])
+        gateway = Running("run", "--config", str(console_only), "--source", url,
+                          "--record", str(rec_path), "--duration", "60", timeout=TIMEOUT_S)
         forward = connect()  # tcp: the gateway's connection; pty: the master fd
         assert gateway.wait_line("stderr", lambda ln: f"{url} open" in ln), \
             gateway.text("stderr")
         relay = Relay(sim_in, forward)
         relay.start()
         t_start = time.time()
-        simulate = Running(["simulate", "--out", f"socket://127.0.0.1:{sim_in.getsockname()[1]}",
-                            "--speed", str(SPEED), "--cycles", "1"])
+        simulate = Running("simulate", "--out", f"socket://127.0.0.1:{sim_in.getsockname()[1]}",
+                           "--speed", str(SPEED), "--cycles", "1", timeout=TIMEOUT_S)
         assert simulate.finish(TIMEOUT_S) == 0, simulate.text("stderr")
         assert f"simulate: {len(expected)} frames written" in simulate.text("stderr")
         assert relay.done.wait(TIMEOUT_S) and relay.error is None, relay.error

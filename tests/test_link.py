@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import serial
+from helpers import run_within, wait_for
 
 from gateway.backend import Outcome
 from gateway.backoff import Backoff
@@ -43,34 +44,6 @@ def read_exactly(port: serial.SerialBase, n: int, timeout: float = DEADLINE_S) -
         data += port.read(n - len(data))
     assert len(data) == n, f"read {len(data)} of {n} bytes: {data!r}"
     return data
-
-
-def wait_for(cond: Callable[[], bool], timeout: float = DEADLINE_S) -> None:
-    """Poll ``cond`` until true, failing at the deadline: for states that signal no event
-    (the worker blocked on a lock, close() under way).  Never a fixed sleep."""
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, "condition not reached in time"
-        time.sleep(0.001)
-
-
-def run_within(fn: Callable[[], Any], timeout: float = DEADLINE_S) -> Any:
-    box: dict[str, Any] = {}
-    done = threading.Event()
-
-    def target() -> None:
-        try:
-            box["value"] = fn()
-        except BaseException as exc:
-            box["error"] = exc
-        finally:
-            done.set()
-
-    threading.Thread(target=target, daemon=True).start()
-    assert done.wait(timeout), f"did not return within {timeout} s (blocked)"
-    if "error" in box:
-        raise box["error"]
-    return box.get("value")
 
 
 class BlockingTransport:
@@ -292,7 +265,7 @@ def test_writes_wait_for_an_external_holder_of_the_lock(engines: Any) -> None:
     eng = started(engines, lambda: port)
     with eng.lock:  # e.g. an AT-command exchange owns the port
         assert [eng.submit(f) for f in (b"1", b"2", b"3")] == [Outcome.ACCEPTED] * 3
-        wait_for(lambda: eng.queued() == 2)  # the worker took "1" and waits for the lock
+        assert wait_for(lambda: eng.queued() == 2)  # the worker took "1" and waits for the lock
         assert eng.stats.sent_frames == 0
         assert port.in_waiting == 0
     assert read_exactly(port, 3) == b"123"
@@ -313,7 +286,7 @@ def test_close_writes_what_is_queued_before_stopping(
     closer = threading.Thread(target=eng.close, args=(DEADLINE_S,), daemon=True)
     closer.start()
     # The queue is full, so submit says QUEUE_FULL (queueing nothing) until close() begins.
-    wait_for(lambda: eng.submit(b"probe") is Outcome.NOT_READY)
+    assert wait_for(lambda: eng.submit(b"probe") is Outcome.NOT_READY)
     port.release.set()
     closer.join(DEADLINE_S)
     assert not closer.is_alive()

@@ -1,0 +1,106 @@
+"""Helpers shared by the tests: bounded waits and gateway subprocesses.
+
+Importable as ``helpers`` (pytest puts ``tests/`` on ``sys.path``).  Nothing here sleeps as
+synchronisation: waits poll a condition or block on one, always with a deadline.
+"""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+GATEWAY = [sys.executable, "-m", "gateway.cli"]
+DEADLINE_S = 10.0
+
+
+def run_within(fn: Callable[[], Any], timeout: float = DEADLINE_S) -> Any:
+    """Run ``fn`` in a helper thread; fail (instead of hanging) if it takes over ``timeout``."""
+    box: dict[str, Any] = {}
+    done = threading.Event()
+
+    def target() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as exc:
+            box["error"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=target, daemon=True).start()
+    assert done.wait(timeout), f"did not return within {timeout} s (blocked)"
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+def wait_for(cond: Callable[[], bool], timeout: float = DEADLINE_S,
+             poll_s: float = 0.002) -> bool:
+    """Poll ``cond`` until it holds (True) or ``timeout`` passes (False): for states that
+    signal no event (a worker blocked on a lock, bytes in a kernel buffer)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
+class Running:
+    """A gateway subprocess whose stdout and stderr lines are collected by reader threads;
+    ``wait_line`` blocks until a line matches (or the deadline passes)."""
+
+    def __init__(self, *args: str, cmd: Sequence[str] = GATEWAY,
+                 timeout: float = 20.0) -> None:
+        self.timeout = timeout
+        self.proc = subprocess.Popen([*cmd, *args], cwd=ROOT, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True, bufsize=1)
+        self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
+        self.cond = threading.Condition()
+        self.eof = 0
+        self.threads = [threading.Thread(target=self._pump, args=(name, pipe), daemon=True)
+                        for name, pipe in (("stdout", self.proc.stdout),
+                                           ("stderr", self.proc.stderr))]
+        for th in self.threads:
+            th.start()
+
+    def _pump(self, name: str, pipe: io.TextIOBase) -> None:
+        for line in pipe:
+            with self.cond:
+                self.lines[name].append(line.rstrip("\n"))
+                self.cond.notify_all()
+        with self.cond:
+            self.eof += 1
+            self.cond.notify_all()
+
+    def wait_line(self, name: str, pred: Callable[[str], bool],
+                  timeout: float | None = None) -> bool:
+        """Wait until a line of ``name`` matches ``pred``; False if none does by the deadline
+        or by the end of the process's output."""
+        with self.cond:
+            self.cond.wait_for(lambda: any(pred(ln) for ln in self.lines[name])
+                               or self.eof == 2, timeout or self.timeout)
+            return any(pred(ln) for ln in self.lines[name])
+
+    def finish(self, timeout: float | None = None) -> int:
+        rc = self.proc.wait(timeout or self.timeout)
+        for th in self.threads:
+            th.join(5)
+        return rc
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+        for th in self.threads:
+            th.join(5)
+
+    def text(self, name: str) -> str:
+        with self.cond:
+            return "\n".join(self.lines[name])
