@@ -261,9 +261,15 @@ def _setup_logging(level: str | None) -> None:
 def _report(summary: dict[str, Any]) -> None:
     drops = []
     for name, st in summary["backends"].items():
-        dropped = {k: v for k, v in st.items()
-                   if isinstance(v, int) and v and (k.startswith("dropped") or k in
-                                                    ("queue-full", "not-ready", "failed"))}
+        # A backend's own per-reason counters say most; else its total; else what the
+        # dispatcher saw it return.  Hooks that raised ("failed") are reported on top.
+        counts = {k: v for k, v in st.items() if isinstance(v, int) and v}
+        dropped = {k: v for k, v in counts.items() if k.startswith("dropped_")}
+        if not dropped:
+            dropped = ({"dropped": counts["dropped"]} if "dropped" in counts else
+                       {k: v for k, v in counts.items() if k in ("queue-full", "not-ready")})
+        if "failed" in counts:
+            dropped["failed"] = counts["failed"]
         if dropped:
             drops.append(f"{name} " + " ".join(f"{k}={v}" for k, v in sorted(dropped.items())))
     ins = summary["messages_in"]
