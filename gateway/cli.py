@@ -36,13 +36,19 @@ def _positive(text: str) -> float:
     return v
 
 
+_warned: set[str] = set()
+
+
 def _backend_classes() -> dict[str, Any]:
+    """Every backend class that imports; a broken plug-in is reported once and left out."""
     out = {}
     for name in registry.backend_names():
         try:
             out[name] = registry.load(registry.BACKEND_GROUP, name)
         except registry.RegistryError as exc:
-            log.warning("%s", exc)
+            if name not in _warned:
+                _warned.add(name)
+                log.warning("%s", exc)
     return out
 
 

@@ -59,7 +59,8 @@ def load(group: str, name: str) -> Any:
     targets = names(group)
     target = targets.get(name)
     if target is None:
-        kind = "backend" if group == BACKEND_GROUP else "source"
+        kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source",
+                COMMAND_GROUP: "command"}.get(group, group)
         raise RegistryError(
             f"unknown {kind} {name!r}; available: {', '.join(targets) or 'none'}"
         )
