@@ -18,7 +18,7 @@ from backends.mavlink.translate import DEFAULT_RATES, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome
 from gateway.config import Key, Schema
-from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
+from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,8 @@ class MavlinkBackend(Backend):
         battery_hz=_rate_key("battery_hz", "BATTERY_STATUS, at most"),
         aurora_sm_update_hz=_rate_key("aurora_sm_update_hz", "AURORA_SM_UPDATE, at most"),
         aurora_status_hz=_rate_key("aurora_status_hz", "AURORA_STATUS, at most"),
+        radio_status_hz=_rate_key("radio_status_hz",
+                                  "RADIO_STATUS from a radio's link statistics, at most"),
     )
     #: The default run shows the rocket in a QGroundControl on this machine.
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
@@ -233,6 +235,9 @@ class MavlinkBackend(Backend):
         if msg.origin in self.ignored_origins:
             return Outcome.ACCEPTED
         return self._post(msg)
+
+    def send_link_stats(self, msg: LinkStats) -> Outcome:
+        return self._post(msg)  # → RADIO_STATUS
 
     def on_link(self, ev: LinkEvent) -> Outcome:
         return Outcome.ACCEPTED  # staleness is judged from the updates themselves

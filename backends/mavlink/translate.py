@@ -26,9 +26,10 @@ from typing import Any
 
 from backends.mavlink.dialect import mav
 from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_name, state_names
-from gateway.model import Battery, Position, SmUpdate, Status
+from gateway.model import Battery, LinkStats, Position, SmUpdate, Status
 
 MAV_COMP_ID_AUTOPILOT1 = 1
+UINT8_MAX = 0xFF
 UINT16_MAX = 0xFFFF
 
 # SYS_STATUS sensor bits the STATUS flags map to.
@@ -67,6 +68,7 @@ DEFAULT_RATES: dict[str, float] = {
     "battery_hz": 2.0,
     "aurora_sm_update_hz": 50.0,
     "aurora_status_hz": 10.0,
+    "radio_status_hz": 2.0,
 }
 
 #: Messages a ground station may ask for with MAV_CMD_REQUEST_MESSAGE.
@@ -259,7 +261,7 @@ class AuroraVehicle:
         self._modes_monitor = Periodic(0.3, now)
         self._gates = {key: RateGate(r[key]) for key in (
             "attitude_hz", "altitude_hz", "vfr_hud_hz", "named_value_hz", "position_hz",
-            "battery_hz", "aurora_sm_update_hz", "aurora_status_hz")}
+            "battery_hz", "aurora_sm_update_hz", "aurora_status_hz", "radio_status_hz")}
 
     # -- what we know ------------------------------------------------------------------------
 
@@ -336,6 +338,8 @@ class AuroraVehicle:
             return self._on_position(msg)
         if isinstance(msg, Battery):
             return self._on_battery(msg)
+        if isinstance(msg, LinkStats):
+            return self._on_link_stats(msg)
         return []
 
     def _set_state(self, sm_type: int, state: int, armed: bool, ts_ms: int,
@@ -469,6 +473,11 @@ class AuroraVehicle:
         if not self._gates["battery_hz"].ready(self.clock()):
             return []
         return [battery_status(b)]
+
+    def _on_link_stats(self, ls: LinkStats) -> list[Any]:
+        if not self._gates["radio_status_hz"].ready(self.clock()):
+            return []
+        return [radio_status(ls)]
 
     # -- requests from ground stations ------------------------------------------------------
 
@@ -642,6 +651,27 @@ def battery_status(b: Battery) -> Any:
     return mav.MAVLink_battery_status_message(
         b.battery_id & 0xFF, mav.MAV_BATTERY_FUNCTION_UNKNOWN, mav.MAV_BATTERY_TYPE_UNKNOWN,
         0x7FFF, voltages, current, consumed, -1, remaining, 0, 0, [0] * 4, 0, 0)
+
+
+def _dbm_byte(dbm: float | None) -> int:
+    """A dBm figure as RADIO_STATUS carries it for a non-SiK radio: a signed byte (QGC reads
+    ``rssi``/``remrssi``/``noise`` as int8); 255 (UINT8_MAX) when unknown, so a real value
+    stops at −2 dBm."""
+    if dbm is None or not math.isfinite(dbm):
+        return UINT8_MAX
+    return max(-128, min(round(dbm), -2)) & 0xFF
+
+
+def radio_status(ls: LinkStats) -> Any:
+    """RADIO_STATUS from a receiver's link statistics (e.g. CRSF 0x14): local = uplink RSSI
+    and the noise floor it implies (RSSI − SNR), remote = downlink; no TX buffer to report
+    (100 % free) and no error counters (0)."""
+    def noise(rssi: float | None, snr: float | None) -> int:
+        return _dbm_byte(None if rssi is None or snr is None else rssi - snr)
+
+    return mav.MAVLink_radio_status_message(
+        _dbm_byte(ls.rssi_dbm), _dbm_byte(ls.downlink_rssi_dbm), 100,
+        noise(ls.rssi_dbm, ls.snr_db), noise(ls.downlink_rssi_dbm, ls.downlink_snr_db), 0, 0)
 
 
 def _e7(deg: float) -> int:
