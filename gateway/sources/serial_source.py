@@ -19,6 +19,8 @@ from gateway.wire import Decoder
 
 log = logging.getLogger(__name__)
 
+SOCKET_DRAIN_BYTES = 65536
+
 
 def _open_unless_stopped(url: str, baudrate: int, stop: threading.Event) -> Any | None:
     """Open the port in a helper thread and wait for it or for ``stop``, whichever is first.
@@ -121,10 +123,21 @@ class SerialSource(Source):
 
     def _read_until_failure(self, port: Any, stop: threading.Event) -> None:
         decoder, emit = self.decoder, self.emit
+        # pyserial's socket:// reports at most 1 byte waiting (it only polls the socket), so
+        # after the first byte take whatever else has arrived without waiting: with timeout 0
+        # its read() returns what the socket holds at once (settings are no-ops there).
+        drain = type(port).__module__.endswith("protocol_socket")
+        timeout = port.timeout
         while not stop.is_set():
             try:
                 waiting = port.in_waiting
                 data = port.read(waiting if waiting > 0 else 1)
+                if drain and data:
+                    port.timeout = 0
+                    try:
+                        data += port.read(SOCKET_DRAIN_BYTES)
+                    finally:
+                        port.timeout = timeout
             except Exception as exc:  # pyserial raises SerialException / OSError / TypeError
                 self.disconnects += 1
                 log.warning("source %s: port failed (%s); reconnecting", self.name, exc)
