@@ -29,7 +29,7 @@ from gateway.recording import Recorder
 from gateway.sources.replay import ReplaySource
 from gateway.sources.serial_source import SerialSource
 from gateway.sources.sim import BOOT_UPTIME_MS, SimSource, flight_frames
-from gateway.wire import decode_all, encode, frame
+from gateway.wire import Decoder, decode_all, encode, frame
 
 DEADLINE_S = 10.0
 SIMPLE_ORDER = [S.IDLE, S.ARMED, S.BOOST, S.BURNOUT, S.APOGEE, S.MAIN, S.REDUNDANT, S.LANDED,
@@ -239,6 +239,37 @@ def test_socket_source_counts_a_disconnect_reconnects_and_continues(
     finally:
         src.stop(1.0)
     assert took < 1.0
+
+
+def test_socket_source_reads_a_burst_in_chunks_not_byte_by_byte(
+        server: socket.socket) -> None:
+    """pyserial's socket:// says at most one byte is waiting; the source must still take a
+    burst in a handful of reads (it once read 1 byte per call: 1.9k frames/s on loopback)."""
+    port = server.getsockname()[1]
+    src = SerialSource(f"socket://127.0.0.1:{port}", name="tcp")
+    sink = Sink()
+    feeds: list[int] = []
+
+    class CountingDecoder(Decoder):
+        def feed(self, data: bytes) -> list:
+            feeds.append(len(data))
+            return super().feed(data)
+
+    src.decoder = CountingDecoder(origin="tcp")
+    burst = b"".join(sample_frames()) * 20
+    src.start(sink)
+    try:
+        conn, _ = server.accept()
+        with conn:
+            wait_until_reading(conn.sendall, sink)
+            before = len(feeds)
+            conn.sendall(burst)
+            n = len(sample_frames()) * 20
+            assert sink.wait_count(n, keep=not_probe)
+            reads = len(feeds) - before
+    finally:
+        src.stop(1.0)
+    assert reads < len(burst) / 100, f"{reads} reads for {len(burst)} bytes"
 
 
 def test_a_port_with_no_listener_yet_is_retried_not_fatal() -> None:
