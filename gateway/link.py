@@ -48,6 +48,7 @@ class LinkStats:
     write_errors: int = 0
     connects: int = 0
     connect_failures: int = 0
+    reconnects_requested: int = 0
 
     @property
     def dropped(self) -> int:
@@ -93,6 +94,7 @@ class LinkEngine:
         self._thread: threading.Thread | None = None
         self._transport: Transport | None = None
         self._last_accepted: float | None = None
+        self._reconnect_requested = False
         self._count_lock = threading.Lock()
 
     # -- producer side ------------------------------------------------------------------------
@@ -212,10 +214,25 @@ class LinkEngine:
         except Exception:
             log.debug("%s: error closing port", self.name, exc_info=True)
 
+    def reconnect(self) -> None:
+        """The port failed outside a write (its reader saw it): the worker closes it and
+        reopens with backoff, within about 0.1 s.  Frames submitted meanwhile are refused as
+        not ready, as when a write fails."""
+        with self._count_lock:
+            if self._transport is not None:
+                self._connected.clear()
+                self._reconnect_requested = True
+
     def _run(self, stop: threading.Event) -> None:
         transport: Transport | None = None
         try:
             while True:
+                if self._reconnect_requested:
+                    self._reconnect_requested = False
+                    self.stats.reconnects_requested += 1
+                    self._close_transport(transport)
+                    transport = None
+                    stop.wait(self._backoff.next())
                 if transport is None:
                     if stop.is_set():
                         return

@@ -257,6 +257,30 @@ def test_write_error_is_counted_and_the_engine_reconnects(engines: Any) -> None:
     assert read_exactly(good, 10) == b"after-more"
 
 
+def test_reconnect_on_request_closes_the_port_and_reopens_it(engines: Any) -> None:
+    """A reader that sees the port fail asks the engine to reopen it (no write need fail)."""
+    first, second = loop_port(), loop_port()
+    ports = [first, second]
+    eng = started(engines, lambda: ports.pop(0))
+    assert eng.submit(b"one") is Outcome.ACCEPTED
+    assert read_exactly(first, 3) == b"one"
+    eng.reconnect()
+    assert not eng.connected  # refused as not ready until the port is back
+    assert eng.submit(b"lost") is Outcome.NOT_READY
+    assert wait_for(lambda: eng.stats.connects == 2, DEADLINE_S)
+    assert not first.is_open
+    assert eng.wait_connected(DEADLINE_S)
+    assert eng.submit(b"two") is Outcome.ACCEPTED
+    assert read_exactly(second, 3) == b"two"
+    assert eng.stats.reconnects_requested == 1 and eng.stats.write_errors == 0
+
+
+def test_reconnect_while_the_port_is_down_is_ignored(engines: Any) -> None:
+    eng = engines(lambda: (_ for _ in ()).throw(OSError("no such port")))
+    eng.reconnect()  # not started, no port: nothing to do
+    assert eng.stats.reconnects_requested == 0
+
+
 # -- the shared write lock --------------------------------------------------------------------
 
 

@@ -538,10 +538,7 @@ class StreamEndpoint(Endpoint, Link):
                 self.read_errors += 1
                 log.warning("%s: read failed (%s); reopening", self.name, exc)
                 self._port = None
-                with contextlib.suppress(Exception):
-                    port.close()
-                # The engine reopens when its next write fails: make sure one comes.
-                self.engine.submit(b"", rate_limited=False)
+                self.engine.reconnect()  # the engine's worker closes the port and reopens it
                 stop.wait(0.1)
                 continue
             if data:
