@@ -4,12 +4,15 @@ replay)."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
+import os
 import signal
 import sys
 import threading
+import traceback
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
@@ -459,5 +462,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> NoReturn:
+    """The ``aurora-gateway`` command: :func:`main`, then leave without interpreter teardown.
+
+    Zenoh's Rust runtime keeps native threads after its sessions close; if one of them needs
+    the GIL while the interpreter finalizes (dropping a Python callback a peer's query kept
+    alive, say), CPython ends it with ``pthread_exit`` and the unwind through Rust frames
+    aborts the process ("FATAL: exception not rethrown", exit -6) after a clean stop.  Every
+    command has closed its sessions, ports and recordings by the time ``main`` returns, so the
+    process flushes its standard streams and exits with ``main``'s status directly.
+    """
+    code = 1
+    try:
+        code = main()
+    except SystemExit as exc:  # argparse's --help/--version and usage errors
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        if isinstance(exc.code, str):
+            print(exc.code, file=sys.stderr)
+    except BaseException:
+        traceback.print_exc()  # os._exit below would otherwise swallow it
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):  # a closed pipe
+                stream.flush()
+        os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()
