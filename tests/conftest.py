@@ -53,3 +53,29 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize(
             "vector_stream", streams, ids=[f"stream{i}" for i in range(len(streams))]
         )
+
+
+# -- leaving the test process ------------------------------------------------------------------
+# Zenoh's Rust runtime keeps native threads after every session is closed.  If one needs the
+# GIL while CPython finalizes, CPython ends it with pthread_exit and the unwind through Rust
+# frames aborts the process ("FATAL: exception not rethrown") -- after every test has passed,
+# turning a green run red.  The CLI avoids it the same way (gateway.cli.console_main): once
+# pytest has reported, leave with its exit status without interpreter teardown.
+
+_exit_status: list[int] = []
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    _exit_status.append(int(exitstatus))
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_unconfigure(config: pytest.Config) -> None:
+    import os
+    import sys
+
+    if "zenoh" not in sys.modules or not _exit_status or hasattr(config, "workerinput"):
+        return
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(_exit_status[-1])
