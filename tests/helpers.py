@@ -52,6 +52,30 @@ def wait_for(cond: Callable[[], bool], timeout: float = DEADLINE_S,
     return True
 
 
+class BlockingTransport:
+    """A port whose write blocks until ``release`` is set (a stalled UART or a full pipe);
+    records what got through.  Closing it releases a blocked writer."""
+
+    def __init__(self) -> None:
+        self.release = threading.Event()
+        self.entered = threading.Event()
+        self.written: list[bytes] = []
+        self.closed = False
+
+    def write(self, data: bytes) -> int:
+        self.entered.set()
+        self.release.wait()
+        self.written.append(bytes(data))
+        return len(data)
+
+    def read(self, size: int = 1) -> bytes:
+        return b""
+
+    def close(self) -> None:
+        self.closed = True
+        self.release.set()
+
+
 class Running:
     """A gateway subprocess whose stdout and stderr lines are collected by reader threads;
     ``wait_line`` blocks until a line matches (or the deadline passes)."""

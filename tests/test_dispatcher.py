@@ -10,7 +10,7 @@ import threading
 from typing import Any, NamedTuple
 
 import pytest
-from helpers import run_within
+from helpers import BlockingTransport, run_within
 
 from gateway.backend import Backend, Outcome
 from gateway.dispatcher import Dispatcher
@@ -366,27 +366,6 @@ def test_duplicate_backend_names_are_refused() -> None:
 
 
 # -- never blocks ---------------------------------------------------------------------------------
-
-
-class BlockingTransport:
-    """A port whose write blocks until ``release`` is set (a stalled UART or full pipe)."""
-
-    def __init__(self) -> None:
-        self.release = threading.Event()
-        self.entered = threading.Event()
-        self.written: list[bytes] = []
-
-    def write(self, data: bytes) -> int:
-        self.entered.set()
-        self.release.wait()
-        self.written.append(bytes(data))
-        return len(data)
-
-    def read(self, size: int = 1) -> bytes:
-        return b""
-
-    def close(self) -> None:
-        self.release.set()
 
 
 class LinkBackend(Backend):

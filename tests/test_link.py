@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 import serial
-from helpers import run_within, wait_for
+from helpers import BlockingTransport, run_within, wait_for
 
 from gateway.backend import Outcome
 from gateway.backoff import Backoff
@@ -44,28 +44,6 @@ def read_exactly(port: serial.SerialBase, n: int, timeout: float = DEADLINE_S) -
         data += port.read(n - len(data))
     assert len(data) == n, f"read {len(data)} of {n} bytes: {data!r}"
     return data
-
-
-class BlockingTransport:
-    """Write blocks on an Event (a stalled port); records what got through."""
-
-    def __init__(self) -> None:
-        self.release = threading.Event()
-        self.entered = threading.Event()
-        self.written: list[bytes] = []
-        self.closed = False
-
-    def write(self, data: bytes) -> int:
-        self.entered.set()
-        self.release.wait()
-        self.written.append(bytes(data))
-        return len(data)
-
-    def read(self, size: int = 1) -> bytes:
-        return b""
-
-    def close(self) -> None:
-        self.closed = True
 
 
 @pytest.fixture

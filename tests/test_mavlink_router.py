@@ -10,14 +10,11 @@ import select
 import socket
 import threading
 import time
-from collections.abc import Iterator
 from typing import Any
 
 import pytest
 
-from backends.mavlink import MavlinkBackend
-from backends.mavlink.testing import MavPeer, upstream_dialect
-from gateway.dispatcher import Dispatcher
+from backends.mavlink.testing import MavPeer, running_backend, upstream_dialect
 
 WAIT = 10.0
 dev = upstream_dialect()
@@ -108,15 +105,7 @@ def src(m: Any) -> tuple[int, int]:
     return m.get_srcSystem(), m.get_srcComponent()
 
 
-@contextlib.contextmanager
-def backend(*endpoints: str, **opts: Any) -> Iterator[MavlinkBackend]:
-    b = MavlinkBackend(endpoints=list(endpoints), **opts)
-    d = Dispatcher([b])
-    assert d.start() == [], d.records[0].init_error
-    try:
-        yield b
-    finally:
-        d.close()
+backend = running_backend
 
 
 def test_three_endpoints_route_like_mavlink_router() -> None:

@@ -7,7 +7,6 @@ import contextlib
 import hashlib
 import struct
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +23,7 @@ from backends.mavlink.signing import (
     key_from_passphrase,
     now_timestamp,
 )
-from backends.mavlink.testing import MavPeer, upstream_dialect
+from backends.mavlink.testing import MavPeer, running_backend, upstream_dialect
 from gateway import config
 from gateway.app import Gateway
 from gateway.config import ConfigError
@@ -38,15 +37,8 @@ REQ = dev.MAV_CMD_REQUEST_MESSAGE
 HB_ID = dev.MAVLINK_MSG_ID_HEARTBEAT
 
 
-@contextlib.contextmanager
-def signed_backend(port: int, **opts: Any) -> Iterator[MavlinkBackend]:
-    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{port}"], **opts)
-    d = Dispatcher([b])
-    assert d.start() == [], d.records[0].init_error
-    try:
-        yield b
-    finally:
-        d.close()
+def signed_backend(port: int, **opts: Any) -> contextlib.AbstractContextManager[MavlinkBackend]:
+    return running_backend(f"udpout:127.0.0.1:{port}", **opts)
 
 
 def valid_signature(raw: bytes, key: bytes) -> bool:

@@ -13,7 +13,7 @@ import contextlib
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import ModuleType
 from typing import Any
 
@@ -168,3 +168,18 @@ class MavPeer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def running_backend(*endpoints: str, **opts: Any) -> Iterator[Any]:
+    """A started MavlinkBackend on ``endpoints`` behind a real Dispatcher; closed on exit."""
+    from backends.mavlink.backend import MavlinkBackend
+    from gateway.dispatcher import Dispatcher
+
+    b = MavlinkBackend(endpoints=list(endpoints), **opts)
+    d = Dispatcher([b])
+    assert d.start() == [], d.records[0].init_error
+    try:
+        yield b
+    finally:
+        d.close()
