@@ -1,12 +1,20 @@
-"""Byte-stream transports.  Serial goes through pyserial's ``serial_for_url``, so
-``/dev/ttyUSB0``, ``loop://``, ``socket://host:port``, ``rfc2217://host:port`` and
-``spy://…`` all work with the same code."""
+"""Ports for :class:`gateway.port.PortEngine`.
+
+Serial goes through pyserial's ``serial_for_url``, so ``/dev/ttyUSB0``, a pty's path,
+``loop://``, ``socket://host:port``, ``rfc2217://host:port`` and ``spy://…`` all work with the
+same code; TCP clients, accepted TCP connections and UDP sockets are ports here too."""
 
 from __future__ import annotations
 
-from typing import Protocol
+import contextlib
+import socket
+import time
+from collections import OrderedDict
+from typing import Any, Protocol
 
 import serial
+
+READ_SIZE = 65536
 
 DEFAULT_READ_TIMEOUT_S = 0.05
 
@@ -41,3 +49,171 @@ def open_serial(
         return serial.serial_for_url(url, **kwargs)
     except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
         raise TransportError(f"cannot open {url}: {exc}") from exc
+
+
+# -- sockets as ports (for gateway.port.PortEngine) ----------------------------------------------
+
+TCP_OUT_CAP = 256 * 1024
+SOCKET_BUFFER = 4 * 1024 * 1024
+MAX_UDP_PEERS = 16
+
+
+def resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
+    """(family, address) of ``host:port`` for a socket of ``kind``; TransportError if unknown."""
+    try:
+        family, _, _, _, addr = socket.getaddrinfo(host, port, type=kind)[0]
+    except (socket.gaierror, UnicodeError) as exc:
+        raise TransportError(f"cannot resolve {host!r}: {exc}") from None
+    return family, addr
+
+
+class SocketPort:
+    """A connected TCP socket as a port: reads what is waiting, writes without blocking.
+
+    A write the socket takes only in part returns the count (the engine keeps the rest and
+    waits for room); the peer closing the connection is an error on the next read."""
+
+    def __init__(self, sock: socket.socket, name: str = "") -> None:
+        self.sock = sock
+        self.name = name
+        sock.setblocking(False)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def read(self, size: int = READ_SIZE) -> bytes:
+        try:
+            data = self.sock.recv(size)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        if not data:
+            raise ConnectionError("connection closed by the peer")
+        return data
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self.sock.send(data)
+        except (BlockingIOError, InterruptedError):
+            return 0
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+
+
+def open_tcp_client(host: str, port: int, timeout: float = 2.0) -> SocketPort:
+    """Connect to ``host:port`` (waiting up to ``timeout``); raises :class:`TransportError`."""
+    try:
+        sock = socket.create_connection((host, port), timeout=timeout)
+    except OSError as exc:
+        raise TransportError(f"cannot connect to {host}:{port}: {exc.strerror or exc}") from None
+    return SocketPort(sock, f"{host}:{port}")
+
+
+class UdpPort:
+    """A UDP socket as a datagram port.
+
+    With a destination (``udpout``) every write goes there; without one (``udpin``) it goes to
+    every peer that has sent to us, the ``max_peers`` most recent.  UDP errors (nobody
+    listening, no route) are counted, never a failure of the port."""
+
+    datagram = True
+
+    def __init__(self, sock: socket.socket, dest: Any = None,
+                 max_peers: int = MAX_UDP_PEERS) -> None:
+        self.sock = sock
+        self.dest = dest
+        self.max_peers = max_peers
+        self.peers: OrderedDict[Any, float] = OrderedDict()
+        self.last_peer: Any = None
+        self.new_peers = 0
+        self.send_errors = 0
+        self.send_dropped = 0
+        self.not_sent = 0  # writes with nobody to send to (udpin before any peer)
+
+    @property
+    def destinations(self) -> tuple[Any, ...]:
+        return (self.dest,) if self.dest is not None else tuple(self.peers)
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def address(self) -> Any:
+        return self.sock.getsockname()
+
+    def read(self, size: int = 65536) -> bytes:
+        while True:
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return b""
+            except ConnectionRefusedError:  # ICMP for an earlier send: nobody listens there
+                self.send_errors += 1
+                continue
+            if self.dest is None:
+                peers = self.peers
+                if addr in peers:
+                    peers.move_to_end(addr)
+                else:
+                    peers[addr] = time.monotonic()
+                    self.new_peers += 1
+                    if len(peers) > self.max_peers:
+                        peers.popitem(last=False)
+            self.last_peer = addr
+            return data
+
+    def write(self, data: bytes) -> int:
+        dests = self.destinations
+        if not dests:
+            self.not_sent += 1
+            return len(data)
+        for d in dests:
+            try:
+                self.sock.sendto(data, d)
+            except BlockingIOError:
+                self.send_dropped += 1
+            except OSError:
+                self.send_errors += 1
+        return len(data)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def open_udp(host: str, port: int, *, listen: bool) -> UdpPort:
+    """``listen``: bind ``host:port`` and answer the peers (udpin); otherwise send to
+    ``host:port`` from an ephemeral port (udpout).  Raises :class:`TransportError`."""
+    family, addr = resolve(host, port, socket.SOCK_DGRAM)
+    sock = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        sock.setblocking(False)
+        for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER)
+        if listen:
+            sock.bind(addr)
+        else:
+            sock.bind(("::", 0) if family == socket.AF_INET6 else ("0.0.0.0", 0))
+    except OSError as exc:
+        sock.close()
+        raise TransportError(f"cannot bind udp {host}:{port}: {exc.strerror or exc}") from None
+    return UdpPort(sock, None if listen else addr)
+
+
+def open_tcp_listener(host: str, port: int, backlog: int = 16) -> socket.socket:
+    """A non-blocking listening socket on ``host:port``; raises :class:`TransportError`."""
+    family, addr = resolve(host, port, socket.SOCK_STREAM)
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+        sock.listen(backlog)
+        sock.setblocking(False)
+    except OSError as exc:
+        sock.close()
+        raise TransportError(f"cannot listen on tcp {host}:{port}: "
+                             f"{exc.strerror or exc}") from None
+    return sock

@@ -1,0 +1,202 @@
+"""The I/O loop under every port: one thread, one selector, timers, and hand-over from others.
+
+File descriptors are registered with a callback; timers (``call_later``/``call_every``) run on
+the loop thread; any other thread hands work over with :meth:`IoLoop.call_soon`, which wakes
+the loop through a socket pair and never blocks.  A callback that raises is logged (the first
+few times) and counted; the loop carries on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import heapq
+import itertools
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+MAX_WAIT_S = 0.5
+LOGGED_ERRORS = 5
+
+
+class Timer:
+    """A scheduled call; :meth:`cancel` keeps it from running (safe from any thread)."""
+
+    __slots__ = ("cancelled", "due", "fn")
+
+    def __init__(self, due: float, fn: Callable[[], Any]) -> None:
+        self.due = due
+        self.fn = fn
+        self.cancelled = False
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+
+class IoLoop:
+    """A selector loop on a thread of its own (see the module docstring)."""
+
+    def __init__(self, name: str = "io") -> None:
+        self.name = name
+        self._sel = selectors.DefaultSelector()
+        self._rsock, self._wsock = socket.socketpair()
+        self._rsock.setblocking(False)
+        self._wsock.setblocking(False)
+        self._sel.register(self._rsock, selectors.EVENT_READ, self._on_wake)
+        self._calls: deque[Callable[[], Any]] = deque()
+        self._timers: list[tuple[float, int, Timer]] = []
+        self._counter = itertools.count()
+        self._woken = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self.errors = 0
+
+    # -- from any thread ---------------------------------------------------------------------
+
+    def call_soon(self, fn: Callable[[], Any]) -> None:
+        """Run ``fn`` on the loop thread soon; never blocks."""
+        self._calls.append(fn)
+        self.wake()
+
+    def wake(self) -> None:
+        if self._woken:
+            return
+        self._woken = True
+        with contextlib.suppress(BlockingIOError, OSError):
+            self._wsock.send(b"\0")  # a full pair already holds a pending wake-up
+
+    @property
+    def in_loop_thread(self) -> bool:
+        return threading.current_thread() is self._thread
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and not self._stop.is_set()
+
+    def call_later(self, delay: float, fn: Callable[[], Any]) -> Timer:
+        """Run ``fn`` on the loop thread after ``delay`` seconds (from any thread)."""
+        timer = Timer(time.monotonic() + max(0.0, delay), fn)
+        if self.in_loop_thread or self._thread is None:
+            self._push(timer)
+        else:
+            self.call_soon(lambda: self._push(timer))
+        return timer
+
+    def call_every(self, period: float, fn: Callable[[], Any], *, first: float = 0.0) -> Timer:
+        """Run ``fn`` every ``period`` seconds, the first time after ``first``; the returned
+        timer's :meth:`~Timer.cancel` ends the series."""
+        if period <= 0:
+            raise ValueError("period must be positive")
+        handle = Timer(0.0, fn)
+
+        def tick() -> None:
+            if handle.cancelled or self._stop.is_set():
+                return
+            try:
+                fn()
+            finally:
+                if not handle.cancelled and not self._stop.is_set():
+                    self._push(Timer(time.monotonic() + period, tick))
+
+        self.call_later(first, tick)
+        return handle
+
+    # -- from the loop thread (or before start) ----------------------------------------------
+
+    def register(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        self._sel.register(fileobj, events, callback)
+
+    def modify(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        self._sel.modify(fileobj, events, callback)
+
+    def unregister(self, fileobj: Any) -> None:
+        with contextlib.suppress(KeyError, ValueError, OSError):
+            self._sel.unregister(fileobj)
+
+    def _push(self, timer: Timer) -> None:
+        heapq.heappush(self._timers, (timer.due, next(self._counter), timer))
+
+    # -- life cycle ----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"io-{self.name}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 1.0) -> bool:
+        """Stop the thread (True once it has ended); safe twice.  Registered files stay open:
+        their owners close them."""
+        self._stop.set()
+        self._woken = False
+        self.wake()
+        t = self._thread
+        if t is None or t is threading.current_thread():
+            return True
+        t.join(timeout)
+        if t.is_alive():
+            log.warning("%s: loop did not stop within %.1f s; abandoning it", self.name, timeout)
+            return False
+        return True
+
+    def close(self) -> None:
+        """Release the selector and the wake-up pair; safe twice."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(OSError):
+            self._sel.close()
+        self._rsock.close()
+        self._wsock.close()
+
+    def _on_wake(self, mask: int) -> None:
+        with contextlib.suppress(BlockingIOError, OSError):
+            while self._rsock.recv(4096):
+                pass
+
+    def _run(self) -> None:
+        sel = self._sel
+        timers = self._timers
+        calls = self._calls
+        stop = self._stop
+        while not stop.is_set():
+            wait = MAX_WAIT_S
+            if calls:
+                wait = 0.0
+            elif timers:
+                wait = min(wait, max(0.0, timers[0][0] - time.monotonic()))
+            try:
+                events = sel.select(wait)
+            except (OSError, ValueError):  # a file closed under us: its owner unregisters it
+                events = []
+            for key, mask in events:
+                self._guard(key.data, mask)
+            self._woken = False
+            while calls:
+                self._guard(calls.popleft())
+            now = time.monotonic()
+            while timers and timers[0][0] <= now:
+                timer = heapq.heappop(timers)[2]
+                if not timer.cancelled:
+                    self._guard(timer.fn)
+
+    def _guard(self, fn: Callable[..., Any], *args: Any) -> None:
+        try:
+            fn(*args)
+        except Exception:
+            self.errors += 1
+            if self.errors <= LOGGED_ERRORS:
+                log.exception("%s: error in the I/O loop (continuing)", self.name)

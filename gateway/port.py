@@ -1,0 +1,667 @@
+"""The duplex port engine (the firmware's "uart-link", made two-way): one thread owns a port.
+
+Every byte-stream user — the serial source, MAVLink serial/TCP/UDP endpoints, CRSF, HC-12 —
+is a :class:`PortEngine` around a port and a sans-I/O protocol object:
+
+* **reading**: what the port yields is fed to ``protocol.feed(data)``, and every event it
+  returns is handed to ``on_event`` (in the engine's thread).  A port with a file descriptor
+  is watched by the loop's selector; one without (``loop://``, ``rfc2217://``) is polled
+  every ``poll_s``.  A datagram port (``port.datagram = True``) is fed one datagram at a time;
+* **writing**: :meth:`PortEngine.submit` never blocks — it queues the bytes (at most
+  ``queue_depth`` frames) and returns an :class:`~gateway.backend.Outcome`; the engine's
+  thread writes them in order.  ``THROTTLED``: a rate-limited frame came sooner than
+  ``min_interval_s`` after the last accepted one; ``QUEUE_FULL``: the queue is full;
+  ``NOT_READY``: the engine is not running or its port is down (frames are not kept for a port
+  that is not there: they would be stale when it comes back);
+* **reopening**: when the opener fails, or a read or write fails, the port is closed and
+  reopened with backoff by the same code for every kind of port; ``on_link(True/False)``
+  reports each change, and the counters say how often;
+* **timers**: :meth:`call_later` / :meth:`call_every` / :meth:`call_soon` run protocol work
+  (retries, pings, periodic sends) on the engine's thread — no ad-hoc threads;
+* **exclusive use**: :meth:`exclusive` parks the engine and hands the raw port to the caller
+  (an AT-command exchange, as the firmware's TX lock does); frames queue meanwhile.
+
+By default an engine runs a loop thread of its own.  Engines of non-blocking sockets may share
+one :class:`~gateway.ioloop.IoLoop` (``loop=``), as a MAVLink router's UDP and TCP links do.
+
+What a port must offer: ``write(data) -> int | None`` (bytes written; None means all),
+``read(size) -> bytes`` (returns ``b""`` when nothing is waiting once the engine has set a
+zero ``timeout``; raises when the port has failed), ``close()``; optionally ``fileno()``,
+``timeout`` and ``datagram``.  pyserial ports (:func:`gateway.transport.open_serial`) and the
+sockets of :mod:`gateway.transport` are such ports.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import selectors
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, fields
+from typing import Any, Protocol
+
+from gateway.backend import Outcome
+from gateway.backoff import Backoff
+from gateway.ioloop import IoLoop, Timer
+
+log = logging.getLogger(__name__)
+
+DEFAULT_QUEUE_DEPTH = 16
+DEFAULT_POLL_S = 0.01
+READ_SIZE = 65536
+DATAGRAM_BATCH = 64
+
+
+class Port(Protocol):
+    """What the engine needs of a port (pyserial's ``Serial`` is one)."""
+
+    def write(self, data: bytes, /) -> int | None: ...
+    def read(self, size: int = 1, /) -> bytes: ...
+    def close(self) -> None: ...
+
+
+class StreamProtocol(Protocol):
+    """A sans-I/O protocol: bytes in, events out (h11's shape)."""
+
+    def feed(self, data: bytes, /) -> Iterable[Any]: ...
+
+
+class PortNotReady(OSError):
+    """The port is down, the engine is not running, or it could not be had in time."""
+
+
+@dataclass
+class PortStats:
+    """Counters of one port engine; :meth:`as_dict` adds the totals every backend reports."""
+
+    submitted: int = 0
+    accepted: int = 0
+    sent_frames: int = 0
+    sent_bytes: int = 0
+    received_bytes: int = 0
+    dropped_throttled: int = 0
+    dropped_queue_full: int = 0
+    dropped_not_ready: int = 0
+    write_errors: int = 0
+    read_errors: int = 0
+    protocol_errors: int = 0
+    connects: int = 0
+    connect_failures: int = 0
+    disconnects: int = 0
+    reconnects_requested: int = 0
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_throttled + self.dropped_queue_full + self.dropped_not_ready
+
+    @property
+    def errors(self) -> int:
+        return self.write_errors + self.read_errors + self.protocol_errors
+
+    def as_dict(self) -> dict[str, int]:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["dropped"] = self.dropped
+        d["errors"] = self.errors
+        return d
+
+
+class PortEngine:
+    """One port, read into a protocol and written from a bounded queue; see the module doc."""
+
+    def __init__(
+        self,
+        opener: Callable[[], Any],
+        *,
+        name: str = "port",
+        protocol: StreamProtocol | None = None,
+        on_event: Callable[[Any], Any] | None = None,
+        on_link: Callable[[bool], Any] | None = None,
+        queue_depth: int = DEFAULT_QUEUE_DEPTH,
+        min_interval_s: float = 0.0,
+        backoff: Backoff | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        loop: IoLoop | None = None,
+        reopen: bool = True,
+        poll_s: float = DEFAULT_POLL_S,
+    ) -> None:
+        if queue_depth < 1:
+            raise ValueError("queue_depth must be at least 1")
+        if min_interval_s < 0:
+            raise ValueError("min_interval_s must not be negative")
+        self.name = name
+        self.queue_depth = queue_depth
+        self.min_interval_s = min_interval_s
+        self.protocol = protocol
+        self.on_event = on_event
+        self.on_link = on_link
+        self.stats = PortStats()
+        self.reopen = reopen
+        self.poll_s = poll_s
+        self._opener = opener
+        self._backoff = backoff or Backoff()
+        self._clock = clock
+        self._own_loop = loop is None
+        self._loop = loop if loop is not None else IoLoop(name)
+        self._queue: deque[bytes] = deque()
+        self._lock = threading.Lock()  # guards the queue, the counters submit() touches
+        self._idle = threading.Condition(self._lock)
+        self._writing = False
+        self._flush_scheduled = False
+        self._port: Any = None
+        self._fd: Any = None
+        self._interest = 0
+        self._pending = b""  # the unwritten tail of a frame a non-blocking port took in part
+        self._poll: Timer | None = None
+        self._retry: Timer | None = None
+        self._connected = threading.Event()
+        self._started = False
+        self._closing = False
+        self._shut = threading.Event()
+        self._last_accepted: float | None = None
+        self._outage_logged = False
+
+    # -- any thread --------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self._connected.is_set()
+
+    @property
+    def port(self) -> Any:
+        """The open port, or None while it is down (for reading settings, not for I/O)."""
+        return self._port
+
+    @property
+    def loop(self) -> IoLoop:
+        return self._loop
+
+    def submit(self, data: bytes, *, rate_limited: bool = True) -> Outcome:
+        """Queue ``data`` for the port; never blocks.  See the module doc for the outcomes."""
+        st = self.stats
+        with self._lock:
+            st.submitted += 1
+            if not self._started or self._closing or not self._connected.is_set():
+                st.dropped_not_ready += 1
+                return Outcome.NOT_READY
+            now = 0.0
+            limited = rate_limited and self.min_interval_s > 0
+            if limited:
+                now = self._clock()
+                last = self._last_accepted
+                if last is not None and now - last < self.min_interval_s:
+                    st.dropped_throttled += 1
+                    return Outcome.THROTTLED
+            if len(self._queue) >= self.queue_depth:
+                st.dropped_queue_full += 1
+                return Outcome.QUEUE_FULL
+            self._queue.append(data)
+            if limited:
+                self._last_accepted = now
+            st.accepted += 1
+            schedule = not self._flush_scheduled
+            self._flush_scheduled = True
+        if schedule:
+            if self._loop.in_loop_thread:
+                self._flush()  # already on the port's thread: write now, no hand-over
+            else:
+                self._loop.call_soon(self._flush)
+        return Outcome.ACCEPTED
+
+    def queued(self) -> int:
+        return len(self._queue)
+
+    def stats_dict(self) -> dict[str, int]:
+        """The counters with the totals (``dropped``, ``errors``) and ``link`` (1 up, 0 down)."""
+        d = self.stats.as_dict()
+        d["link"] = int(self._connected.is_set())
+        return d
+
+    def call_soon(self, fn: Callable[[], Any]) -> None:
+        """Run ``fn`` on the engine's thread soon."""
+        self._loop.call_soon(fn)
+
+    def call_later(self, delay: float, fn: Callable[[], Any]) -> Timer:
+        """Run ``fn`` on the engine's thread after ``delay`` seconds."""
+        return self._loop.call_later(delay, fn)
+
+    def call_every(self, period: float, fn: Callable[[], Any], *, first: float = 0.0) -> Timer:
+        """Run ``fn`` on the engine's thread every ``period`` seconds."""
+        return self._loop.call_every(period, fn, first=first)
+
+    def start(self) -> None:
+        """Open the port (in the engine's thread) and start serving it; safe twice."""
+        if self._started:
+            return
+        self._started = True
+        self._closing = False
+        self._shut.clear()
+        if self._own_loop:
+            if self._loop.closed:
+                self._loop = IoLoop(self.name)  # started again after close()
+            self._loop.start()
+        self._loop.call_soon(self._open)
+
+    def wait_connected(self, timeout: float) -> bool:
+        """Block until the port is open (for start-up and tests)."""
+        return self._connected.wait(timeout)
+
+    def drain(self, timeout: float) -> bool:
+        """Wait until every queued frame has been written (True) or ``timeout`` passes."""
+        deadline = time.monotonic() + timeout
+        with self._idle:
+            while self._queue or self._writing or self._pending:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._idle.wait(left)
+        return True
+
+    def reconnect(self) -> None:
+        """Close the port and reopen it with backoff (a caller saw it misbehave)."""
+        def request() -> None:
+            if self._port is not None:
+                self.stats.reconnects_requested += 1
+                self._fail(None, "reconnect requested")
+        self._loop.call_soon(request)
+
+    @contextlib.contextmanager
+    def exclusive(self, timeout: float = 5.0) -> Iterator[Any]:
+        """Park the engine and lend its open port to the caller for the ``with`` block.
+
+        Nothing is read or written by the engine meanwhile; submitted frames queue (up to
+        ``queue_depth``).  Raises :class:`PortNotReady` when the port is down, the engine is
+        not running, or it cannot be parked within ``timeout`` (a write stuck that long)."""
+        if self._loop.in_loop_thread:
+            yield self._require_port()
+            return
+        if not self._started or self._closing or not self._loop.running:
+            raise PortNotReady(f"{self.name}: the port engine is not running")
+        parked = threading.Event()
+        release = threading.Event()
+        lent: list[Any] = []
+
+        def park() -> None:
+            lent.append(self._port)
+            parked.set()
+            release.wait()  # the engine's thread waits here while the caller has the port
+
+        self._loop.call_soon(park)
+        if not parked.wait(timeout):
+            release.set()
+            raise PortNotReady(f"{self.name}: the port is busy (not free within {timeout} s)")
+        try:
+            if lent[0] is None:
+                raise PortNotReady(f"{self.name}: the port is down")
+            yield lent[0]
+        finally:
+            release.set()
+
+    def close(self, timeout: float = 1.0) -> None:
+        """Write what is queued (while the port is up), close the port and stop, returning
+        within about ``timeout``; safe twice and before :meth:`start`.  Frames still queued
+        then are counted as not-ready drops; a thread stuck in a write that never returns is
+        abandoned (it is a daemon thread)."""
+        with self._lock:
+            if not self._started:
+                return
+            self._closing = True
+        if self._loop.in_loop_thread:
+            self._shutdown()
+        else:
+            self._loop.call_soon(self._shutdown)
+            if not self._shut.wait(timeout):
+                log.warning("%s: port did not close within %.1f s; abandoning it", self.name,
+                            timeout)
+                self._abandon()
+        if self._own_loop and self._loop.stop(0.2):
+            self._loop.close()
+        with self._lock:
+            self._started = False
+
+    # -- the engine's thread -----------------------------------------------------------------
+
+    def _require_port(self) -> Any:
+        if self._port is None:
+            raise PortNotReady(f"{self.name}: the port is down")
+        return self._port
+
+    def _open(self) -> None:
+        self._retry = None
+        if self._closing or self._port is not None:
+            return
+        try:
+            port = self._opener()
+        except Exception as exc:
+            self.stats.connect_failures += 1
+            if not self._outage_logged:
+                self._outage_logged = True
+                log.warning("%s: %s; retrying", self.name, exc)
+            else:
+                log.debug("%s: %s; retrying", self.name, exc)
+            self._schedule_open()
+            return
+        if self._closing:  # close() gave up waiting while this open was under way
+            self._close_port(port)
+            return
+        self._attach(port)
+
+    def _schedule_open(self) -> None:
+        if self._closing or not self.reopen:
+            return
+        self._retry = self._loop.call_later(self._backoff.next(), self._open)
+
+    def _attach(self, port: Any) -> None:
+        if hasattr(port, "timeout") and not getattr(port, "datagram", False):
+            with contextlib.suppress(Exception):
+                port.timeout = 0  # reads return what is waiting, at once
+        fd = None
+        with contextlib.suppress(Exception):
+            fd = port.fileno()
+        self._port = port
+        self._fd = fd
+        if fd is not None:
+            self._set_interest(write=False)
+        elif self.protocol is not None:
+            self._poll = self._loop.call_every(self.poll_s, self._read_available,
+                                               first=self.poll_s)
+        self.stats.connects += 1
+        self._backoff.reset()
+        if self._outage_logged or self.stats.connects > 1:
+            log.info("%s: port is up", self.name)
+        self._outage_logged = False
+        self._connected.set()
+        if self.on_link is not None:
+            self.on_link(True)
+        self._flush()
+
+    def _set_interest(self, *, write: bool) -> None:
+        """Watch the port's descriptor for reading (with a protocol) and, while a partial
+        write is pending, for writing."""
+        fd = self._fd
+        if fd is None:
+            return
+        mask = (selectors.EVENT_READ if self.protocol is not None else 0) | (
+            selectors.EVENT_WRITE if write else 0)
+        if mask == self._interest:
+            return
+        if self._interest and mask:
+            self._loop.modify(fd, mask, self._on_ready)
+        elif mask:
+            self._loop.register(fd, mask, self._on_ready)
+        else:
+            self._loop.unregister(fd)
+        self._interest = mask
+
+    def _on_ready(self, mask: int) -> None:
+        if mask & selectors.EVENT_READ:
+            self._read_available()
+        if mask & selectors.EVENT_WRITE and self._port is not None:
+            self._flush()
+
+    def _read_available(self) -> None:
+        port = self._port
+        if port is None:
+            return
+        datagram = getattr(port, "datagram", False)
+        for _ in range(DATAGRAM_BATCH if datagram else 1):
+            try:
+                data = port.read(READ_SIZE)
+            except Exception as exc:  # pyserial: SerialException / OSError / TypeError
+                self.stats.read_errors += 1
+                self._fail(exc, "read failed")
+                return
+            if not data:
+                return
+            self.stats.received_bytes += len(data)
+            self._deliver(data)
+            if self._port is not port:
+                return  # a handler closed or reopened the port
+
+    def _deliver(self, data: bytes) -> None:
+        protocol = self.protocol
+        if protocol is None:
+            return
+        try:
+            events = protocol.feed(data)
+        except Exception:
+            self.stats.protocol_errors += 1
+            log.exception("%s: the protocol failed on %d bytes (skipped)", self.name, len(data))
+            return
+        handler = self.on_event
+        if handler is not None:
+            for ev in events:
+                handler(ev)
+
+    def _flush(self) -> None:
+        """Write everything queued, in order (on the engine's thread)."""
+        queue, lock, st = self._queue, self._lock, self.stats
+        while True:
+            with lock:
+                port = self._port
+                if port is None:
+                    self._flush_scheduled = False
+                    return  # the port went down meanwhile: _fail counted what was queued
+                if self._pending:
+                    data, whole = self._pending, False
+                elif queue:
+                    data, whole = queue.popleft(), True
+                else:
+                    self._flush_scheduled = False
+                    self._idle.notify_all()
+                    return
+                self._writing = True
+            try:
+                n = port.write(data)
+            except Exception as exc:
+                with lock:
+                    self._writing = False
+                st.write_errors += 1
+                self._fail(exc, "write failed")
+                return
+            with lock:
+                self._writing = False
+                if whole:
+                    st.sent_frames += 1
+                    st.sent_bytes += len(data)
+                if n is not None and n < len(data):
+                    self._pending = data[n:]  # a non-blocking socket took part: wait for room
+                    self._set_interest(write=True)
+                    return
+                if self._pending:
+                    self._pending = b""
+                    self._set_interest(write=False)
+
+    def _fail(self, exc: BaseException | None, what: str) -> None:
+        """Close the failed port, report the link down and reopen with backoff."""
+        port = self._port
+        if port is None:
+            return
+        if exc is not None:
+            log.warning("%s: %s (%s); reopening", self.name, what, exc)
+        self.stats.disconnects += 1
+        self._outage_logged = True
+        self._detach(port)
+        self._flush_protocol()
+        if self.on_link is not None:
+            self.on_link(False)
+        self._schedule_open()
+
+    def _detach(self, port: Any) -> None:
+        with self._lock:
+            self._port = None
+            self._connected.clear()
+            self.stats.dropped_not_ready += len(self._queue)
+            self._queue.clear()
+            self._pending = b""
+            self._flush_scheduled = False
+            self._idle.notify_all()
+        if self._fd is not None:
+            if self._interest:
+                self._loop.unregister(self._fd)
+            self._interest = 0
+            self._fd = None
+        if self._poll is not None:
+            self._poll.cancel()
+            self._poll = None
+        self._close_port(port)
+
+    def _flush_protocol(self) -> None:
+        """The stream broke: nothing completes a pending frame; let the protocol say so."""
+        flush = getattr(self.protocol, "flush", None)
+        if flush is None:
+            return
+        try:
+            events = flush()
+        except Exception:
+            self.stats.protocol_errors += 1
+            log.exception("%s: the protocol failed to flush", self.name)
+            return
+        handler = self.on_event
+        if handler is not None:
+            for ev in events:
+                handler(ev)
+
+    def _close_port(self, port: Any) -> None:
+        try:
+            port.close()
+        except Exception:
+            log.debug("%s: error closing the port", self.name, exc_info=True)
+
+    def _shutdown(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            self._retry = None
+        port = self._port
+        if port is not None:
+            self._flush()
+            port = self._port
+        if port is not None:
+            self._detach(port)
+            self._flush_protocol()
+            if self.on_link is not None:
+                self.on_link(False)
+        self._shut.set()
+
+    def _abandon(self) -> None:
+        """close() timed out (a write that never returns): drop what is queued, close the port
+        from here so a blocked writer is released, and leave the thread behind."""
+        with self._lock:
+            self.stats.dropped_not_ready += len(self._queue)
+            self._queue.clear()
+            port, self._port = self._port, None
+            self._connected.clear()
+            self._idle.notify_all()
+        if self._poll is not None:
+            self._poll.cancel()
+        if port is not None:
+            self._close_port(port)
+
+
+class PortServer:
+    """A TCP listener on a loop: bound (and re-bound after a failure) with backoff; every
+    client it accepts is handed to ``on_client(sock, address)``, which typically wraps it in a
+    :class:`PortEngine` on the same loop with ``reopen=False``."""
+
+    def __init__(
+        self,
+        opener: Callable[[], Any],
+        on_client: Callable[[Any, Any], Any],
+        *,
+        loop: IoLoop,
+        name: str = "server",
+        backoff: Backoff | None = None,
+    ) -> None:
+        self.name = name
+        self.loop = loop
+        self.accepted = 0
+        self.bind_failures = 0
+        self.sock: Any = None
+        self._opener = opener
+        self._on_client = on_client
+        self._backoff = backoff or Backoff()
+        self._bound = threading.Event()
+        self._retry: Timer | None = None
+        self._closing = False
+        self._logged = False
+
+    @property
+    def address(self) -> Any:
+        sock = self.sock
+        return sock.getsockname() if sock is not None else None
+
+    def start(self) -> None:
+        self._closing = False
+        self.loop.call_soon(self._bind)
+
+    def wait_bound(self, timeout: float) -> bool:
+        return self._bound.wait(timeout)
+
+    def _bind(self) -> None:
+        self._retry = None
+        if self._closing or self.sock is not None:
+            return
+        try:
+            sock = self._opener()
+        except Exception as exc:
+            self.bind_failures += 1
+            if not self._logged:
+                self._logged = True
+                log.warning("%s: %s; retrying", self.name, exc)
+            self._retry = self.loop.call_later(self._backoff.next(), self._bind)
+            return
+        if self._logged:
+            log.info("%s: listening", self.name)
+        self._logged = False
+        self._backoff.reset()
+        self.sock = sock
+        self.loop.register(sock, selectors.EVENT_READ, self._on_accept)
+        self._bound.set()
+
+    def _on_accept(self, mask: int) -> None:
+        sock = self.sock
+        if sock is None:
+            return
+        try:
+            conn, addr = sock.accept()
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:  # the listener itself failed: bind it again
+            log.warning("%s: accept failed (%s); listening again", self.name, exc)
+            self._drop_listener()
+            self._retry = self.loop.call_later(self._backoff.next(), self._bind)
+            return
+        self.accepted += 1
+        self._on_client(conn, addr)
+
+    def _drop_listener(self) -> None:
+        sock, self.sock = self.sock, None
+        self._bound.clear()
+        if sock is not None:
+            self.loop.unregister(sock)
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def close(self) -> None:
+        """Stop listening (clients are their engines' to close); safe twice, any thread."""
+        self._closing = True
+        if self.loop.in_loop_thread or not self.loop.running:
+            self._close_now()
+        else:
+            done = threading.Event()
+
+            def close_now() -> None:
+                self._close_now()
+                done.set()
+
+            self.loop.call_soon(close_now)
+            if not done.wait(1.0):
+                self._close_now()
+
+    def _close_now(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            self._retry = None
+        self._drop_listener()
