@@ -78,6 +78,12 @@ class IoLoop:
         return threading.current_thread() is self._thread
 
     @property
+    def alive(self) -> bool:
+        """True while the loop's thread exists (it may be stuck in a callback)."""
+        t = self._thread
+        return t is not None and t.is_alive()
+
+    @property
     def closed(self) -> bool:
         return self._closed
 

@@ -159,6 +159,7 @@ class PortEngine:
         self._connected = threading.Event()
         self._started = False
         self._closing = False
+        self._opening = False
         self._shut = threading.Event()
         self._last_accepted: float | None = None
         self._outage_logged = False
@@ -329,21 +330,45 @@ class PortEngine:
         return self._port
 
     def _open(self) -> None:
+        """Start one open attempt.  The opener runs in a short-lived thread of its own: an
+        open can block for seconds (pyserial's ``socket://`` waits up to 5 s for a host that
+        does not answer) and the engine's thread must stay free to stop or to serve the other
+        engines of a shared loop."""
         self._retry = None
-        if self._closing or self._port is not None:
+        if self._closing or self._port is not None or self._opening:
             return
+        self._opening = True
+        threading.Thread(target=self._open_in_background, name=f"open-{self.name}",
+                         daemon=True).start()
+
+    def _open_in_background(self) -> None:
+        port: Any = None
+        error: Exception | None = None
         try:
             port = self._opener()
         except Exception as exc:
+            error = exc
+        with self._lock:
+            closing = self._closing
+            if not closing:
+                self._loop.call_soon(lambda: self._opened(port, error))
+        if closing:  # close() came first: nobody will use this port
+            self._opening = False
+            if port is not None:
+                self._close_port(port)
+
+    def _opened(self, port: Any, error: Exception | None) -> None:
+        self._opening = False
+        if error is not None:
             self.stats.connect_failures += 1
             if not self._outage_logged:
                 self._outage_logged = True
-                log.warning("%s: %s; retrying", self.name, exc)
+                log.warning("%s: %s; retrying", self.name, error)
             else:
-                log.debug("%s: %s; retrying", self.name, exc)
+                log.debug("%s: %s; retrying", self.name, error)
             self._schedule_open()
             return
-        if self._closing:  # close() gave up waiting while this open was under way
+        if self._closing:
             self._close_port(port)
             return
         self._attach(port)
@@ -479,11 +504,11 @@ class PortEngine:
         port = self._port
         if port is None:
             return
+        self.stats.disconnects += 1  # counted before it is logged: a reader of the log
+        self._outage_logged = True     # sees the count
+        self._detach(port)
         if exc is not None:
             log.warning("%s: %s (%s); reopening", self.name, what, exc)
-        self.stats.disconnects += 1
-        self._outage_logged = True
-        self._detach(port)
         self._flush_protocol()
         if self.on_link is not None:
             self.on_link(False)
