@@ -79,3 +79,18 @@ def pytest_unconfigure(config: pytest.Config) -> None:
     for stream in (sys.stdout, sys.stderr):
         stream.flush()
     os._exit(_exit_status[-1])
+
+
+# -- order -------------------------------------------------------------------------------------
+# pytest-randomly shuffles every run (its seed is printed: `--randomly-seed=N`
+# replays one); `--reverse` (with `-p no:randomly`) runs the suite back to front.  A test that
+# passes in one order and fails in another leans on another test's leftovers.
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--reverse", action="store_true", help="run the tests in reverse order")
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if config.getoption("--reverse"):
+        items.reverse()
