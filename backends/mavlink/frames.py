@@ -90,7 +90,6 @@ def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],
         if b == STX_V2:
             if n - i < HEADER_V2:
                 break
-            plen = buf[i + 1]
             inc = buf[i + 2]
             if inc & ~IFLAG_SIGNED:
                 stats.bad_headers += 1
@@ -99,93 +98,66 @@ def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],
                 continue
             msgid = buf[i + 7] | (buf[i + 8] << 8) | (buf[i + 9] << 16)
             signed = inc & IFLAG_SIGNED
-            flen = HEADER_V2 + plen + 2 + (SIGNATURE_LEN if signed else 0)
-            info = info_of.get(msgid)
-            if info is not None and plen > info[1]:
-                stats.bad_headers += 1
-                i, synced = i + 1, False
-                stats.bytes_skipped += 1
-                continue
-            if n - i < flen:
-                break
-            pstart = i + HEADER_V2
-            crc_at = pstart + plen
-            if info is not None:
-                crc = mcrf4xx(info[0], initial=mcrf4xx(mv[i + 1:crc_at]))
-                if crc != buf[crc_at] | (buf[crc_at + 1] << 8):
-                    stats.crc_errors += 1
-                    i, synced = i + 1, False
-                    stats.bytes_skipped += 1
-                    continue
-                so = info[2]
-                if so >= 0:
-                    tsys = buf[pstart + so] if so < plen else 0
-                    co = info[3]
-                    tcomp = (buf[pstart + co] if co < plen else 0) if co >= 0 else -1
-                else:
-                    tsys = tcomp = -1
-                synced = True
-            elif synced:
-                stats.unknown_ids += 1
-                tsys = tcomp = -1
-            else:
-                i, synced = i + 1, False
-                stats.bytes_skipped += 1
-                continue
-            raw = buf if (i == 0 and flen == n and type(buf) is bytes) else bytes(mv[i:i + flen])
-            out.append(Frame(raw, msgid, buf[i + 5], buf[i + 6], buf[i + 4], tsys, tcomp,
-                             bool(signed), 2))
-            stats.frames += 1
-            i += flen
+            head, version, ids = HEADER_V2, 2, i + 4  # ids: seq, sysid, compid
+            flen = HEADER_V2 + buf[i + 1] + 2 + (SIGNATURE_LEN if signed else 0)
         elif b == STX_V1:
             if n - i < HEADER_V1:
                 break
-            plen = buf[i + 1]
             msgid = buf[i + 5]
-            info = info_of.get(msgid)
-            if info is not None and plen > info[1]:
-                stats.bad_headers += 1
-                i, synced = i + 1, False
-                stats.bytes_skipped += 1
-                continue
-            flen = HEADER_V1 + plen + 2
-            if n - i < flen:
-                break
-            pstart = i + HEADER_V1
-            crc_at = pstart + plen
-            if info is not None:
-                crc = mcrf4xx(info[0], initial=mcrf4xx(mv[i + 1:crc_at]))
-                if crc != buf[crc_at] | (buf[crc_at + 1] << 8):
-                    stats.crc_errors += 1
-                    i, synced = i + 1, False
-                    stats.bytes_skipped += 1
-                    continue
-                so = info[2]
-                if so >= 0 and so < plen:
-                    tsys = buf[pstart + so]
-                    co = info[3]
-                    tcomp = buf[pstart + co] if 0 <= co < plen else -1
-                else:
-                    tsys = tcomp = -1
-                synced = True
-            elif synced:
-                stats.unknown_ids += 1
-                tsys = tcomp = -1
-            else:
-                i, synced = i + 1, False
-                stats.bytes_skipped += 1
-                continue
-            raw = buf if (i == 0 and flen == n and type(buf) is bytes) else bytes(mv[i:i + flen])
-            out.append(Frame(raw, msgid, buf[i + 3], buf[i + 4], buf[i + 2], tsys, tcomp,
-                             False, 1))
-            stats.frames += 1
-            i += flen
+            signed = 0
+            head, version, ids = HEADER_V1, 1, i + 2
+            flen = HEADER_V1 + buf[i + 1] + 2
         else:
             m = _MARKER.search(buf, i)
             j = m.start() if m is not None else n
             stats.bytes_skipped += j - i
             i = j
             synced = False
+            continue
+        plen = buf[i + 1]
+        info = info_of.get(msgid)
+        if info is not None and plen > info[1]:
+            stats.bad_headers += 1
+            i, synced = i + 1, False
+            stats.bytes_skipped += 1
+            continue
+        if n - i < flen:
+            break
+        pstart = i + head
+        crc_at = pstart + plen
+        if info is not None:
+            crc = mcrf4xx(info[0], initial=mcrf4xx(mv[i + 1:crc_at]))
+            if crc != buf[crc_at] | (buf[crc_at + 1] << 8):
+                stats.crc_errors += 1
+                i, synced = i + 1, False
+                stats.bytes_skipped += 1
+                continue
+            # Target fields cut off the end: MAVLink 2 trims trailing zeros (so they are 0);
+            # a short MAVLink 1 payload simply has none.
+            so, co = info[2], info[3]
+            if so < 0 or (version == 1 and so >= plen):
+                tsys = tcomp = -1
+            else:
+                tsys = buf[pstart + so] if so < plen else 0
+                if co < 0:
+                    tcomp = -1
+                elif co < plen:
+                    tcomp = buf[pstart + co]
+                else:
+                    tcomp = 0 if version == 2 else -1
+            synced = True
+        elif synced:
+            stats.unknown_ids += 1
+            tsys = tcomp = -1
+        else:
+            i, synced = i + 1, False
+            stats.bytes_skipped += 1
+            continue
+        raw = buf if (i == 0 and flen == n and type(buf) is bytes) else bytes(mv[i:i + flen])
+        out.append(Frame(raw, msgid, buf[ids + 1], buf[ids + 2], buf[ids], tsys, tcomp,
+                         bool(signed), version))
+        stats.frames += 1
+        i += flen
     mv.release()
     return i, synced
 
