@@ -1,6 +1,6 @@
 """Console backend: one human-readable line per update, rate-limited, for people watching.
 
-Lines go through a :class:`~gateway.link.LinkEngine`, so a stalled terminal or a full pipe
+Lines go through a :class:`~gateway.port.PortEngine`, so a stalled terminal or a full pipe
 never blocks the dispatcher: lines are dropped (and counted) instead.
 """
 
@@ -12,10 +12,10 @@ import sys
 import time
 from typing import Any, ClassVar
 
-from gateway.backend import Backend, Outcome
+from gateway.backend import Backend, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.link import LinkEngine
 from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+from gateway.port import PortEngine
 
 
 class _StreamTransport:
@@ -66,7 +66,7 @@ class ConsoleBackend(Backend):
         self._out = out if out is not None else getattr(sys, stream).buffer
         self._last_line = -math.inf
         self._last_state: tuple[int, int] | None = None
-        self.engine = LinkEngine(lambda: _StreamTransport(self._out), name=self.name,
+        self.engine = PortEngine(lambda: _StreamTransport(self._out), name=self.name,
                                  queue_depth=64)
 
     @classmethod
@@ -90,6 +90,10 @@ class ConsoleBackend(Backend):
 
     def _line(self, text: str) -> Outcome:
         return self.engine.submit((text + "\n").encode())
+
+    def routes(self) -> Routes:
+        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+                .on(RawFrame, self.send_raw).on(LinkEvent, self.on_link))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         now = time.monotonic()
@@ -116,4 +120,7 @@ class ConsoleBackend(Backend):
 
     def stats(self) -> dict[str, Any]:
         s = self.engine.stats
-        return {"sent": s.sent_frames, "dropped": s.dropped}
+        return {"sent": s.sent_frames, "dropped": s.dropped, "errors": s.errors,
+                "link": int(self.engine.connected),
+                "dropped_queue_full": s.dropped_queue_full,
+                "dropped_not_ready": s.dropped_not_ready}

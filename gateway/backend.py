@@ -1,45 +1,56 @@
-"""What a backend is, and what it must and might implement.
+"""The backend contract: what a backend must implement, what it may, and what it reports.
 
 A backend **must**:
 
 * have a ``name`` (unique in one gateway; defaults to the class's ``NAME``);
-* never block in a hook: a backend that does I/O hands the work to its own bounded queue and
-  worker thread (see :class:`gateway.link.LinkEngine`) and drops, counted, when full.
+* say which message types it takes in :meth:`Backend.routes` — a :class:`Routes` table,
+  message type → handler, which the dispatcher reads once at start.  The table is typed:
+  ``Routes().on(SmUpdate, self.send_sm_update)`` is checked by mypy, so a misspelled handler
+  or one that takes another message type fails ``make lint``, not silently at run time;
+* never block in a handler: a backend that does I/O hands the work to a
+  :class:`gateway.port.PortEngine` (or a bounded queue of its own) and drops, counted, when it
+  is full.  A handler returns an :class:`Outcome` (``None`` counts as accepted).
 
-A backend **might** implement any of these hooks; the dispatcher skips backends without one:
+A backend **may** implement:
 
-``send_sm_update(msg: SmUpdate)``, ``send_status(msg: Status)``, ``send_raw(msg: RawFrame)``,
-``on_link(event: LinkEvent)``
-    return an :class:`Outcome` (``None`` counts as accepted);
 ``init()``
-    open what the backend needs; raise :class:`BackendError` (or anything) to refuse to start;
+    open what it needs; raise :class:`BackendError` (or anything) to refuse to start;
 ``close()``
     release everything; must be safe to call twice;
 ``stats()``
-    counters for the status line, at least ``sent`` and ``dropped`` where meaningful;
-``from_config(table)``
-    classmethod building the backend from its ``[backends.<name>]`` config table
-    (the default passes the table's keys as keyword arguments);
+    its counters.  Every built-in backend reports at least :data:`STATS_KEYS` — ``sent``
+    (frames or messages out), ``dropped`` (refused or lost, any reason), ``errors``
+    (failures: write errors, encode errors …) and ``link`` (1 while its port, session or
+    endpoint is up, else 0) — plus its own, ``dropped_<reason>`` for each drop reason;
+``attach(context)``
+    called before ``init`` with the gateway's :class:`GatewayContext`: ``emit`` hands a
+    message the backend decoded (link statistics from a radio, commands from a ground
+    station) to every other backend, with ``origin`` set to the backend's own name;
 ``CONFIG``
-    a :class:`gateway.config.Schema` describing the table, so a bad key or value is one clear
-    line before anything starts;
+    a :class:`gateway.config.Schema` for its ``[backends.<name>]`` table: the options are
+    validated there (one clear line naming the key) before the constructor runs, so the
+    constructor does not check them again;
+``from_config(table)``
+    build it from the validated table (default: the keys as keyword arguments);
 ``EMBEDDED_DEFAULT``
-    the options it runs with in the embedded default (no config file), on loopback and with
-    no hardware; None keeps it out of the default run;
+    its options in the embedded default run (loopback, no hardware); None leaves it out;
 ``add_cli_arguments(parser)`` / ``cli_options(args)``
-    classmethods adding its quick flags to ``run`` and turning them into options;
-``attach(emit)``
-    receive the gateway's ingest function before ``init``: a backend that also *reads*
-    (link statistics from a radio, commands from a ground station) hands what it decodes to
-    ``emit`` with ``origin`` set to its own name, and the message reaches every other backend.
+    its quick flags on ``aurora-gateway run`` and the options they set.
 """
 
 from __future__ import annotations
 
 import errno
-from collections.abc import Callable
+import itertools
+import os
+import socket
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
+
+#: The stats keys every built-in backend reports (see the module docstring).
+STATS_KEYS = ("sent", "dropped", "errors", "link")
 
 
 class Outcome(IntEnum):
@@ -49,7 +60,7 @@ class Outcome(IntEnum):
     THROTTLED = -errno.EAGAIN
     QUEUE_FULL = -errno.ENOMEM
     NOT_READY = -errno.ENODEV
-    FAILED = -errno.EIO  # the hook raised; the dispatcher isolates it
+    FAILED = -errno.EIO  # the handler raised; the dispatcher isolates it
 
     @property
     def label(self) -> str:
@@ -60,8 +71,68 @@ class BackendError(Exception):
     """A backend cannot start or run as configured."""
 
 
+M = TypeVar("M")
+Handler = Callable[[Any], "Outcome | None"]
+
+
+class Routes:
+    """A backend's routing table: message type → handler (see the module docstring).
+
+    Routing is by exact type: a message is handed to the handlers registered for
+    ``type(msg)``.  A backend package may route message types it defines itself."""
+
+    __slots__ = ("_table",)
+
+    def __init__(self) -> None:
+        self._table: dict[type, Handler] = {}
+
+    def on(self, cls: type[M], handler: Callable[[M], Outcome | None]) -> Routes:
+        """Route messages of type ``cls`` to ``handler``; returns the table (chainable)."""
+        if cls in self._table:
+            raise ValueError(f"{cls.__name__} is routed twice")
+        self._table[cls] = handler
+        return self
+
+    def __iter__(self) -> Iterator[tuple[type, Handler]]:
+        return iter(self._table.items())
+
+    def __len__(self) -> int:
+        return len(self._table)
+
+    def types(self) -> list[type]:
+        return list(self._table)
+
+
+_instances = itertools.count(1)
+
+
+def new_gateway_id() -> str:
+    """``<host>-<pid>-<n>``: unique per gateway, also between two gateways of one process."""
+    host = "".join(c if c.isalnum() or c in "_.-" else "-" for c in socket.gethostname())
+    return f"{host or 'host'}-{os.getpid()}-{next(_instances)}"
+
+
+@dataclass
+class GatewayContext:
+    """What a gateway hands each backend and source as it starts (one per gateway: two
+    gateways in one process share nothing).
+
+    ``emit``
+        ingest a message (it reaches every backend);
+    ``gateway_id``
+        this gateway's id (used in Zenoh attachments, liveliness tokens);
+    ``own_ids``
+        every id under which a backend of this gateway publishes; a source that hears one of
+        them is hearing this gateway, not another.
+    """
+
+    emit: Callable[[Any], Any] = lambda msg: None
+    gateway_id: str = field(default_factory=new_gateway_id)
+    own_ids: set[str] = field(default_factory=set)
+
+
 class Backend:
-    """Optional base class for backends: sensible defaults for everything but the hooks."""
+    """Base class for backends: sensible defaults for everything a backend may implement."""
 
     NAME: ClassVar[str] = "backend"
     CONFIG: ClassVar[Any] = None  # a gateway.config.Schema
@@ -69,6 +140,7 @@ class Backend:
 
     def __init__(self, name: str | None = None) -> None:
         self.name = name or self.NAME
+        self.context = GatewayContext()
 
     @classmethod
     def from_config(cls, table: dict[str, Any], name: str | None = None) -> Backend:
@@ -83,12 +155,17 @@ class Backend:
         """Options the parsed flags set for this backend, or None when none were given."""
         return None
 
-    def attach(self, emit: Callable[[Any], Any]) -> None:
-        """Remember the gateway's ingest function (called before :meth:`init`)."""
-        self.emit = emit
+    def routes(self) -> Routes:
+        """The message types this backend takes and their handlers (none by default)."""
+        return Routes()
+
+    def attach(self, context: GatewayContext) -> None:
+        """Remember the gateway's context (called before :meth:`init`)."""
+        self.context = context
 
     def emit(self, msg: Any) -> None:
         """Hand a message this backend decoded to the gateway (a no-op until attached)."""
+        self.context.emit(msg)
 
     def init(self) -> None:
         """Open resources; raise to refuse to start."""
@@ -96,7 +173,7 @@ class Backend:
     def close(self) -> None:
         """Release resources; safe to call twice."""
 
-    def stats(self) -> dict[str, int | float]:
+    def stats(self) -> dict[str, Any]:
         return {}
 
     def __repr__(self) -> str:

@@ -3,23 +3,23 @@
 The seed's contract, in Python:
 
 * it runs in the caller's thread and never blocks (backends that do I/O own a queue);
-* every backend with a hook for the message's kind is called, in registration order;
+* every backend whose :class:`~gateway.backend.Routes` take the message's type is called, in
+  registration order (the table is built once, at :meth:`Dispatcher.start`);
 * it returns the first outcome that is not ``ACCEPTED`` and still tries every backend;
 * a backend that raises is isolated: logged (once per kind of error), counted as ``FAILED``;
-* ``Status`` goes through its own hook, never subject to SM-update rate limits;
-* hooks of one dispatcher are never called concurrently (one short lock around a fan-out).
+* ``Status`` goes through its own handler, never subject to SM-update rate limits;
+* handlers of one dispatcher are never called concurrently (one short lock around a fan-out).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from gateway.backend import Outcome
-from gateway.model import MESSAGE_TYPES
+from gateway.backend import Handler, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ class Dispatcher:
 
     def __init__(self, backends: Iterable[Any] = ()) -> None:
         self._records: list[BackendRecord] = []
-        self._routes: dict[type, list[tuple[BackendRecord, Callable[[Any], Any]]]] = {}
+        self._routes: dict[type, list[tuple[BackendRecord, Handler]]] = {}
         self._lock = threading.RLock()  # re-entrant: a hook may dispatch (no self-deadlock)
         self.dispatched = 0
         self.unrouted = 0
@@ -57,6 +57,8 @@ class Dispatcher:
 
     def add(self, backend: Any) -> None:
         """Register a backend.  It receives messages once :meth:`start` has initialised it."""
+        if not callable(getattr(backend, "routes", None)):
+            raise TypeError(f"{backend!r} has no routes(): derive it from gateway.backend.Backend")
         names = {r.name for r in self._records}
         rec = BackendRecord(backend)
         if rec.name in names:
@@ -107,37 +109,28 @@ class Dispatcher:
                 log.exception("backend %s failed to close", rec.name)
             rec.started = False
 
-    def _hooks_for(self, cls: type) -> list[tuple[BackendRecord, Callable[[Any], Any]]]:
-        hook = getattr(cls, "HOOK", None)
-        hooks = []
-        for rec in self._records:
-            fn = getattr(rec.backend, hook, None) if (hook and rec.started) else None
-            if callable(fn):
-                hooks.append((rec, fn))
-        return hooks
-
     def _rebuild_routes(self) -> None:
-        routes = {cls: self._hooks_for(cls) for cls in (*MESSAGE_TYPES, *self._routes)}
+        """The type → handlers table, from the started backends' routes (in their order)."""
+        routes: dict[type, list[tuple[BackendRecord, Handler]]] = {}
+        for rec in self._records:
+            if not rec.started:
+                continue
+            try:
+                table = rec.backend.routes()
+            except Exception:
+                log.exception("backend %s: routes() failed; it receives nothing", rec.name)
+                continue
+            for cls, handler in table:
+                routes.setdefault(cls, []).append((rec, handler))
         with self._lock:
             self._routes = routes
-
-    def _route_new_type(self, cls: type) -> list[tuple[BackendRecord, Callable[[Any], Any]]]:
-        """Routes for a message class first seen now (defined outside gateway.model)."""
-        with self._lock:
-            hooks = self._routes.get(cls)
-            if hooks is None:
-                hooks = self._hooks_for(cls) if getattr(cls, "HOOK", None) else []
-                self._routes = {**self._routes, cls: hooks}
-        return hooks
 
     # -- fan-out ----------------------------------------------------------------------------
 
     def dispatch(self, msg: Any) -> Outcome:
-        """Hand ``msg`` to every backend with a hook for its kind; the first non-accepted
+        """Hand ``msg`` to every backend that routes its type; the first non-accepted
         outcome, or ``ACCEPTED``.  Never raises because of a backend."""
         hooks = self._routes.get(type(msg))
-        if hooks is None:
-            hooks = self._route_new_type(type(msg))
         if not hooks:
             self.unrouted += 1
             return ACCEPTED

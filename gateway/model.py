@@ -4,19 +4,23 @@ Messages are ``NamedTuple`` classes rather than frozen dataclasses: they are jus
 immutable and typed, and about eight times cheaper to build, which is what lets the wire
 decoder keep several times ahead of pymavlink (see ``tools/bench/bench_decode.py``).
 
-Every message carries two pieces of provenance besides its fields:
+Every message carries provenance besides its fields:
 
 ``raw``
-    the untouched wire frame it was decoded from (empty when it was built in memory), so a
-    relay or recorder can pass on exactly what arrived;
+    (wire-decoded kinds) the untouched frame it was decoded from (empty when it was built in
+    memory), so a relay or recorder can pass on exactly what arrived;
 ``origin``
-    the name of the source that produced it, so a backend can refuse to send a message back
-    where it came from (loop prevention between gateways).
+    the name of the source (or backend) of *this* gateway that produced it, so a backend can
+    refuse to send a message back where it came from;
+``via``
+    "" when the message came from the rocket's own link (serial, simulation, replay);
+    otherwise the network and the system it came from, ``<protocol>:<id>`` —
+    ``zenoh:<gateway id>``, ``mavlink:<system id>`` — so loop prevention between chained
+    gateways reads the message, never a process-wide registry.
 
-Both take part in equality like every other field; compare :meth:`fields` to ignore them.
-
-Each class names the dispatcher hook that receives it (``HOOK``) and the key it is known by in
-channels, recordings and publications (``KIND``).
+Provenance takes part in equality like every other field; compare :meth:`fields` to ignore
+it.  Routing is by type (see :class:`gateway.backend.Routes`); :func:`kind` names a message's
+type in counters, recordings and publications.
 """
 
 from __future__ import annotations
@@ -57,9 +61,8 @@ class SmUpdate(NamedTuple):
     reserved: int = 0
     raw: bytes = b""
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_sm_update"
-    KIND = "sm_update"
 
     @property
     def state_name(self) -> str:
@@ -74,10 +77,8 @@ class SmUpdate(NamedTuple):
         return is_on_pad(self.sm_type, self.state)
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without ``raw`` and ``origin``."""
-        d = self._asdict()
-        del d["raw"], d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class Status(NamedTuple):
@@ -90,9 +91,8 @@ class Status(NamedTuple):
     reserved: int = 0
     raw: bytes = b""
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_status"
-    KIND = "status"
 
     @property
     def armed(self) -> bool:
@@ -129,9 +129,8 @@ class Status(NamedTuple):
         }
 
     def fields(self) -> dict[str, Any]:
-        d = self._asdict()
-        del d["raw"], d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
     @staticmethod
     def make_flags(
@@ -159,12 +158,12 @@ class RawFrame(NamedTuple):
     payload: bytes
     raw: bytes = b""
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_raw"
-    KIND = "raw"
 
     def fields(self) -> dict[str, Any]:
-        return {"type": self.type, "payload": self.payload}
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class LinkEvent(NamedTuple):
@@ -174,12 +173,12 @@ class LinkEvent(NamedTuple):
     up: bool
     silence_s: float = 0.0
     origin: str = ""
+    via: str = ""
 
-    HOOK = "on_link"
-    KIND = "link"
 
     def fields(self) -> dict[str, Any]:
-        return {"source": self.source, "up": self.up, "silence_s": self.silence_s}
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class LinkStats(NamedTuple):
@@ -198,14 +197,12 @@ class LinkStats(NamedTuple):
     rf_mode: int | None = None
     antenna: int | None = None
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_link_stats"
-    KIND = "link_stats"
 
     def fields(self) -> dict[str, Any]:
-        d = self._asdict()
-        del d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class Position(NamedTuple):
@@ -220,14 +217,12 @@ class Position(NamedTuple):
     satellites: int | None = None
     fix_type: int | None = None
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_position"
-    KIND = "position"
 
     def fields(self) -> dict[str, Any]:
-        d = self._asdict()
-        del d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class Battery(NamedTuple):
@@ -239,14 +234,12 @@ class Battery(NamedTuple):
     remaining_pct: int | None = None
     battery_id: int = 0
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_battery"
-    KIND = "battery"
 
     def fields(self) -> dict[str, Any]:
-        d = self._asdict()
-        del d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
 class VehicleState(NamedTuple):
@@ -262,21 +255,42 @@ class VehicleState(NamedTuple):
     altitude_m: float | None = None
     climb_mps: float | None = None
     origin: str = ""
+    via: str = ""
 
-    HOOK = "send_vehicle_state"
-    KIND = "vehicle_state"
 
     def fields(self) -> dict[str, Any]:
-        d = self._asdict()
-        del d["origin"]
-        return d
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
 
 
-#: The message classes defined here.  The dispatcher routes any class with a ``HOOK``, so a
-#: backend package may define more without touching this module.
-MESSAGE_TYPES: tuple[type, ...] = (
-    SmUpdate, Status, RawFrame, LinkEvent, LinkStats, Position, Battery, VehicleState,
-)
+#: The name of each message type in counters, recordings and publications.  A backend package
+#: may define more message types (routing is by type); they are named by :func:`kind` too.
+KINDS: dict[type, str] = {
+    SmUpdate: "sm_update", Status: "status", RawFrame: "raw", LinkEvent: "link",
+    LinkStats: "link_stats", Position: "position", Battery: "battery",
+    VehicleState: "vehicle_state",
+}
+
+#: The message classes defined here.
+MESSAGE_TYPES: tuple[type, ...] = tuple(KINDS)
+
+_PROVENANCE = ("raw", "origin", "via")
+
+
+def kind(msg: object) -> str:
+    """The name of ``msg``'s type (``"sm_update"``, ``"status"`` …); a type defined outside
+    this module is named by its class name in lower case."""
+    cls = type(msg)
+    name = KINDS.get(cls)
+    return name if name is not None else cls.__name__.lower()
+
+
+def own_fields(msg: Any) -> dict[str, Any]:
+    """A message's fields as a dict, without its provenance (``raw``, ``origin``, ``via``)."""
+    d: dict[str, Any] = msg._asdict()
+    for key in _PROVENANCE:
+        d.pop(key, None)
+    return d
 
 Message = (SmUpdate | Status | RawFrame | LinkEvent | LinkStats | Position | Battery
            | VehicleState)

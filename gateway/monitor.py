@@ -39,13 +39,15 @@ class LinkMonitor:
         self._clock = clock
         self._last: dict[str, float] = {}
         self._up: dict[str, bool] = {}
+        self._via: dict[str, str] = {}
         self._lock = threading.Lock()
         self._pending: deque[LinkEvent] = deque()
         self._delivering = threading.Lock()
         self.changes = 0
 
-    def frame_seen(self, source: str) -> None:
-        """A valid frame arrived from ``source`` (call from the source's thread)."""
+    def frame_seen(self, source: str, via: str = "") -> None:
+        """A valid frame arrived from ``source`` (call from the source's thread); ``via`` is
+        the message's (see :mod:`gateway.model`), carried on the source's link events."""
         now = self._clock()
         self._last[source] = now
         if self._up.get(source):
@@ -54,8 +56,9 @@ class LinkMonitor:
             if self._up.get(source):
                 return
             self._up[source] = True
+            self._via[source] = via
             self.changes += 1
-            self._pending.append(LinkEvent(source, True, 0.0))
+            self._pending.append(LinkEvent(source, True, 0.0, via=via))
         self._deliver()
 
     def check(self) -> list[LinkEvent]:
@@ -68,7 +71,8 @@ class LinkMonitor:
                 if up and silence >= self.timeout_s:
                     self._up[source] = False
                     self.changes += 1
-                    events.append(LinkEvent(source, False, silence))
+                    events.append(LinkEvent(source, False, silence,
+                                            via=self._via.get(source, "")))
             self._pending.extend(events)
         self._deliver()
         return events

@@ -79,11 +79,12 @@ class Decoder:
     (261 bytes): everything before a pending sync is decided at once.
     """
 
-    __slots__ = ("_buf", "origin", "stats")
+    __slots__ = ("_buf", "origin", "stats", "via")
 
-    def __init__(self, origin: str = "") -> None:
+    def __init__(self, origin: str = "", via: str = "") -> None:
         self._buf = b""
         self.origin = origin
+        self.via = via  # stamped on every message (see gateway.model)
         self.stats = DecoderStats()
 
     @property
@@ -113,6 +114,7 @@ class Decoder:
     def _scan(self, buf: bytes, out: list, eof: bool) -> bytes:
         stats = self.stats
         origin = self.origin
+        via = self.via
         n = len(buf)
         pos = 0
         skipped = crc_failures = unknown = bad_len = 0
@@ -161,19 +163,19 @@ class Decoder:
             if ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F64_LEN:
                 ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack64(buf, i + 4)
                 append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
-                                       SM_UPDATE_F64_LEN, rsv, raw, origin)))
+                                       SM_UPDATE_F64_LEN, rsv, raw, origin, via)))
             elif ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F32_LEN:
                 ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack32(buf, i + 4)
                 append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
-                                       SM_UPDATE_F32_LEN, rsv, raw, origin)))
+                                       SM_UPDATE_F32_LEN, rsv, raw, origin, via)))
             elif ftype == TYPE_STATUS and length == STATUS_LEN:
-                append(new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin)))
+                append(new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin, via)))
             else:
                 if ftype in (TYPE_SM_UPDATE, TYPE_STATUS):
                     bad_len += 1
                 else:
                     unknown += 1
-                append(new(RawFrame, (ftype, raw[4:-2], raw, origin)))
+                append(new(RawFrame, (ftype, raw[4:-2], raw, origin, via)))
         stats.frames += len(out) - first
         stats.bytes_skipped += skipped
         stats.crc_failures += crc_failures

@@ -12,10 +12,10 @@ from typing import Any, NamedTuple
 import pytest
 from helpers import BlockingTransport, run_within
 
-from gateway.backend import Backend, Outcome
+from gateway.backend import Backend, Outcome, Routes
 from gateway.dispatcher import Dispatcher
-from gateway.link import DEFAULT_QUEUE_DEPTH, LinkEngine
 from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+from gateway.port import DEFAULT_QUEUE_DEPTH, PortEngine
 
 DEADLINE_S = 5.0
 
@@ -42,6 +42,10 @@ class Recorder(Backend):
         self.log.append(self.name)
         return self.result
 
+    def routes(self) -> Routes:
+        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+                .on(RawFrame, self.send_raw).on(LinkEvent, self.on_link))
+
     def send_sm_update(self, msg: SmUpdate) -> Any:
         return self._record("sm", msg)
 
@@ -56,12 +60,15 @@ class Recorder(Backend):
 
 
 class SmOnly:
-    """A plain object (no base class) with only the SM-update hook."""
+    """A plain object (no base class) routing only SM updates."""
 
     def __init__(self, name: str, result: Any = None) -> None:
         self.name = name
         self.result = result
         self.seen: list[Any] = []
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
 
     def send_sm_update(self, msg: Any) -> Any:
         self.seen.append(msg)
@@ -160,6 +167,9 @@ class Exploding(Backend):
         super().__init__(name)
         self.errors = list(errors)
 
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
+
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         raise self.errors.pop(0)
 
@@ -208,6 +218,9 @@ def test_throttling_sm_update_hook_does_not_affect_status() -> None:
             super().__init__("hc12ish")
             self.statuses: list[Status] = []
 
+        def routes(self) -> Routes:
+            return Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+
         def send_sm_update(self, msg: SmUpdate) -> Outcome:
             return Outcome.THROTTLED
 
@@ -228,6 +241,9 @@ def test_backends_without_a_hook_for_the_kind_are_skipped() -> None:
 
         def __init__(self) -> None:
             self.events: list[LinkEvent] = []
+
+        def routes(self) -> Routes:
+            return Routes().on(LinkEvent, self.on_link)
 
         def on_link(self, ev: LinkEvent) -> None:
             self.events.append(ev)
@@ -251,19 +267,20 @@ def test_raw_frames_go_to_send_raw_and_link_events_to_on_link() -> None:
     assert [(k, m) for k, m, _ in rec.calls] == [("raw", frame), ("link", ev)]
 
 
-def test_a_message_class_outside_the_model_is_routed_by_its_hook() -> None:
+def test_a_message_class_outside_the_model_is_routed_by_its_type() -> None:
     class Custom(NamedTuple):
         value: int
-        HOOK = "send_custom"
-        KIND = "custom"
 
-    class NoHook(NamedTuple):
+    class NotRouted(NamedTuple):
         value: int
 
     class WantsCustom(Backend):
         def __init__(self) -> None:
             super().__init__("custom")
             self.seen: list[Custom] = []
+
+        def routes(self) -> Routes:
+            return Routes().on(Custom, self.send_custom)
 
         def send_custom(self, msg: Custom) -> Outcome:
             self.seen.append(msg)
@@ -273,7 +290,7 @@ def test_a_message_class_outside_the_model_is_routed_by_its_hook() -> None:
     d = started(b, Recorder("rec"))
     assert d.dispatch(Custom(1)) is Outcome.THROTTLED
     assert b.seen == [Custom(1)]
-    assert d.dispatch(NoHook(2)) is Outcome.ACCEPTED
+    assert d.dispatch(NotRouted(2)) is Outcome.ACCEPTED
     assert d.unrouted == 1
 
 
@@ -281,6 +298,9 @@ def test_a_hook_may_dispatch_through_the_same_dispatcher_without_deadlock() -> N
     d = Dispatcher()
 
     class Relay(Backend):
+        def routes(self) -> Routes:
+            return Routes().on(SmUpdate, self.send_sm_update)
+
         def send_sm_update(self, msg: SmUpdate) -> Outcome:
             return d.dispatch(LinkEvent("relay", True))
 
@@ -322,6 +342,9 @@ class Lifecycle(Backend):
         self.closes += 1
         if self.close_error is not None:
             raise self.close_error
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
 
     def send_sm_update(self, msg: SmUpdate) -> None:
         self.seen.append(msg)
@@ -369,11 +392,14 @@ def test_duplicate_backend_names_are_refused() -> None:
 
 
 class LinkBackend(Backend):
-    """A byte-stream backend built on the real LinkEngine."""
+    """A byte-stream backend built on the real port engine."""
 
     def __init__(self, name: str, transport: BlockingTransport) -> None:
         super().__init__(name)
-        self.engine = LinkEngine(lambda: transport, name=name)
+        self.engine = PortEngine(lambda: transport, name=name)
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
 
     def init(self) -> None:
         self.engine.start()
@@ -415,3 +441,36 @@ def test_dispatch_never_blocks_on_a_stalled_link_backend() -> None:
     finally:
         port.release.set()
         d.close()
+
+
+# -- the routing table -----------------------------------------------------------------------------
+
+
+def test_an_object_without_routes_is_refused_when_added() -> None:
+    class Hooky:  # the old, string-routed shape: a hook by name and nothing else
+        name = "hooky"
+
+        def send_sm_update(self, msg: SmUpdate) -> None:
+            pass
+
+    with pytest.raises(TypeError, match="routes"):
+        Dispatcher([Hooky()])
+
+
+def test_a_type_routed_twice_by_one_backend_is_an_error() -> None:
+    with pytest.raises(ValueError, match="SmUpdate"):
+        Routes().on(SmUpdate, lambda m: None).on(SmUpdate, lambda m: None)
+
+
+def test_the_table_is_read_once_at_start() -> None:
+    calls = []
+
+    class Counting(Recorder):
+        def routes(self) -> Routes:
+            calls.append(1)
+            return super().routes()
+
+    d = started(Counting("c"))
+    for i in range(5):
+        d.dispatch(sm(i))
+    assert len(calls) == 1

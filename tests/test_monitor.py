@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from gateway.backend import Backend, Outcome
+from gateway.backend import Backend, Outcome, Routes
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkEvent
 from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
@@ -128,6 +128,9 @@ def test_events_reach_backends_on_link_through_a_real_dispatcher(clock: FakeCloc
             super().__init__("watcher")
             self.seen: list[tuple[LinkEvent, int]] = []
 
+        def routes(self) -> Routes:
+            return Routes().on(LinkEvent, self.on_link)
+
         def on_link(self, ev: LinkEvent) -> Outcome:
             self.seen.append((ev, threading.get_ident()))
             return Outcome.ACCEPTED
@@ -194,3 +197,12 @@ def test_a_sink_may_call_back_into_the_monitor(clock: FakeClock) -> None:
     assert done.wait(DEADLINE_S)
     assert seen[0] == (True, True)
     assert mon.states() == {"sim": True, "other": True}
+
+
+def test_link_events_carry_the_via_of_the_sources_messages(events: list[LinkEvent],
+                                                           clock: FakeClock) -> None:
+    mon = LinkMonitor(events.append, timeout_s=1.0, clock=clock)
+    mon.frame_seen("zenoh:", "zenoh:gw-far")
+    clock.now += 1.0
+    mon.check()
+    assert [(e.up, e.via) for e in events] == [(True, "zenoh:gw-far"), (False, "zenoh:gw-far")]

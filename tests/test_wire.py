@@ -688,8 +688,8 @@ def test_every_untouched_frame_is_recovered(parts, cuts):
 
 u32 = st.integers(0, 0xFFFFFFFF)
 u8 = st.integers(0, 0xFF)
-#: Messages built in memory: no raw frame, no origin (st.builds would otherwise fill them).
-IN_MEMORY = {"raw": st.just(b""), "origin": st.just("")}
+#: Messages built in memory: no raw frame, no provenance (st.builds would otherwise fill it).
+IN_MEMORY = {"raw": st.just(b""), "origin": st.just(""), "via": st.just("")}
 
 
 def sm_updates(payload_len: int) -> st.SearchStrategy[SmUpdate]:
