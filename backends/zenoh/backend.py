@@ -20,9 +20,9 @@ The session also declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>``
 queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of each
 key, so late joiners need not wait for the next update.
 
-Loop prevention: messages that a Zenoh source of this process received are never
-published again (``skipped_from_zenoh``), and the attachment names this gateway so a Zenoh
-source ignores its own gateway's publications.
+Loop prevention reads the message, not a registry: a message whose ``via`` says it came in
+over Zenoh is never published again (``skipped_from_zenoh``); the attachment names this
+gateway, and the id goes into the gateway's context so its own Zenoh sources ignore it.
 """
 
 from __future__ import annotations
@@ -38,18 +38,27 @@ from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
-    LOCAL,
+    VIA_ZENOH,
     KeyLayout,
     check_chunk,
     check_prefix,
-    default_gateway_id,
     make_attachment,
 )
 from backends.zenoh.session import SESSION_KEYS, SessionOptions, zerror_text
-from gateway.backend import Backend, Outcome
+from gateway.backend import Backend, GatewayContext, Outcome, Routes
 from gateway.backoff import Backoff
 from gateway.config import ConfigError, Key, Schema
-from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RawFrame,
+    SmUpdate,
+    Status,
+    VehicleState,
+    kind,
+)
 
 log = logging.getLogger(__name__)
 
@@ -113,9 +122,10 @@ class ZenohBackend(Backend):
             raise ConfigError(f"vehicle: {exc}") from None
         self.layout = KeyLayout(prefix, vehicle)
         try:
-            self.gateway_id = check_chunk(gateway_id or default_gateway_id(), "gateway_id")
+            self._own_id = check_chunk(gateway_id, "gateway_id") if gateway_id else ""
         except ValueError as exc:
             raise ConfigError(f"gateway_id: {exc}") from None
+        self.gateway_id = self._own_id or self.context.gateway_id
         if encoding not in enc.ENCODINGS:
             raise ConfigError(f"encoding: expected one of {', '.join(enc.ENCODINGS)}, "
                               f"got {encoding!r}")
@@ -146,7 +156,6 @@ class ZenohBackend(Backend):
         self._latest: dict[str, tuple[bytes, Any, bytes]] = {}
         self._entities: list[Any] = []
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
-        self._zenoh_origins = LOCAL  # the registry, read on every message
         # counters
         self.submitted = 0
         self.accepted = 0
@@ -199,11 +208,17 @@ class ZenohBackend(Backend):
 
     # -- life cycle ------------------------------------------------------------------------------
 
+    def attach(self, context: GatewayContext) -> None:
+        """Publish under the gateway's id unless ``gateway_id`` was configured."""
+        super().attach(context)
+        if not self._own_id:
+            self.gateway_id = context.gateway_id
+
     def init(self) -> None:
         """Start the worker (it opens the session); wait briefly for the session."""
         if self._thread is not None:
             return
-        LOCAL.add_gateway(self.gateway_id)
+        self.context.own_ids.add(self.gateway_id)  # this gateway's Zenoh sources skip it
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, args=(self._stop,),
                                         name=f"zenoh-{self.name}", daemon=True)
@@ -240,7 +255,7 @@ class ZenohBackend(Backend):
             if item is not _STOP:
                 leftover += 1
         self.dropped_not_ready += leftover
-        LOCAL.remove_gateway(self.gateway_id)
+        self.context.own_ids.discard(self.gateway_id)
 
     def _close_session(self) -> None:
         self._ready.clear()
@@ -261,11 +276,11 @@ class ZenohBackend(Backend):
 
     # -- hooks (dispatcher thread; never block) -------------------------------------------------
 
-    def _submit(self, msg: Any) -> Outcome:
+    def publish(self, msg: Any) -> Outcome:
+        """Queue one message for publication; never blocks (the handler of every routed
+        type but RawFrame)."""
         self.submitted += 1
-        names = self._zenoh_origins.source_names
-        if names and (msg.origin in names
-                      or (type(msg) is LinkEvent and msg.source in names)):
+        if msg.via.startswith(VIA_ZENOH):  # it came in over Zenoh: publishing it would loop
             self.skipped_from_zenoh += 1
             return ACCEPTED
         if not self._ready.is_set():
@@ -279,14 +294,17 @@ class ZenohBackend(Backend):
         self.accepted += 1
         return ACCEPTED
 
-    send_sm_update = send_status = on_link = _submit
-    send_link_stats = send_position = send_battery = send_vehicle_state = _submit
+    def routes(self) -> Routes:
+        submit = self.publish
+        return (Routes().on(SmUpdate, submit).on(Status, submit).on(LinkEvent, submit)
+                .on(LinkStats, submit).on(Position, submit).on(Battery, submit)
+                .on(VehicleState, submit).on(RawFrame, self.send_raw))
 
     def send_raw(self, msg: RawFrame) -> Outcome:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
         if not self.publish_raw:
             return ACCEPTED
-        return self._submit(msg)
+        return self.publish(msg)
 
     # -- worker --------------------------------------------------------------------------------
 
@@ -412,7 +430,7 @@ class ZenohBackend(Backend):
         layout = self.layout
         if t is not RawFrame:
             payload, encoding = enc.encode(msg, self.encoding)
-            ok = self._put(layout.kind(msg.KIND), payload, encoding)
+            ok = self._put(layout.kind(kind(msg)), payload, encoding)
         if self.publish_raw and (t is RawFrame or t is SmUpdate or t is Status):
             frame = enc.wire_frame(msg)
             ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok

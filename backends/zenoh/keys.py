@@ -19,10 +19,7 @@ gateways apart, ignore its own publications, and count what it lost.
 
 from __future__ import annotations
 
-import os
 import re
-import socket
-import threading
 
 DEFAULT_PREFIX = "aurora"
 DEFAULT_VEHICLE = "rocket1"
@@ -64,10 +61,8 @@ def check_chunk(value: str, what: str = "vehicle", wildcard: bool = False) -> st
     return value
 
 
-def default_gateway_id() -> str:
-    """``<host>-<pid>``: unique per running gateway on a network of distinct hosts."""
-    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname() or "host") or "host"
-    return f"{host}-{os.getpid()}"
+#: ``via`` of a message that came in over Zenoh: ``zenoh:<publishing gateway's id>``.
+VIA_ZENOH = "zenoh:"
 
 
 class KeyLayout:
@@ -169,31 +164,3 @@ class SeqTracker:
         if seq <= last:
             self.restarts += 1
         return 0
-
-
-# -- loop prevention -----------------------------------------------------------------------------
-
-class _LocalRegistry:
-    """Who in this process speaks Zenoh: the ids of Zenoh backends (their publications must
-    not come back in through a Zenoh source) and the names of Zenoh sources (what they
-    emit must not go out again through a Zenoh backend)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.gateway_ids: frozenset[str] = frozenset()
-        self.source_names: frozenset[str] = frozenset()
-
-    def add_gateway(self, gateway_id: str) -> None:
-        with self._lock:
-            self.gateway_ids = self.gateway_ids | {gateway_id}
-
-    def remove_gateway(self, gateway_id: str) -> None:
-        with self._lock:
-            self.gateway_ids = self.gateway_ids - {gateway_id}
-
-    def add_source(self, name: str) -> None:
-        with self._lock:
-            self.source_names = self.source_names | {name}
-
-
-LOCAL = _LocalRegistry()

@@ -7,10 +7,11 @@ tools (QGroundControl, a radio) as if the rocket were plugged in.
 
 Loop prevention, both ways:
 
-* every message emitted carries ``origin`` = this source's name, registered as a Zenoh
-  origin, so a Zenoh backend of this process never publishes it again;
-* publications whose attachment names a Zenoh backend of this process (its own
-  publications coming back) are ignored (``ignored_own``).
+* every message emitted carries ``via = "zenoh:<publishing gateway>"``, so a Zenoh backend
+  of this gateway never publishes it again;
+* publications whose attachment names a Zenoh backend of this gateway (the ids in its
+  :class:`~gateway.backend.GatewayContext`: its own publications coming back) are ignored
+  (``ignored_own``).  Nothing is shared between two gateways of one process.
 
 The URL form (``--source``) is ``zenoh:[VEHICLE@][ENDPOINT[,ENDPOINT...]]``::
 
@@ -35,8 +36,8 @@ from backends.zenoh.keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_PREFIX,
     JSON_KINDS,
-    LOCAL,
     RAW,
+    VIA_ZENOH,
     SeqTracker,
     check_chunk,
     check_prefix,
@@ -141,14 +142,13 @@ class ZenohSource(Source):
         self.dropped_queue_full = 0
         self.session_opens = 0
         self.open_failures = 0
-        LOCAL.add_source(self.name)
 
     # -- zenoh's callback thread ------------------------------------------------------------------
 
     def _on_sample(self, sample: Any) -> None:
         att = sample.attachment
         gw, seq = parse_attachment(att.to_bytes() if att is not None else None)
-        if gw is not None and gw in LOCAL.gateway_ids:
+        if gw is not None and gw in self.context.own_ids:  # this gateway's own publication
             self.ignored_own += 1
             return
         self.received += 1
@@ -158,7 +158,7 @@ class ZenohSource(Source):
         if q.qsize() >= self.queue_depth:
             self.dropped_queue_full += 1
             return
-        q.put((key, sample.payload.to_bytes(), str(sample.encoding)))
+        q.put((key, sample.payload.to_bytes(), str(sample.encoding), gw or "?"))
 
     # -- the source's thread ------------------------------------------------------------------
 
@@ -220,7 +220,9 @@ class ZenohSource(Source):
         self.ready.set()
         return session
 
-    def _handle(self, key: str, payload: bytes, encoding: str) -> None:
+    def _handle(self, key: str, payload: bytes, encoding: str, gateway: str = "?") -> None:
+        """One sample, from the gateway whose id its attachment names ("?" = none)."""
+        via = VIA_ZENOH + gateway
         parsed = parse_key(key, self.prefix)
         if parsed is None:
             self.ignored_other += 1
@@ -228,6 +230,7 @@ class ZenohSource(Source):
         _, kind, _ = parsed
         if kind == RAW:
             dec = self.decoder
+            dec.via = via
             before = dec.stats.frames
             msgs = dec.feed(payload) + dec.flush()
             if dec.stats.frames == before:
@@ -240,7 +243,7 @@ class ZenohSource(Source):
             self.ignored_other += 1
             return
         try:
-            msg = enc.decode(kind, payload, encoding, origin=self.name)
+            msg = enc.decode(kind, payload, encoding, origin=self.name)._replace(via=via)
         except enc.PayloadError as exc:
             self.bad_payloads += 1
             if self.bad_payloads == 1:
