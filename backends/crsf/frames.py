@@ -4,7 +4,7 @@ A frame is ``[sync][len][type][payload…][crc]``: ``len`` counts type + payload
 the CRC is CRC-8/DVB-S2 (poly 0xD5, init 0) over type and payload, multi-byte fields are
 big-endian.  See ``shared/specs/crsf.md``.
 
-Every record is a ``NamedTuple`` with its frame type in ``TYPE``.  :func:`encode` turns a
+Every record is a ``NamedTuple``; its frame type is in :data:`FRAME_TYPES`.  :func:`encode` turns a
 record into a frame and :func:`decode_payload` turns a payload back into a record, so the two
 round-trip (to the field's resolution).  Conventions of every numeric field:
 
@@ -158,15 +158,11 @@ class Gps(NamedTuple):
     altitude_m: float | None = None
     satellites: int | None = None
 
-    TYPE = FRAME_GPS
-
 
 class Vario(NamedTuple):
     """0x07: vertical speed, up positive."""
 
     vspeed_mps: float | None
-
-    TYPE = FRAME_VARIO
 
 
 class Battery(NamedTuple):
@@ -177,8 +173,6 @@ class Battery(NamedTuple):
     capacity_mah: float | None = None
     remaining_pct: int | None = None
 
-    TYPE = FRAME_BATTERY
-
 
 class BaroAltitude(NamedTuple):
     """0x09: barometric altitude (m), with vertical speed (ELRS 4-byte form) or without it
@@ -187,15 +181,11 @@ class BaroAltitude(NamedTuple):
     altitude_m: float | None
     vspeed_mps: float | None = None
 
-    TYPE = FRAME_BARO_ALTITUDE
-
 
 class Airspeed(NamedTuple):
     """0x0A: airspeed (km/h)."""
 
     speed_kmh: float | None
-
-    TYPE = FRAME_AIRSPEED
 
 
 class Rpm(NamedTuple):
@@ -204,8 +194,6 @@ class Rpm(NamedTuple):
     source_id: int
     rpm: tuple[int | None, ...]
 
-    TYPE = FRAME_RPM
-
 
 class Temperatures(NamedTuple):
     """0x0D: up to 20 temperatures (°C) of one source."""
@@ -213,16 +201,12 @@ class Temperatures(NamedTuple):
     source_id: int
     temps_c: tuple[float | None, ...]
 
-    TYPE = FRAME_TEMPERATURE
-
 
 class Voltages(NamedTuple):
     """0x0E: up to 29 voltages (V, sent as mV) of one source."""
 
     source_id: int
     volts: tuple[float | None, ...]
-
-    TYPE = FRAME_VOLTAGES
 
 
 class AccelGyro(NamedTuple):
@@ -236,8 +220,6 @@ class AccelGyro(NamedTuple):
     accel_y_g: float | None
     accel_z_g: float | None
     temp_c: float | None = None
-
-    TYPE = FRAME_ACCEL_GYRO
 
 
 class LinkStatistics(NamedTuple):
@@ -255,8 +237,6 @@ class LinkStatistics(NamedTuple):
     downlink_link_quality_pct: int
     downlink_snr_db: int
 
-    TYPE = FRAME_LINK_STATISTICS
-
     @property
     def uplink_tx_power_mw(self) -> int | None:
         i = self.uplink_tx_power
@@ -273,8 +253,6 @@ class RcChannels(NamedTuple):
 
     channels: tuple[int, ...]
 
-    TYPE = FRAME_RC_CHANNELS
-
     def microseconds(self) -> tuple[float, ...]:
         """The channels as servo pulse widths (EdgeTX/Betaflight scaling)."""
         return tuple(1500.0 + (v - 992) * 5.0 / 8.0 for v in self.channels)
@@ -287,15 +265,11 @@ class Attitude(NamedTuple):
     roll_rad: float | None
     yaw_rad: float | None
 
-    TYPE = FRAME_ATTITUDE
-
 
 class FlightMode(NamedTuple):
     """0x21: a short ASCII text (EdgeTX shows at most 13 characters)."""
 
     text: str
-
-    TYPE = FRAME_FLIGHT_MODE
 
 
 class UnknownFrame(NamedTuple):
@@ -305,6 +279,24 @@ class UnknownFrame(NamedTuple):
     payload: bytes
     dest: int | None = None  # extended-header frames (type ≥ 0x28) only
     origin: int | None = None
+
+
+#: The frame type of each record.
+FRAME_TYPES: dict[type, int] = {
+    Gps: FRAME_GPS,
+    Vario: FRAME_VARIO,
+    Battery: FRAME_BATTERY,
+    BaroAltitude: FRAME_BARO_ALTITUDE,
+    Airspeed: FRAME_AIRSPEED,
+    Rpm: FRAME_RPM,
+    Temperatures: FRAME_TEMPERATURE,
+    Voltages: FRAME_VOLTAGES,
+    AccelGyro: FRAME_ACCEL_GYRO,
+    LinkStatistics: FRAME_LINK_STATISTICS,
+    RcChannels: FRAME_RC_CHANNELS,
+    Attitude: FRAME_ATTITUDE,
+    FlightMode: FRAME_FLIGHT_MODE,
+}
 
 
 Record = (Gps | Vario | Battery | BaroAltitude | Airspeed | Rpm | Temperatures | Voltages
@@ -459,7 +451,7 @@ def encode_payload(record: Record) -> bytes:
 
 def encode(record: Record, sync: int = SYNC_FC) -> bytes:
     """``record`` as a complete CRSF frame."""
-    ftype = record.type if isinstance(record, UnknownFrame) else record.TYPE
+    ftype = record.type if isinstance(record, UnknownFrame) else FRAME_TYPES[type(record)]
     return build_frame(ftype, encode_payload(record), sync)
 
 
