@@ -529,9 +529,9 @@ def _dec_accel_gyro(p: bytes) -> AccelGyro | None:
     if len(p) != 18:
         return None
     g, a = 1.0 / GYRO_DPS_PER_LSB, 1.0 / ACCEL_G_PER_LSB
-    return AccelGyro(_unpack(p, 0, 4, False),
-                     *(_scaled(_unpack(p, 4 + 2 * i, 2, True), g) for i in range(3)),
-                     *(_scaled(_unpack(p, 10 + 2 * i, 2, True), a) for i in range(3)),
+    gx, gy, gz = (_scaled(_unpack(p, 4 + 2 * i, 2, True), g) for i in range(3))
+    ax, ay, az = (_scaled(_unpack(p, 10 + 2 * i, 2, True), a) for i in range(3))
+    return AccelGyro(_unpack(p, 0, 4, False), gx, gy, gz, ax, ay, az,
                      _scaled(_unpack(p, 16, 2, True), 100))
 
 

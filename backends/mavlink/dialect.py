@@ -13,7 +13,7 @@ the fields named exactly so), the same facts mavlink-router reads from the C lib
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from dialects import aurora_mavlink as mav
 
@@ -32,7 +32,7 @@ class MessageInfo(NamedTuple):
     target_component_ofs: int
 
 
-def _offsets(cls: type) -> dict[str, int]:
+def _offsets(cls: Any) -> dict[str, int]:
     types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
     out: dict[str, int] = {}
     ofs = 0

@@ -172,7 +172,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
 
     stop = stop if stop is not None else threading.Event()
     samples: queue.SimpleQueue[Any] = queue.SimpleQueue()
-    installed: dict[int, Any] = {}
+    installed: dict[signal.Signals, Any] = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             installed[sig] = signal.signal(sig, lambda *_: stop.set())

@@ -17,10 +17,7 @@ import json
 import math
 from typing import Any
 
-try:
-    import orjson
-except ImportError:  # optional: the standard library does the same, slower
-    orjson = None
+import orjson
 
 from dialects.states import state_name
 from gateway import wire
@@ -74,19 +71,17 @@ def dumps_stdlib(doc: dict[str, Any]) -> bytes:
         return _dumps({k: _finite(v) for k, v in doc.items()}).encode()
 
 
-if orjson is not None:
-    _orjson_dumps = orjson.dumps
-    _orjson_error = orjson.JSONEncodeError
+_orjson_dumps = orjson.dumps
+_orjson_error = orjson.JSONEncodeError
 
-    def dumps(doc: dict[str, Any]) -> bytes:
-        """Compact JSON; NaN and ±inf become null.  orjson when installed (about 15× faster
-        than the standard library on these documents), else :func:`dumps_stdlib`."""
-        try:
-            return _orjson_dumps(doc)
-        except _orjson_error:  # e.g. an integer beyond 64 bits
-            return dumps_stdlib(doc)
-else:
-    dumps = dumps_stdlib
+
+def dumps(doc: dict[str, Any]) -> bytes:
+    """Compact JSON; NaN and ±inf become null.  orjson (about 15× faster than the standard
+    library on these documents); :func:`dumps_stdlib` for what orjson refuses."""
+    try:
+        return _orjson_dumps(doc)
+    except _orjson_error:  # e.g. an integer beyond 64 bits
+        return dumps_stdlib(doc)
 
 
 # -- messages → documents ----------------------------------------------------------------------
@@ -182,7 +177,7 @@ def _int(d: dict[str, Any], key: str, default: int | None = None) -> int:
     return v
 
 
-def _opt(d: dict[str, Any], cls: type, required: tuple[str, ...] = ()) -> Any:
+def _opt(d: dict[str, Any], cls: Any, required: tuple[str, ...] = ()) -> Any:
     for key in required:
         if d.get(key) is None:
             raise PayloadError(f"{key}: required")

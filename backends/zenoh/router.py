@@ -21,11 +21,12 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
+from typing import Any
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
 
-def build_config(listen: Sequence[str], config_file: str | None, multicast: bool) -> object:
+def build_config(listen: Sequence[str], config_file: str | None, multicast: bool) -> Any:
     import zenoh
 
     if config_file:
