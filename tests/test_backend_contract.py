@@ -1,0 +1,67 @@
+"""The backend contract (gateway/backend.py): typed routing that mypy checks, and the same
+stats keys from every built-in backend."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+mypy_api = pytest.importorskip("mypy.api", reason="mypy is a test dependency (pip install -e .[test])")
+
+ROOT = Path(__file__).resolve().parent.parent
+
+BACKEND = textwrap.dedent("""
+    from gateway.backend import Backend, Outcome, Routes
+    from gateway.model import SmUpdate, Status
+
+
+    class Radio(Backend):
+        def routes(self) -> Routes:
+            return Routes().on(SmUpdate, {handler})
+
+        def send_sm_update(self, msg: SmUpdate) -> Outcome:
+            return Outcome.ACCEPTED
+
+        def send_status(self, msg: Status) -> Outcome:
+            return Outcome.ACCEPTED
+""")
+
+
+def _mypy(tmp_path: Path, handler: str) -> tuple[str, int]:
+    src = tmp_path / "radio.py"
+    src.write_text(BACKEND.format(handler=handler))
+    out, err, status = mypy_api.run([
+        "--config-file", str(ROOT / "pyproject.toml"), "--cache-dir", str(tmp_path / "cache"),
+        "--follow-imports", "silent", str(src)])
+    return out + err, status
+
+
+@pytest.fixture(scope="module")
+def checked(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[str, int]]:
+    """mypy's verdict on one backend routing SmUpdate to three handlers (one run each)."""
+    results = {}
+    for label, handler in (("right", "self.send_sm_update"),
+                           ("misspelled", "self.send_sm_updat"),
+                           ("wrong type", "self.send_status")):
+        results[label] = _mypy(tmp_path_factory.mktemp(label.replace(" ", "-")), handler)
+    return results
+
+
+def test_a_correctly_routed_backend_passes_mypy(checked: dict[str, tuple[str, int]]) -> None:
+    out, status = checked["right"]
+    assert status == 0, out
+
+
+def test_a_misspelled_handler_fails_mypy(checked: dict[str, tuple[str, int]]) -> None:
+    out, status = checked["misspelled"]
+    assert status == 1
+    assert "send_sm_updat" in out and "attr-defined" in out, out
+
+
+def test_a_handler_of_another_message_type_fails_mypy(
+        checked: dict[str, tuple[str, int]]) -> None:
+    out, status = checked["wrong type"]
+    assert status == 1
+    assert "arg-type" in out and "Status" in out, out
