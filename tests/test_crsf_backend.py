@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers import wait_for
+from helpers import run_within, wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
 from backends.crsf import CrsfBackend
@@ -28,7 +28,7 @@ from backends.crsf.frames import LinkStatistics, RcChannels, encode
 from backends.crsf.ports import PtyPair
 from dialects.states import SimpleState
 from gateway import config
-from gateway.backend import Outcome
+from gateway.backend import Backend, GatewayContext, Outcome, Routes
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.flight import FlightModel, FlightProfile
@@ -55,15 +55,17 @@ def read_until(fd: int, radio: EdgeTxRadio, pred: Callable[[], bool],
     return True
 
 
-class Recorder:
+class Recorder(Backend):
     """A backend that keeps what it is given (a real peer on the dispatcher)."""
 
-    name = "recorder"
-
     def __init__(self) -> None:
+        super().__init__("recorder")
         self.sm: list[SmUpdate] = []
         self.link_stats: list[LinkStats] = []
         self.got_stats = threading.Event()
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update).on(LinkStats, self.send_link_stats)
 
     def send_sm_update(self, m: SmUpdate) -> None:
         self.sm.append(m)
@@ -148,7 +150,7 @@ def test_own_pty_sends_telemetry_and_reads_the_receiver() -> None:
     d = Dispatcher()
     rec = Recorder()
     b = CrsfBackend()
-    b.attach(d.dispatch)
+    b.attach(GatewayContext(emit=d.dispatch))
     d.add(b)
     d.add(rec)
     assert b.send_sm_update(sm(1, True)) is Outcome.NOT_READY  # not started yet
@@ -193,7 +195,7 @@ def test_serial_url_shares_the_port_between_writer_and_reader(peer: PtyPeer) -> 
         os.write(peer.master, encode(LINK_STATS))
         assert rec.got_stats.wait(DEADLINE_S)
         check_link_stats(rec.link_stats[0])
-        assert b._serial is not None and b._serial.opens == 1
+        assert b.engine.stats.connects == 1 and b.stats()["link"] == 1
     finally:
         d.close()
 
@@ -248,55 +250,180 @@ def test_dead_port_is_retried_and_a_lost_connection_reconnects() -> None:
         srv.close()
 
 
+def test_state_changes_published_before_the_port_opens_go_out_first() -> None:
+    """The flight starts before the receiver's port is open (it opens in the background;
+    here it is refused until the test listens): the states published meanwhile wait and go
+    out first, in order, once the port is up (``run --crsf`` used to lose the first one)."""
+    srv = socket.socket()
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
+    b = CrsfBackend(url=f"socket://127.0.0.1:{srv.getsockname()[1]}")
+    b.init()
+    conn: socket.socket | None = None
+    try:
+        assert wait_for(lambda: b.engine.stats.connect_failures >= 1)
+        assert b.send_sm_update(sm(SimpleState.IDLE, False)) is Outcome.NOT_READY
+        assert b.send_sm_update(sm(SimpleState.ARMED, True)) is Outcome.NOT_READY
+        srv.listen()
+        srv.settimeout(DEADLINE_S)
+        conn, _ = srv.accept()
+        radio = EdgeTxRadio()
+        assert read_until(conn.fileno(), radio, lambda: len(radio.texts()) >= 2)
+        assert radio.texts()[:2] == ["IDLE*", "ARMED"]
+        assert b.submit_failures == 0 and b.stats()["dropped_changes"] == 0
+    finally:
+        b.close()
+        if conn is not None:
+            conn.close()
+        srv.close()
+
+
+def test_backend_starts_no_thread_of_its_own(peer: PtyPeer) -> None:
+    """Sending, receiving and the scheduler all run on the port engine's thread; and the
+    last state change still goes out when the backend closes right after it."""
+    before = set(threading.enumerate())
+    b = CrsfBackend(url=peer.path, name="crsf-solo")
+    b.init()
+    radio = EdgeTxRadio()
+    try:
+        b.send_sm_update(sm(SimpleState.BOOST, True))
+        assert read_until(peer.master, radio, lambda: radio.sensors.get("FM") == "BOOST")
+        os.write(peer.master, encode(LINK_STATS))
+        assert wait_for(lambda: b.link_stats_rx == 1)
+        new = {t.name for t in threading.enumerate() if t not in before}
+        assert new <= {"io-crsf-solo", "open-crsf-solo"}, new
+        b.send_sm_update(sm(SimpleState.LANDED, False))
+    finally:
+        b.close()
+    assert read_until(peer.master, radio, lambda: "LANDED*" in radio.texts())
+    st = b.stats()
+    assert st["link"] == 0 and st["errors"] == 0 and st["dropped"] == 0
+
+
+def read_exactly(fd: int, n: int, timeout: float = DEADLINE_S) -> bytes:
+    """``n`` bytes from ``fd`` (fewer only if they do not come within ``timeout``)."""
+    got = b""
+    deadline = time.monotonic() + timeout
+    while len(got) < n:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            break
+        if select.select([fd], [], [], min(left, 0.05))[0]:
+            got += os.read(fd, n - len(got))
+    return got
+
+
+def nothing_more(fd: int) -> bool:
+    """True when nothing waits on ``fd`` (a non-blocking read on a tty also waits for the
+    bytes the kernel has not moved to the line discipline yet)."""
+    os.set_blocking(fd, False)
+    try:
+        os.read(fd, 1)
+    except BlockingIOError:
+        return True
+    finally:
+        os.set_blocking(fd, True)
+    return False
+
+
+def pattern(i: int, size: int = 100) -> bytes:
+    return bytes((i * 7 + k) % 251 for k in range(size))
+
+
 def test_own_pty_never_blocks_and_keeps_no_stale_backlog() -> None:
-    """With nobody reading, writes go on without blocking and unread data beyond the backlog
-    is discarded: a reader attaching late gets at most the backlog, then what comes next."""
+    """With nobody reading, writes go on without blocking (100 kB in one burst, far faster
+    than the kernel moves bytes to the slave) and a reader attaching late finds exactly the
+    newest ``backlog_bytes``, then what comes next."""
     p = PtyPair(backlog_bytes=1024)
     try:
-        waiting = 0
-        for _ in range(100):  # 10 kB, at a pace the kernel keeps up with (as telemetry is)
-            flushes = p.flushes
-            assert p.write(bytes(100)) == 100
-            waiting = 100 if p.flushes != flushes else waiting + 100
-            assert wait_for(lambda n=waiting: p._unread() == n)
-        assert p.flushes >= 9 and p.dropped_bytes == 0
-        for _ in range(1000):  # and a burst far faster than that never blocks either
-            p.write(bytes(100))
+        sent = b""
+
+        def burst() -> None:
+            nonlocal sent
+            for i in range(1000):
+                chunk = pattern(i)
+                assert p.write(chunk) == 100
+                sent += chunk
+                assert p.backlog_bound <= 1024
+
+        run_within(burst)
+        assert p.flushes >= 1 and p.dropped_bytes == 0
+        assert p.discarded_bytes == len(sent) - p.backlog_bound
         fd = os.open(p.path, os.O_RDWR | os.O_NOCTTY)
         try:
+            stale = read_exactly(fd, p.backlog_bound)
+            assert len(stale) == 1024 and stale == sent[-1024:]  # the newest, not the oldest
+            assert nothing_more(fd)
             p.write(b"fresh")
-            got = b""
-            deadline = time.monotonic() + DEADLINE_S
-            while not got.endswith(b"fresh") and time.monotonic() < deadline:
-                if select.select([fd], [], [], 0.05)[0]:
-                    got += os.read(fd, 65536)
-            assert got.endswith(b"fresh")
+            assert read_exactly(fd, 5) == b"fresh"
         finally:
             os.close(fd)
     finally:
         p.close()
         p.close()
+    with pytest.raises(OSError):
+        p.write(b"late")
 
 
 def test_own_pty_backlog_seen_by_a_late_reader() -> None:
-    """The backlog is bounded, though not to the byte: the kernel moves bytes from the master
-    to the slave's input queue asynchronously, so a flush can miss bytes still in flight."""
+    """The issue's case: 30 writes of 100 B in a burst (FIONREAD then reports about 100 B
+    while 3000 B wait): a late reader gets at most the bound, ending with the newest byte."""
     p = PtyPair(backlog_bytes=1024)
     try:
         for i in range(30):
             p.write(bytes([i]) * 100)
-            assert wait_for(lambda: p._unread() % 100 == 0 and p._unread() > 0)
         fd = os.open(p.path, os.O_RDWR | os.O_NOCTTY)
         try:
-            stale = b""
-            while select.select([fd], [], [], 0.05)[0]:
-                stale += os.read(fd, 4096)
-            assert 0 < len(stale) <= 2 * 1024
-            assert stale[-1] == 29  # the newest data, not the oldest
+            stale = read_exactly(fd, 1024)
+            assert nothing_more(fd)
+            assert stale == b"".join(bytes([i]) * 100 for i in range(30))[-1024:]
+            assert stale[-1] == 29
         finally:
             os.close(fd)
     finally:
         p.close()
+
+
+def test_own_pty_reader_that_keeps_up_loses_nothing() -> None:
+    """A reader that reads what comes never loses a byte: the backlog is measured every
+    ``backlog_bytes`` written and found empty, so nothing is discarded."""
+    p = PtyPair(backlog_bytes=256)
+    fd = os.open(p.path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        for i in range(100):  # 10 kB, 40 times the bound
+            chunk = pattern(i)
+            p.write(chunk)
+            assert read_exactly(fd, 100) == chunk
+        assert p.checks >= 30 and p.flushes == 0 and p.discarded_bytes == 0
+        assert nothing_more(fd)
+    finally:
+        os.close(fd)
+        p.close()
+
+
+def test_own_pty_is_a_port_the_engine_reads() -> None:
+    """The master end as a port: what the reader writes to the slave is read back, nothing
+    waiting reads as b"", and closing the port view leaves the pty open."""
+    p = PtyPair()
+    port = p.port()
+    fd = os.open(p.path, os.O_RDWR | os.O_NOCTTY)
+    try:
+        assert port.fileno() == p.master and port.read(64) == b""
+        os.write(fd, b"\xc8\x02up")
+        assert select.select([port.fileno()], [], [], DEADLINE_S)[0]
+        got = b""
+        deadline = time.monotonic() + DEADLINE_S
+        while len(got) < 4 and time.monotonic() < deadline:
+            if select.select([port.fileno()], [], [], 0.05)[0]:
+                got += port.read(64)
+        assert got == b"\xc8\x02up"
+        port.close()
+        assert port.write(b"still") == 5 and read_exactly(fd, 5) == b"still"
+    finally:
+        os.close(fd)
+        p.close()
+    with pytest.raises(OSError):
+        port.read(64)
 
 
 # -- link statistics to the gateway ----------------------------------------------------------
@@ -325,7 +452,7 @@ def test_link_stats_are_rate_limited_and_a_failing_sink_is_isolated() -> None:
     def broken(msg: Any) -> None:
         raise RuntimeError("gateway gone")
 
-    b.attach(broken)
+    b.attach(GatewayContext(emit=broken))
     clock.now += 1
     b.feed(frame)
     assert b.emit_errors == 1 and b.stats()["emit_errors"] == 1

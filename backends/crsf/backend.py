@@ -1,12 +1,21 @@
 """CRSF / ExpressLRS backend: the rocket as telemetry sensors on an EdgeTX radio.
 
-Hooks turn each message into CRSF records and put them in per-frame-type mailboxes (never
-blocking).  A scheduler thread picks the next frame at the per-type rates
-(:mod:`backends.crsf.scheduler`) and submits it to a :class:`~gateway.link.LinkEngine` that
-writes the receiver's UART (or a pty this backend creates).  A reader thread decodes what the
-receiver sends back on the same port: link statistics become :class:`gateway.model.LinkStats`
-messages handed to the gateway (so other backends can publish them), RC channels are decoded
-and counted.
+Handlers turn each message into CRSF records and put them in per-frame-type mailboxes (never
+blocking).  One :class:`~gateway.port.PortEngine` owns the receiver's UART (a serial port or
+pyserial URL, or the pseudo-terminal this backend creates for ``url = "pty"``) and everything
+else runs on its thread, so the backend starts no thread of its own:
+
+* **sending**: the scheduler (:mod:`backends.crsf.scheduler`) runs on the engine's timers; it
+  picks the next frame at the per-type rates and submits it, then sleeps until the next one is
+  due.  A state change wakes it at once (``engine.call_soon``, from the handler's thread), and
+  so does the first value published while it had nothing to send.  It runs only while the
+  port is up: a state change published before the port opens (or while it is down) waits in
+  the scheduler's change ring and goes out, in order, as soon as the port is up, so the first
+  flight state is never lost to a port that is still opening;
+* **receiving**: the engine reads what the receiver sends back into the sans-I/O
+  :class:`~backends.crsf.decoder.Decoder`; link statistics become
+  :class:`gateway.model.LinkStats` messages handed to the gateway (so other backends can
+  publish them), RC channels are decoded and counted.
 
 Mapping (what each gateway message feeds):
 
@@ -58,22 +67,28 @@ from backends.crsf.frames import (
     encode,
     flight_mode_text,
 )
-from backends.crsf.ports import PtyPair, SharedSerial
+from backends.crsf.ports import PtyPair
 from backends.crsf.scheduler import CHANGE_RING_DEPTH, Scheduler
 from gateway import model
-from gateway.backend import Backend, BackendError, Outcome
+from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.link import LinkEngine
+from gateway.ioloop import Timer
+from gateway.port import PortEngine
+from gateway.transport import open_serial
 
 log = logging.getLogger(__name__)
 
 PTY_URL = "pty"
 DEFAULT_BAUD = 420000
-#: The link engine's queue holds a burst of state changes; regular frames are only picked
+#: The port engine's queue holds a burst of state changes; regular frames are only picked
 #: while fewer than MAX_QUEUED are waiting, so a slow port delays the next (latest) value
 #: instead of queueing stale ones.
 ENGINE_QUEUE_DEPTH = CHANGE_RING_DEPTH + 4
 MAX_QUEUED = 2
+BUSY_RETRY_S = 0.005  # the port is still writing: look again this soon
+MIN_WAIT_S = 0.001
+WRITE_TIMEOUT_S = 0.5  # a serial write stuck longer fails (and the port is reopened)
+CLOSE_TIMEOUT_S = 0.5
 _HEALTH_CHECKS = (("imu_ok", "IMU"), ("baro_ok", "BARO"), ("calibrated", "CAL"),
                   ("log_ready", "LOG"))
 
@@ -176,16 +191,18 @@ class CrsfBackend(Backend):
             max_rate_hz=max_frames_per_s, refresh_s=refresh_s, hold_s=hold_s, clock=clock)
         self.decoder = Decoder()
         self.pty: PtyPair | None = None
-        self._serial: SharedSerial | None = None
-        self.engine = LinkEngine(self._open, name=self.name, queue_depth=ENGINE_QUEUE_DEPTH)
-        # state kept between hooks (the dispatcher never calls hooks concurrently)
+        self.engine = PortEngine(self._open, name=self.name, protocol=self.decoder,
+                                 on_event=self._on_record, on_link=self._on_link,
+                                 queue_depth=ENGINE_QUEUE_DEPTH)
+        # state kept between handlers (the dispatcher never calls them concurrently)
         self._health = ""
         self._mode_text: str | None = None
         self._volts: dict[int, float] = {}
-        # scheduler / reader threads
-        self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._threads: list[threading.Thread] = []
+        # the scheduler on the engine's thread: its next run, and whether it sleeps with
+        # nothing to send (then the next value published wakes it)
+        self._timer: Timer | None = None
+        self._idle = True
+        self._started = False
         # counters
         self.encode_errors = 0
         self.submit_failures = 0
@@ -222,37 +239,35 @@ class CrsfBackend(Backend):
             opts["baudrate"] = baud
         return opts
 
-    def attach(self, emit: Callable[[Any], Any]) -> None:
+    def attach(self, context: GatewayContext) -> None:
         """Where decoded link statistics go (the gateway's ingest; or set ``sink=``)."""
-        self._sink = emit
+        super().attach(context)
+        self._sink = context.emit
 
     # -- life cycle ------------------------------------------------------------------------
 
     def _open(self) -> Any:
+        """The engine's opener (it runs off the engine's thread)."""
         if self.pty is not None:
-            return self.pty.transport()
-        assert self._serial is not None
-        return self._serial.open()
+            return self.pty.port()
+        port = open_serial(self.url, self.baudrate, timeout=0, write_timeout=WRITE_TIMEOUT_S)
+        if self.engine.stats.connects == 0:
+            log.info("%s: %s open at %d baud", self.name, self.url, self.baudrate)
+        return port
 
     def init(self) -> None:
-        if self._threads:
+        if self._started:
             return
-        if self.url == PTY_URL:
+        if self.url == PTY_URL and (self.pty is None or self.pty.closed):
             try:
                 self.pty = PtyPair()
             except OSError as exc:
                 raise BackendError(f"cannot create a pseudo-terminal: {exc}") from exc
             log.info("%s: CRSF telemetry on %s (attach a reader, e.g. python -m "
                      "backends.crsf.monitor %s)", self.name, self.pty.path, self.pty.path)
-        else:
-            self._serial = SharedSerial(self.url, self.baudrate, self.name)
-        self._stop = threading.Event()
+        self._idle = False  # the port coming up runs the scheduler
+        self._started = True
         self.engine.start()
-        for target, what in ((self._schedule_loop, "tx"), (self._read_loop, "rx")):
-            t = threading.Thread(target=target, args=(self._stop,), name=f"{self.name}-{what}",
-                                 daemon=True)
-            t.start()
-            self._threads.append(t)
 
     @property
     def pty_path(self) -> str | None:
@@ -260,21 +275,42 @@ class CrsfBackend(Backend):
         return self.pty.path if self.pty is not None else None
 
     def close(self) -> None:
-        self._stop.set()
-        self._wake.set()
-        for t in self._threads:
-            t.join(0.5)
-        self._threads = []
-        # state changes not sent yet (the last one of a flight) still go out
-        while (item := self.scheduler.take_change()) is not None:
-            self._send(item[1])
-        self.engine.close(0.3)
+        """Send the state changes not sent yet (the last one of a flight), then close the
+        port (and the pty); safe twice."""
+        if self._started:
+            self._started = False
+            done = threading.Event()
+
+            def last_changes() -> None:
+                try:
+                    self._cancel_timer()
+                    while self.engine.connected and (item := self.scheduler.take_change()):
+                        self._send(item[1])
+                finally:
+                    done.set()
+
+            if self.engine.loop.in_loop_thread:
+                last_changes()
+            elif self.engine.loop.running:
+                self.engine.call_soon(last_changes)
+                done.wait(CLOSE_TIMEOUT_S)
+            self.engine.close(CLOSE_TIMEOUT_S)
         if self.pty is not None:
             self.pty.close()
 
-    # -- hooks (never block: mailboxes only) -----------------------------------------------
+    # -- handlers (never block: mailboxes, and at most a hand-over to the engine) ------------
 
-    def _outcome(self) -> Outcome:
+    def _wake(self) -> None:
+        """Run the scheduler on the engine's thread soon (from a handler's thread)."""
+        if self._started:
+            self._idle = False
+            self.engine.call_soon(self._pump)
+
+    def _published(self) -> Outcome:
+        """A handler published values: wake the scheduler if it sleeps with nothing to send;
+        the handler's outcome."""
+        if self._idle:
+            self._wake()
         return ACCEPTED if self.engine.connected else Outcome.NOT_READY
 
     def _flight_mode(self, name: str, armed: bool) -> None:
@@ -284,9 +320,16 @@ class CrsfBackend(Backend):
         if text != self._mode_text:
             self._mode_text = text
             if self.scheduler.publish_change(FRAME_FLIGHT_MODE, rec):
-                self._wake.set()
+                self._wake()
         else:
             self.scheduler.publish(FRAME_FLIGHT_MODE, rec)
+
+    def routes(self) -> Routes:
+        return (Routes().on(model.SmUpdate, self.send_sm_update)
+                .on(model.Status, self.send_status)
+                .on(model.Position, self.send_position)
+                .on(model.Battery, self.send_battery)
+                .on(model.VehicleState, self.send_vehicle_state))
 
     def send_sm_update(self, m: model.SmUpdate) -> Outcome:
         pub = self.scheduler.publish
@@ -294,18 +337,18 @@ class CrsfBackend(Backend):
         pub(FRAME_BARO_ALTITUDE, BaroAltitude(m.altitude_m, m.velocity_mps))
         pub(FRAME_VARIO, Vario(m.velocity_mps))
         self._flight_mode(m.state_name, m.armed)
-        return self._outcome()
+        return self._published()
 
     def send_status(self, s: model.Status) -> Outcome:
         self._health = health_marker(s)
         self._flight_mode(s.state_name, s.armed)
-        return self._outcome()
+        return self._published()
 
     def send_position(self, p: model.Position) -> Outcome:
         kmh = None if p.ground_speed_mps is None else p.ground_speed_mps * 3.6
         self.scheduler.publish(FRAME_GPS, Gps(p.lat_deg, p.lon_deg, kmh, p.course_deg,
                                               p.alt_amsl_m, p.satellites))
-        return self._outcome()
+        return self._published()
 
     def send_battery(self, b: model.Battery) -> Outcome:
         if b.battery_id == 0:
@@ -319,7 +362,7 @@ class CrsfBackend(Backend):
             n = max(self._volts) + 1
             self.scheduler.publish(FRAME_VOLTAGES, Voltages(
                 self.voltages_source_id, tuple(self._volts.get(i) for i in range(n))))
-        return self._outcome()
+        return self._published()
 
     def send_vehicle_state(self, v: model.VehicleState) -> Outcome:
         pub = self.scheduler.publish
@@ -332,24 +375,51 @@ class CrsfBackend(Backend):
             pub(FRAME_VARIO, Vario(v.climb_mps))
         if v.mode:
             self._flight_mode(v.mode, v.armed)
-        return self._outcome()
+        return self._published()
 
-    # -- scheduler thread ------------------------------------------------------------------
+    # -- the engine's thread: scheduler and receiver input -----------------------------------
 
-    def _schedule_loop(self, stop: threading.Event) -> None:
-        sched, clock = self.scheduler, self._clock
-        engine = self.engine
-        while not stop.is_set():
-            self._wake.clear()
-            now = clock()
+    def _cancel_timer(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+
+    def _on_link(self, up: bool) -> None:
+        """The port came up (send what waits, starting with pending state changes) or went
+        down (the scheduler sleeps; values and changes wait in its mailboxes and ring)."""
+        if up:
+            self._pump()
+        else:
+            self._cancel_timer()
+            self._idle = False  # nothing to wake while down: the port coming up runs it
+
+    def _pump(self) -> None:
+        """Send the pending state changes and the frame due now, if any; then sleep until the
+        next one is due (a timer), or until a value is published (idle)."""
+        self._cancel_timer()
+        engine, sched = self.engine, self.scheduler
+        if not self._started or not engine.connected:
+            return
+        self._idle = True  # before looking: a value published from here on wakes us again
+        now = self._clock()
+        while True:
             item = sched.take_change(now)
-            if item is None and engine.queued() < MAX_QUEUED:
+            if item is None:
+                if engine.queued() >= MAX_QUEUED:  # the port is still writing
+                    self._idle = False
+                    self._timer = engine.call_later(BUSY_RETRY_S, self._pump)
+                    return
                 item = sched.take(now)
-            if item is not None:
-                self._send(item[1])
-                continue
-            delay = sched.next_due(now) - now if engine.queued() < MAX_QUEUED else 0.005
-            self._wake.wait(min(max(delay, 0.001), 0.05))
+                if item is None:
+                    break
+            self._send(item[1])
+            if not engine.connected:
+                return  # the write failed: the port coming back runs the scheduler again
+        due = sched.next_due(now)
+        if due == math.inf:
+            return  # nothing to send until a value is published
+        self._idle = False
+        self._timer = engine.call_later(max(due - now, MIN_WAIT_S), self._pump)
 
     def _send(self, record: Any) -> None:
         try:
@@ -362,31 +432,22 @@ class CrsfBackend(Backend):
         if self.engine.submit(frame, rate_limited=False) is not ACCEPTED:
             self.submit_failures += 1
 
-    # -- reader thread ---------------------------------------------------------------------
-
-    def _read_loop(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            if self.pty is not None:
-                data = self.pty.read(stop)
-            elif self._serial is not None:
-                data = self._serial.read(stop)
-            else:
-                return
-            if data:
-                self.feed(data)
-
     def feed(self, data: bytes) -> None:
-        """Handle bytes received from the receiver (the reader thread calls this)."""
+        """Handle bytes received from the receiver (the engine feeds its decoder directly)."""
         for rec in self.decoder.feed(data):
-            if isinstance(rec, LinkStatistics):
-                self.link_stats_rx += 1
-                self.last_link_stats = rec
-                self._emit_link_stats(rec)
-            elif isinstance(rec, RcChannels):
-                self.rc_frames += 1
-                self.rc_channels = rec.channels
-            else:
-                self.rx_other += 1
+            self._on_record(rec)
+
+    def _on_record(self, rec: Any) -> None:
+        """One record the receiver sent."""
+        if isinstance(rec, LinkStatistics):
+            self.link_stats_rx += 1
+            self.last_link_stats = rec
+            self._emit_link_stats(rec)
+        elif isinstance(rec, RcChannels):
+            self.rc_frames += 1
+            self.rc_channels = rec.channels
+        else:
+            self.rx_other += 1
 
     def _emit_link_stats(self, rec: LinkStatistics) -> None:
         sink = self._sink
@@ -422,11 +483,18 @@ class CrsfBackend(Backend):
     def stats(self) -> dict[str, int | float]:
         e = self.engine.stats
         d = self.decoder.stats
+        up = int(self.engine.connected)
         out: dict[str, int | float] = {
             "sent": e.sent_frames,
             "sent_bytes": e.sent_bytes,
             "dropped": e.dropped + self.scheduler.changes_dropped,
-            "connected": int(self.engine.connected),
+            "dropped_not_ready": e.dropped_not_ready,
+            "dropped_queue_full": e.dropped_queue_full,
+            "dropped_changes": self.scheduler.changes_dropped,
+            "errors": e.errors + self.encode_errors + self.emit_errors,
+            "link": up,
+            "connected": up,
+            "disconnects": e.disconnects,
             "rx_frames": d.frames,
             "rx_crc_errors": d.crc_failures,
             "rx_bad_lengths": d.bad_lengths,
@@ -442,6 +510,7 @@ class CrsfBackend(Backend):
             out["emit_errors"] = self.emit_errors
         if self.pty is not None:
             out["pty_flushes"] = self.pty.flushes
+            out["pty_discarded_bytes"] = self.pty.discarded_bytes
             out["pty_dropped_bytes"] = self.pty.dropped_bytes
         out.update(self.scheduler.stats())
         return out
