@@ -9,8 +9,10 @@ import time
 from collections import Counter
 from typing import Any, TextIO
 
+from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
+from gateway.model import kind
 from gateway.monitor import LinkMonitor
 from gateway.recording import Recorder, RecordingError
 
@@ -35,6 +37,7 @@ class Gateway:
         self.cfg = cfg
         self.status_out = status_out if status_out is not None else sys.stderr
         self.dispatcher = Dispatcher()
+        self.context = GatewayContext(emit=self.ingest)
         self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
         self.counts: Counter[str] = Counter()
         self.recorder: Recorder | None = None
@@ -50,12 +53,10 @@ class Gateway:
         """Everything a source produces comes through here (from the source's thread)."""
         rec = self.recorder
         if rec is not None:
-            raw = getattr(msg, "raw", b"")  # only wire-decoded kinds carry a frame
-            if raw:
-                rec.write(raw)
+            rec.submit(msg)  # never waits on disk: a bounded queue to the writer thread
         if msg.origin:
-            self.monitor.frame_seen(msg.origin)
-        self.counts[msg.KIND] += 1
+            self.monitor.frame_seen(msg.origin, msg.via)
+        self.counts[kind(msg)] += 1
         self.dispatcher.dispatch(msg)
 
     # -- life cycle ----------------------------------------------------------------------------
@@ -77,11 +78,10 @@ class Gateway:
                 raise ConfigError(f"gateway.record: cannot open {path}: "
                                   f"{exc.strerror or exc}") from None
         for backend in self.dispatcher.backends():
-            attach = getattr(backend, "attach", None)
-            if callable(attach):
-                attach(self.ingest)
+            backend.attach(self.context)
         failures = self.dispatcher.start()
         for src in self.sources:
+            src.attach(self.context)
             src.start(self.ingest)
         return failures
 
@@ -109,12 +109,12 @@ class Gateway:
         """Stop sources, backends and the recorder within about a second; returns the summary."""
         deadline = time.monotonic() + STOP_BUDGET_S
         for src in self.sources:
-            src._stop.set()
+            src.request_stop()  # all wind down together
         for src in self.sources:
             src.stop(max(0.05, (deadline - time.monotonic()) / 2))
         self.dispatcher.close()
         if self.recorder is not None:
-            self.recorder.close()
+            self.recorder.close(max(0.1, deadline - time.monotonic()))
         return self.summary()
 
     # -- reporting ---------------------------------------------------------------------------
@@ -127,6 +127,7 @@ class Gateway:
             "links": self.monitor.states(),
             "backends": self.dispatcher.stats(),
             "recorded": self.recorder.records if self.recorder else None,
+            "recorder": self.recorder.stats() if self.recorder else None,
         }
 
     def status_line(self) -> str:

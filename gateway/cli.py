@@ -1,5 +1,11 @@
 """``aurora-gateway``: run the gateway, and the tools around it (decode, simulate, record,
-replay)."""
+replay).
+
+Every flag that sets a configuration key is checked by that key's :class:`config.Key` — the
+one a file's value goes through — whether or not anything uses it, and a bad value is one
+line naming the flag and what is allowed, exit 2.  So is a bad file.  Ctrl-C at any point,
+start-up and imports included, ends quietly with status 130 (130 = 128 + SIGINT).
+"""
 
 from __future__ import annotations
 
@@ -19,24 +25,72 @@ from typing import Any, NoReturn
 from gateway import __version__, config, recording, registry
 from gateway.app import Gateway
 from gateway.backoff import Backoff
-from gateway.config import ConfigError, GatewayConfig
-from gateway.sources import parse_source_url
+from gateway.config import ConfigError, GatewayConfig, Key, Schema
+from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+# -- flags that set configuration keys -------------------------------------------------------
+# (argparse dest, flag, key): checked by the key's own Key, named in errors as the flag.
+
+GATEWAY_FLAGS = (
+    ("status_interval", "--status-interval", "status_interval_s"),
+    ("link_timeout", "--link-timeout", "link_timeout_s"),
+    ("record", "--record", "record"),
+    ("log_level", "--log-level", "log_level"),
+)
+# (argparse dest, flag, source type, key): set on every source of that type.
+SOURCE_FLAGS = (
+    ("baud", "--baud", "serial", "baudrate"),
+    ("sim_speed", "--sim-speed", "sim", "speed"),
+)
+# simulate: (argparse dest, flag, key of the sim source)
+SIMULATE_FLAGS = (
+    ("rate_hz", "--rate-hz", "rate_hz"),
+    ("status_hz", "--status-hz", "status_hz"),
+    ("speed", "--speed", "speed"),
+    ("revision", "--revision", "revision"),
+    ("cycles", "--cycles", "cycles"),
+)
+# Flags of the command line only.
+CLI_KEYS = Schema(
+    duration=Key(float, None, "stop after S seconds", minimum=0, nullable=True),
+)
 
 
-# -- option groups -------------------------------------------------------------------------------
+def _source_key(type_name: str, key: str) -> Key:
+    cls = registry.load(registry.SOURCE_GROUP, type_name)
+    return cls.CONFIG.keys[key]
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"expected a number ≥ 0, got {text!r}")
-    return v
+
+def _gateway_key(key: str) -> Key:
+    return config.GATEWAY_SCHEMA.keys[key]
+
+
+def _key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
+              dest: str | None = None, metavar: str | None = None,
+              aliases: Sequence[str] = ()) -> None:
+    """A flag whose text becomes the value a file would hold; :func:`_checked` validates it
+    with ``key`` (argparse converts nothing, so every error reads like a file's)."""
+    kinds = key.kind if isinstance(key.kind, tuple) else (key.kind,)
+    numeric = int in kinds or float in kinds
+    kwargs: dict[str, Any] = {"type": config.flag_value if numeric else str,
+                              "metavar": metavar, "help": f"{help} ({key.describe()})"}
+    if dest is not None:
+        kwargs["dest"] = dest
+    p.add_argument(flag, *aliases, **kwargs)
+
+
+def _checked(args: argparse.Namespace, dest: str, flag: str, key: Key,
+             sets: str = "") -> Any:
+    """The flag's value checked by ``key``; None when the flag was not given."""
+    value = getattr(args, dest, None)
+    if value is None:
+        return None
+    return config.check_flag(flag, key, value, sets)
 
 
 _warned: set[str] = set()
@@ -61,24 +115,15 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
                    help="TOML configuration (default: the embedded one — the simulated "
                         "flight through every backend on loopback)")
     if sources:
-        p.add_argument("--source", "-s", action="append", metavar="URL",
-                       help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
-                            "e.g. mavlink:udpin:0.0.0.0:14551), 'zenoh:[VEHICLE@]ENDPOINT' "
-                            "(another gateway's frames over Zenoh) or a pyserial URL "
-                            "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
-                            "repeatable; replaces the configured sources")
-        p.add_argument("--baud", type=int, metavar="N", help="baud rate of serial sources")
-        p.add_argument("--sim-speed", type=_positive, metavar="N",
-                       help="run the simulated flight N times faster (0 = flat out)")
-    p.add_argument("--record", metavar="FILE", help="append every received frame to FILE")
+        _add_source_options(p)
+    _key_flag(p, "--record", _gateway_key("record"), "append every received frame to FILE",
+              metavar="FILE")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
                    help="leave this backend out (repeatable)")
-    p.add_argument("--status-interval", type=_positive, metavar="S",
-                   help="seconds between status lines on stderr (0 = none)")
-    p.add_argument("--link-timeout", type=_positive, metavar="S",
-                   help="silence after which a source's link is reported down (default 3)")
-    p.add_argument("--duration", type=_positive, metavar="S", help="stop after S seconds")
-    p.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
+    _add_common_options(p)
+    _key_flag(p, "--link-timeout", _gateway_key("link_timeout_s"),
+              "silence after which a source's link is reported down (default 3)",
+              metavar="S")
     if not backend_flags:
         return
     for cls in _backend_classes().values():
@@ -86,6 +131,26 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
         if add is not None:
             add(p)
     p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
+
+
+def _add_source_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--source", "-s", action="append", metavar="URL",
+                   help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
+                        "e.g. mavlink:udpin:0.0.0.0:14551), 'zenoh:[VEHICLE@]ENDPOINT' "
+                        "(another gateway's frames over Zenoh) or a pyserial URL "
+                        "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
+                        "repeatable; replaces the configured sources")
+    _key_flag(p, "--baud", _source_key("serial", "baudrate"), "baud rate of serial sources",
+              metavar="N")
+    _key_flag(p, "--sim-speed", _source_key("sim", "speed"),
+              "run the simulated flight N times faster (0 = flat out)", metavar="N")
+
+
+def _add_common_options(p: argparse.ArgumentParser) -> None:
+    _key_flag(p, "--status-interval", _gateway_key("status_interval_s"),
+              "seconds between status lines on stderr (0 = none)", metavar="S")
+    _key_flag(p, "--duration", CLI_KEYS.keys["duration"], "stop after S seconds", metavar="S")
+    _key_flag(p, "--log-level", _gateway_key("log_level"), "logging level", metavar="LEVEL")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -136,29 +201,35 @@ def build_parser(backend_flags: bool = True,
     dec.add_argument("file", nargs="?", default="-", help="raw capture or recording; - = stdin")
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
-    sim.add_argument("--out", "-o", required=True, metavar="URL", help="pyserial port or URL")
-    sim.add_argument("--baud", type=int, default=115200, metavar="N")
-    sim.add_argument("--speed", type=_positive, default=1.0, metavar="N",
-                     help="compress time N-fold (0 = flat out)")
-    sim.add_argument("--rate-hz", type=float, default=10.0, metavar="HZ")
-    sim.add_argument("--status-hz", type=float, default=1.0, metavar="HZ")
-    sim.add_argument("--revision", type=int, choices=(36, 64), default=64)
-    sim.add_argument("--cycles", type=int, default=0, metavar="N", help="flights; 0 = for ever")
-    sim.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
+    _key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
+              metavar="URL", aliases=("-o",))
+    _key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
+              metavar="N")
+    sim_help = {"rate_hz": ("SM_UPDATE rate (default 10)", "HZ"),
+                "status_hz": ("STATUS rate; 0 = none (default 1)", "HZ"),
+                "speed": ("compress time N-fold; 0 = flat out (default 1)", "N"),
+                "revision": ("SM_UPDATE payload length (default 64)", "N"),
+                "cycles": ("flights; 0 = for ever (default)", "N")}
+    for dest, flag, key in SIMULATE_FLAGS:
+        text, metavar = sim_help[key]
+        _key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
+    _key_flag(sim, "--log-level", _gateway_key("log_level"), "logging level", metavar="LEVEL")
 
-    rec = sub.add_parser("record", help="record what the sources receive, with no backends")
+    rec = sub.add_parser("record", help="record what the sources receive, with no backends",
+                         description="Record what the sources receive, with no backends. "
+                         "Each message is recorded as its wire frame: the one it arrived in, "
+                         "else the frame it encodes to (SM_UPDATE, STATUS and relayed frames "
+                         "from a MAVLink or Zenoh source). Messages with no wire form (a "
+                         "MAVLink vehicle's state, position, battery) are counted, named in a "
+                         "warning and in the stop report, and not recorded.")
     rec.add_argument("file", help="recording to append to")
-    rec.add_argument("--source", "-s", action="append", metavar="URL", default=None)
-    rec.add_argument("--baud", type=int, metavar="N")
-    rec.add_argument("--sim-speed", type=_positive, metavar="N")
-    rec.add_argument("--duration", type=_positive, metavar="S")
-    rec.add_argument("--status-interval", type=_positive, metavar="S")
-    rec.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
+    _add_source_options(rec)
+    _add_common_options(rec)
 
     rep = sub.add_parser("replay", help="run the gateway with a recording as its source")
     rep.add_argument("file", help="recording")
-    rep.add_argument("--speed", type=_positive, default=1.0, metavar="N",
-                     help="N times real time (0 = flat out)")
+    _key_flag(rep, "--speed", _source_key("replay", "speed"),
+              "N times real time; 0 = flat out (default 1)", metavar="N")
     rep.add_argument("--loop", action="store_true", help="start again at the end")
     _add_gateway_options(rep, sources=False, backend_flags=backend_flags)
     if plugin_command != "":
@@ -168,48 +239,46 @@ def build_parser(backend_flags: bool = True,
 
 # -- configuration from flags --------------------------------------------------------------------
 
-def _sources_from_urls(urls: Sequence[str], baud: int | None) -> list[config.Part]:
+def _sources_from_urls(urls: Sequence[str]) -> list[config.Part]:
     parts = []
     for i, url in enumerate(urls):
         try:
             kind, opts = parse_source_url(url)
+            if kind == "serial":
+                check_serial_url(url)  # the url key's own check, naming the flag's text
         except ValueError as exc:
             raise ConfigError(f"--source {url!r}: {exc}") from None
-        if kind == "serial" and baud is not None:
-            opts["baudrate"] = baud
         parts.append(config.make_source(kind, opts, None, f"--source[{i}]"))
     return parts
 
 
 def config_from_args(args: argparse.Namespace) -> GatewayConfig:
     """The configuration ``run``/``replay``/``record`` use: file or embedded default, then
-    flags on top."""
+    flags on top.  Every flag is checked first, by the key it sets, used or not."""
+    gateway_opts = {}
+    for dest, flag, key in GATEWAY_FLAGS:
+        value = _checked(args, dest, flag, _gateway_key(key), f"gateway.{key}")
+        if value is not None:
+            gateway_opts[key] = value
+    source_opts = []
+    for dest, flag, type_name, key in SOURCE_FLAGS:
+        value = _checked(args, dest, flag, _source_key(type_name, key),
+                         f"{key} of {type_name} sources")
+        if value is not None:
+            source_opts.append((type_name, key, value))
+    if hasattr(args, "duration"):
+        args.duration = _checked(args, "duration", "--duration", CLI_KEYS.keys["duration"])
     cfg = config.load(args.config) if getattr(args, "config", None) else None
     if cfg is None:
         cfg = config.embedded_default()
     if getattr(args, "source", None):
-        cfg.sources = _sources_from_urls(args.source, getattr(args, "baud", None))
-    elif getattr(args, "baud", None) is not None:
+        cfg.sources = _sources_from_urls(args.source)
+    for type_name, key, value in source_opts:
         for i, p in enumerate(cfg.sources):
-            if p.type == "serial":
-                cfg.sources[i] = config.make_source("serial", {**p.options, "baudrate": args.baud},
+            if p.type == type_name:
+                cfg.sources[i] = config.make_source(type_name, {**p.options, key: value},
                                                     p.name, f"sources[{i}]")
-    if getattr(args, "sim_speed", None) is not None:
-        for i, p in enumerate(cfg.sources):
-            if p.type == "sim":
-                cfg.sources[i] = config.make_source("sim", {**p.options, "speed": args.sim_speed},
-                                                    p.name, f"sources[{i}]")
-    g = cfg.gateway
-    if getattr(args, "record", None):
-        g["record"] = args.record
-    if getattr(args, "status_interval", None) is not None:
-        g["status_interval_s"] = args.status_interval
-    if getattr(args, "link_timeout", None) is not None:
-        if args.link_timeout <= 0:
-            raise ConfigError("--link-timeout: expected a number > 0")
-        g["link_timeout_s"] = args.link_timeout
-    if getattr(args, "log_level", None):
-        g["log_level"] = args.log_level
+    cfg.gateway.update(gateway_opts)
     # Backend flags: each backend turns its own flags into options (and is enabled by them).
     # Only commands built with _add_gateway_options have them (`record` has no backends).
     by_name = {p.name: p for p in cfg.backends}
@@ -269,6 +338,11 @@ def _setup_logging(level: str | None) -> None:
 
 def _report(summary: dict[str, Any]) -> None:
     drops = []
+    rec = summary.get("recorder") or {}
+    rec_drops = {k: rec.get(f"dropped_{k}", 0) for k in ("queue_full", "at_close")}
+    if any(rec_drops.values()):
+        drops.append("recorder " + " ".join(f"dropped_{k}={v}"
+                                            for k, v in rec_drops.items() if v))
     for name, st in summary["backends"].items():
         # A backend's own per-reason counters say most; else its total; else what the
         # dispatcher saw it return.  Hooks that raised ("failed") are reported on top.
@@ -286,6 +360,10 @@ def _report(summary: dict[str, Any]) -> None:
             f"({', '.join(f'{k} {v}' for k, v in sorted(ins.items())) or 'none'})")
     if summary.get("recorded") is not None:
         line += f"; {summary['recorded']} frames recorded"
+        unrecordable = rec.get("not_recordable") or {}
+        if unrecordable:
+            line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
+                     + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
     print(line, file=sys.stderr)
     print("dropped: " + ("; ".join(drops) if drops else "nothing"), file=sys.stderr)
 
@@ -315,8 +393,11 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
+    speed_key = _source_key("replay", "speed")
+    speed = _checked(args, "speed", "--speed", speed_key)
     cfg = config_from_args(args)
-    opts = {"path": args.file, "speed": args.speed, "loop": args.loop}
+    opts = {"path": args.file, "speed": speed_key.default if speed is None else speed,
+            "loop": args.loop}
     cfg.sources = [config.make_source("replay", opts, None, "replay")]
     _setup_logging(cfg.gateway["log_level"])
     return run_gateway(cfg, args.duration)
@@ -358,7 +439,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
             data = head + stream.read()
             stats = recording.ReadStats()
             try:
-                recording._check_header(data, args.file)
+                recording.check_header(data, args.file)
             except recording.RecordingError as exc:
                 print(f"aurora-gateway: decode: {exc}", file=sys.stderr)
                 return EXIT_USAGE
@@ -395,23 +476,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from gateway.sources.sim import flight_frames
     from gateway.transport import TransportError, open_serial
 
-    _setup_logging(args.log_level)
-    if args.rate_hz <= 0:
-        raise ConfigError(f"--rate-hz: expected a number > 0, got {args.rate_hz}")
-    if args.cycles < 0:
-        raise ConfigError(f"--cycles: expected an integer ≥ 0, got {args.cycles}")
-    model = FlightModel(FlightProfile(revision=args.revision))
+    sim: dict[str, Any] = {}
+    for dest, flag, key in SIMULATE_FLAGS:
+        k = _source_key("sim", key)
+        value = _checked(args, dest, flag, k, f"{key} of the sim source")
+        sim[key] = k.default if value is None else value
+    out = _checked(args, "out", "--out", _source_key("serial", "url"))
+    if out is None:
+        raise ConfigError("--out: required (a pyserial port or URL)")
+    baud_key = _source_key("serial", "baudrate")
+    baud = _checked(args, "baud", "--baud", baud_key, "baudrate of serial sources")
+    baud = baud_key.default if baud is None else baud
+    level = _checked(args, "log_level", "--log-level", _gateway_key("log_level"))
+    _setup_logging(level)
+    model = FlightModel(FlightProfile(revision=sim["revision"]))
     stop = threading.Event()
     sent = errors = 0
     port = None
     backoff = Backoff(0.05, 2.0)
     with _Stopper(stop):
-        frames = paced(flight_frames(model, args.rate_hz, args.status_hz, args.cycles),
-                       args.speed, stop)
+        frames = paced(flight_frames(model, sim["rate_hz"], sim["status_hz"], sim["cycles"]),
+                       sim["speed"], stop)
         for _, frame in frames:
             while port is None and not stop.is_set():
                 try:
-                    port = open_serial(args.out, args.baud, timeout=0.1)
+                    port = open_serial(out, baud, timeout=0.1)
                 except TransportError as exc:
                     log.warning("%s; retrying", exc)
                     stop.wait(backoff.next())
@@ -422,7 +511,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 sent += 1
             except Exception as exc:
                 errors += 1
-                log.warning("write to %s failed (%s); reopening", args.out, exc)
+                log.warning("write to %s failed (%s); reopening", out, exc)
                 port.close()
                 port = None
         if port is not None:
@@ -430,7 +519,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 port.flush()
             finally:
                 port.close()
-    print(f"simulate: {sent} frames written to {args.out}, {errors} write errors",
+    print(f"simulate: {sent} frames written to {out}, {errors} write errors",
           file=sys.stderr)
     return 0
 
@@ -440,6 +529,15 @@ COMMANDS = {"run": cmd_run, "decode": cmd_decode, "simulate": cmd_simulate,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command; its exit status.  Ctrl-C anywhere (the backends' imports while the
+    parser is built, start-up, a command without its own handler) is a quiet 130."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or (argv[0].startswith("-") and argv[0] not in ("-h", "--help", "--version")):
         argv = ["run", *argv]  # the default command: `aurora-gateway --duration 5` runs
@@ -458,8 +556,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, recording.RecordingError) as exc:
         print(f"aurora-gateway: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        return 130
 
 
 def console_main() -> NoReturn:
@@ -479,6 +575,8 @@ def console_main() -> NoReturn:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         if isinstance(exc.code, str):
             print(exc.code, file=sys.stderr)
+    except KeyboardInterrupt:  # between main's own handler and here: still quiet
+        code = EXIT_INTERRUPTED
     except BaseException:
         traceback.print_exc()  # os._exit below would otherwise swallow it
     finally:

@@ -1,14 +1,18 @@
 """Configuration: one TOML file (or the embedded default), validated before anything starts.
 
 A bad key or value raises :class:`ConfigError` whose text is one line naming the key and what
-is allowed, e.g. ``sources[0].baudrate: expected an integer ≥ 1, got 'fast'``.
+is allowed, e.g. ``sources[0].baudrate: expected an integer ≥ 50, got 'fast'``.
+
+Command-line flags that set a key go through the same :class:`Key` (:func:`check_flag`), so
+``--link-timeout 0.01`` is refused exactly as ``link_timeout_s = 0.01`` in a file is, with
+the flag named in the message — whether or not anything would use the value.
 """
 
 from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,6 +37,8 @@ class Key:
     minimum: float | None = None
     maximum: float | None = None
     nullable: bool = False
+    #: a further check of a well-typed value: raise ValueError saying what is wrong
+    validator: Callable[[Any], None] | None = None
 
     def describe(self) -> str:
         if self.choices is not None:
@@ -75,6 +81,11 @@ class Key:
             ok = False
         if not ok:
             raise ConfigError(f"{where}: expected {self.describe()}, got {value!r}")
+        if self.validator is not None:
+            try:
+                self.validator(value)
+            except ValueError as exc:
+                raise ConfigError(f"{where}: {exc}") from None
         if float in kinds and int not in kinds and isinstance(value, int):
             return float(value)
         return value
@@ -113,6 +124,25 @@ class Schema:
 
 
 EMPTY = Schema()
+
+
+def flag_value(text: str) -> Any:
+    """A number flag's text as the value a TOML file would hold (int, else float, else the
+    text itself), left for :meth:`Key.check` to accept or refuse with the allowed range."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def check_flag(flag: str, key: Key, value: Any, sets: str = "") -> Any:
+    """Validate a flag's value with the :class:`Key` it sets (``sets`` names that key in the
+    message, e.g. ``gateway.link_timeout_s``)."""
+    return key.check(f"{flag} ({sets})" if sets else flag, value)
 
 GATEWAY_SCHEMA = Schema(
     status_interval_s=Key(float, 1.0, "seconds between status lines; 0 = none", minimum=0),

@@ -1,10 +1,14 @@
 """The recording format (gateway/recording.py): layout, round trip, kill -9 survival, torn
-tails, mid-file corruption, append after a crash, and the header checks."""
+tails, mid-file corruption, append after a crash, and the header checks; the recorder off the
+gateway's hot path (a bounded queue, a writer thread, fsync on a timer, drops counted) and
+what it does with messages that arrived without a wire frame."""
 
 from __future__ import annotations
 
+import io
 import logging
 import os
+import selectors
 import signal
 import struct
 import subprocess
@@ -12,17 +16,22 @@ import sys
 import threading
 import time
 import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from helpers import run_within, wait_for
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway import recording
+from gateway import config, recording
+from gateway.app import Gateway
 from gateway.flight import FlightModel, FlightProfile
+from gateway.model import Position, RawFrame, SmUpdate, Status, VehicleState
 from gateway.recording import Recorder, RecordingError
+from gateway.sources import Source
 from gateway.sources.sim import flight_frames
-from gateway.wire import MAX_PAYLOAD, frame
+from gateway.wire import MAX_PAYLOAD, decode_all, encode, frame
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -357,3 +366,228 @@ def test_a_new_recorder_writes_the_header_to_an_empty_file(tmp_path: Path) -> No
     Recorder(path).close()
     assert path.read_bytes() == DOC_HEADER
     assert os.path.getsize(path) == 12
+
+
+# -- off the hot path: submit() never waits on disk ---------------------------------------------
+
+def _sm_update(t_ms: int, altitude_m: float) -> SmUpdate:
+    """An SM_UPDATE built in memory, as a MAVLink or Zenoh-JSON source builds it: no raw."""
+    return SmUpdate(t_ms, 3, True, 0, altitude_m, 1.0, 2.0, 3.0, 0.1, 0.2, 0.3)
+
+
+@pytest.fixture
+def fifo(tmp_path: Path) -> Iterator[Path]:
+    """A named pipe nobody reads: a "disk" whose writes block once 64 KiB are pending."""
+    path = tmp_path / "stalled.agrec"
+    os.mkfifo(path)
+    yield path
+
+
+def _drain_until(path: Path, done: threading.Event) -> bytes:
+    """Read the pipe until ``done`` is set (the recorder's writer finished)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    out = bytearray()
+    try:
+        sel = selectors.DefaultSelector()
+        sel.register(fd, selectors.EVENT_READ)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            sel.select(0.05)
+            try:
+                chunk = os.read(fd, 1 << 16)
+            except BlockingIOError:
+                chunk = b""
+            out += chunk
+            if not chunk and done.is_set():
+                break
+        sel.close()
+    finally:
+        os.close(fd)
+    return bytes(out)
+
+
+def test_submit_never_blocks_on_a_stalled_disk_and_counts_what_it_drops(fifo: Path) -> None:
+    rec = Recorder(fifo, queue_depth=1000)
+    n = 3000  # 220 bytes a record: the queue alone holds three times what the pipe takes
+    sent = [frame(0x40 + i % 3, i.to_bytes(4, "little") * 50) for i in range(n)]
+    try:
+        accepted = run_within(lambda: [rec.submit(f, t=float(i)) for i, f in enumerate(sent)],
+                              timeout=10)
+        assert wait_for(lambda: rec.records > 0)  # the writer is writing (then stuck)
+        took = run_within(lambda: _timed(lambda: rec.close(0.3)), timeout=5)
+        assert took < 1.0, f"close took {took:.2f} s with the writer stuck"
+        assert not rec.finished.is_set()  # still stuck in write(): left to finish on its own
+    finally:
+        data = _drain_until(fifo, rec.finished)
+    assert rec.finished.is_set()
+    assert accepted.count(False) == rec.dropped_queue_full > 0
+    stats = recording.ReadStats()
+    got = [(t, f) for _, t, f in recording.scan(data, stats)]
+    assert data.startswith(DOC_HEADER)
+    assert stats.corrupt_skips == stats.torn_tail_bytes == 0
+    assert len(got) == rec.records
+    kept = [(float(i), f) for i, (f, ok) in enumerate(zip(sent, accepted, strict=True)) if ok]
+    assert got == kept[:len(got)]  # what was written is what was accepted, in order
+    assert rec.records + rec.dropped_at_close == accepted.count(True)
+
+
+def _timed(fn: Callable[[], object]) -> float:
+    t0 = time.monotonic()
+    fn()
+    return time.monotonic() - t0
+
+
+def test_the_writer_fsyncs_on_its_timer_when_no_more_frames_arrive(tmp_path: Path) -> None:
+    path = tmp_path / "idle.agrec"
+    rec = Recorder(path, fsync_interval_s=0.05)
+    try:
+        assert rec.syncs == 0
+        rec.submit(tframe(1), t=1.0)  # one frame, then silence
+        assert wait_for(lambda: rec.syncs >= 1), "no fsync while idle"
+        assert read_all(path)[0] == [(1.0, tframe(1))]
+        synced = rec.syncs
+        rec.submit(tframe(2), t=2.0)
+        assert wait_for(lambda: rec.syncs > synced)
+    finally:
+        rec.close()
+    assert read_all(path)[0] == [(1.0, tframe(1)), (2.0, tframe(2))]
+
+
+def test_close_writes_everything_queued_before_it(tmp_path: Path) -> None:
+    path = tmp_path / "drain.agrec"
+    rec = Recorder(path, fsync_interval_s=0)
+    items = [(100.0 + i, tframe(i)) for i in range(500)]
+    for t, f in items:
+        assert rec.submit(f, t=t)
+    rec.close(5.0)
+    assert rec.finished.is_set()
+    assert read_all(path)[0] == items
+    assert rec.stats()["records"] == 500 and rec.dropped_at_close == 0
+    assert not rec.submit(tframe(9))  # closed: refused, file unchanged
+    assert read_all(path)[0] == items
+
+
+def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "mixed.agrec"
+    sm = _sm_update(1234, 56.5)
+    st = Status(1240, 3, 0, 1)
+    relay = RawFrame(0x42, b"relay me")
+    decoded = decode_all(encode(_sm_update(99, 1.0)))[0]  # carries its raw frame
+    others = [VehicleState(True, "AUTO"), Position(47.1, 8.5), VehicleState(False, "RTL")]
+    with caplog.at_level(logging.WARNING, logger="gateway.recording"):
+        rec = Recorder(path)
+        for i, m in enumerate([sm, others[0], st, others[1], relay, decoded, others[2]]):
+            rec.submit(m, t=10.0 + i)
+        rec.close()
+    got = [f for _, f in read_all(path)[0]]
+    assert got == [encode(sm), encode(st), encode(relay), decoded.raw]
+    assert decode_all(b"".join(got))[0].fields() == sm.fields()
+    assert rec.not_recordable == {"vehicle_state": 2, "position": 1}
+    warned = [r.getMessage() for r in caplog.records if "not recorded" in r.getMessage()]
+    assert len(warned) == 2 and any("vehicle_state" in w for w in warned), warned  # once a kind
+
+
+KILLED_SUBMITTER = r"""
+import os, sys, threading
+from gateway.recording import Recorder
+from gateway.wire import frame
+rec = Recorder(sys.argv[1], fsync_interval_s=0.01, queue_depth=1 << 20)
+told = False
+for i in range(200_000):  # fewer than the queue holds: nothing is dropped
+    rec.submit(frame(0x40 + i % 3, i.to_bytes(4, "little") * (i % 7)), t=1000.0 + i)
+    if not told and rec.records >= 2000:  # the writer thread is well under way
+        os.write(1, b"ready\n")
+        told = True
+if not told:
+    while rec.records < 2000:
+        rec.finished.wait(0.001)
+    os.write(1, b"ready\n")
+threading.Event().wait()
+"""
+
+
+def test_a_gateway_recorder_killed_with_sigkill_leaves_a_readable_prefix(tmp_path: Path) -> None:
+    """The writer thread writes each record in one write(): killing the process mid-stream
+    leaves the records it wrote, in order, and at most a torn last one."""
+    path = tmp_path / "killed-async.agrec"
+    proc = subprocess.Popen([sys.executable, "-c", KILLED_SUBMITTER, str(path)], cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None
+        ready = run_within(proc.stdout.readline, timeout=20)
+        proc.send_signal(signal.SIGKILL)
+        assert proc.wait(10) == -signal.SIGKILL
+        assert ready == b"ready\n", proc.stderr.read() if proc.stderr else ""
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    got, stats = read_all(path)
+    assert len(got) >= 2000
+    assert got == [(1000.0 + i, tframe(i)) for i in range(len(got))]
+    assert stats.corrupt_skips == 0
+    assert stats.torn_tail_bytes < len(doc_record(0.0, tframe(len(got))))
+
+
+# -- in the gateway --------------------------------------------------------------------------------
+
+class _MixedSource(Source):
+    """Emits what a MAVLink vehicle's source does: SM_UPDATEs built in memory (no frame) and
+    vehicle state and positions, which have no wire form."""
+
+    NAME = "mixed"
+
+    def run(self, stop: threading.Event) -> None:
+        for i in range(30):
+            self.emit(_sm_update(1000 + i, float(i))._replace(origin=self.name))
+            self.emit(VehicleState(True, "AUTO", origin=self.name))
+            if i % 3 == 0:
+                self.emit(Position(47.0, 8.0, origin=self.name))
+
+
+def _gateway(cfg_dict: dict) -> Gateway:
+    return Gateway(config.parse(cfg_dict), status_out=io.StringIO())
+
+
+def test_fan_out_does_not_wait_for_a_stalled_recording(fifo: Path) -> None:
+    """Five flights at full speed into a gateway whose recording is a pipe nobody reads: the
+    source finishes (its messages reach the dispatcher) though the disk takes nothing."""
+    gw = _gateway({"gateway": {"record": str(fifo), "status_interval_s": 0},
+                   "sources": [{"type": "sim", "speed": 0, "cycles": 5}]})
+    gw.start()
+    rec = gw.recorder
+    assert rec is not None
+    try:
+        src = gw.sources[0]
+        assert src.done.wait(20), "the source was held up by the recorder"
+        sent = src.stats()["sent"]
+        assert sum(gw.counts.values()) == sent
+        assert wait_for(lambda: rec.records > 0)
+        assert rec.records < sent  # the pipe is full: the writer is stuck
+        t0 = time.monotonic()
+        summary = gw.stop()
+        took = time.monotonic() - t0
+        assert took < 1.0 + 0.5, took
+    finally:
+        data = _drain_until(fifo, rec.finished)
+    assert summary["recorder"]["records"] <= sent
+    stats = recording.ReadStats()
+    assert len(list(recording.scan(data, stats))) == rec.records
+    assert stats.corrupt_skips == 0
+
+
+def test_the_gateway_records_encodable_messages_and_reports_the_rest(tmp_path: Path) -> None:
+    path = tmp_path / "mixed.agrec"
+    gw = _gateway({"gateway": {"record": str(path), "status_interval_s": 0}})
+    src = _MixedSource()
+    gw.sources = [src]
+    gw.start()
+    try:
+        assert src.done.wait(10)
+    finally:
+        summary = gw.stop()
+    got = [f for _, f in read_all(path)[0]]
+    assert got == [encode(_sm_update(1000 + i, float(i))) for i in range(30)]
+    assert summary["recorded"] == 30
+    assert summary["recorder"]["not_recordable"] == {"vehicle_state": 30, "position": 10}

@@ -8,6 +8,7 @@ message, log records that set events, and the sources' own ``done`` events.
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import os
 import socket
@@ -19,13 +20,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import run_within
 
 from dialects.states import SimpleState as S
 from gateway import recording
-from gateway.config import ConfigError
+from gateway.app import Gateway
+from gateway.config import ConfigError, parse
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import RawFrame, SmUpdate, Status
 from gateway.recording import Recorder
+from gateway.sources import Source
 from gateway.sources.replay import ReplaySource
 from gateway.sources.serial_source import SerialSource
 from gateway.sources.sim import BOOT_UPTIME_MS, SimSource, flight_frames
@@ -513,9 +517,100 @@ def test_replay_loop_repeats_until_stopped(tmp_path: Path) -> None:
     assert [m.raw for m in sink.msgs[:15]] == frames * 3
 
 
-def test_replay_of_a_missing_or_foreign_file_is_a_config_error(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="no recording"):
-        ReplaySource(str(tmp_path / "nope.agrec"))
+def test_replay_of_a_missing_or_foreign_file_is_a_config_error_naming_the_key(
+        tmp_path: Path) -> None:
+    """Checked by the path key, before anything is built (the constructor does not check)."""
+    with pytest.raises(ConfigError, match=r"^sources\[0\]\.path: no recording"):
+        parse({"sources": [{"type": "replay", "path": str(tmp_path / "nope.agrec")}]})
     (tmp_path / "x.txt").write_text("hello, not a recording\n")
-    with pytest.raises(ConfigError, match="magic"):
-        ReplaySource(str(tmp_path / "x.txt"))
+    with pytest.raises(ConfigError, match=r"^sources\[0\]\.path: .*magic"):
+        parse({"sources": [{"type": "replay", "path": str(tmp_path / "x.txt")}]})
+    (tmp_path / "v9.agrec").write_bytes(recording.MAGIC + b"\x09\x00\x00\x00")
+    with pytest.raises(ConfigError, match="version 9"):
+        parse({"sources": [{"type": "replay", "path": str(tmp_path / "v9.agrec")}]})
+
+
+# -- the contract --------------------------------------------------------------------------------
+
+class _Counting(Source):
+    """A thread source that emits until asked to stop."""
+
+    NAME = "counting"
+
+    def __init__(self, name: str | None = None) -> None:
+        super().__init__(name)
+        self.n = 0
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.wait(0.001):
+            self.n += 1
+            self.emit(RawFrame(0x42, self.n.to_bytes(4, "little"), origin=self.name))
+
+    def stats(self) -> dict[str, Any]:
+        return {"sent": self.n}
+
+
+def test_request_stop_returns_at_once_and_the_source_winds_down_on_its_own() -> None:
+    src = _Counting()
+    sink = Sink()
+    src.start(sink)
+    try:
+        assert sink.wait_count(3)
+        assert not src.stop_requested and not src.done.is_set()
+        took = run_within(lambda: _timed(src.request_stop))
+        assert took < 0.05
+        assert src.stop_requested
+        assert src.done.wait(DEADLINE_S), "the source did not end after request_stop"
+        src.request_stop()  # safe twice
+    finally:
+        stop_in_time(src)
+    src.stop(0.1)  # and stop after that
+    assert src.stats()["sent"] == len(sink.msgs)
+
+
+def _timed(fn: Callable[[], object]) -> float:
+    t0 = time.monotonic()
+    fn()
+    return time.monotonic() - t0
+
+
+class _PublicOnly:
+    """A source written against the documented contract alone: no base class, no private
+    attributes for the gateway to reach into."""
+
+    CONFIG = None
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.done = threading.Event()
+        self.calls: list[str] = []
+        self._go = threading.Event()
+
+    def attach(self, context: Any) -> None:
+        self.calls.append("attach")
+
+    def start(self, sink: Callable[[Any], Any]) -> None:
+        self.calls.append("start")
+        sink(RawFrame(0x42, b"hello", origin=self.name))
+
+    def request_stop(self) -> None:
+        self.calls.append("request_stop")
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self.calls.append("stop")
+        self.done.set()
+
+    def stats(self) -> dict[str, Any]:
+        return {"calls": len(self.calls)}
+
+
+def test_the_gateway_drives_sources_through_the_public_contract_only() -> None:
+    gw = Gateway(parse({"gateway": {"status_interval_s": 0}}), status_out=io.StringIO())
+    a, b = _PublicOnly("a"), _PublicOnly("b")
+    gw.sources = [a, b]  # type: ignore[list-item]
+    gw.start()
+    summary = gw.stop()
+    # every source is asked to stop before any is waited for
+    assert a.calls == b.calls == ["attach", "start", "request_stop", "stop"]
+    assert summary["messages_in"] == {"raw": 2}
+    assert summary["sources"] == {"a": {"calls": 4}, "b": {"calls": 4}}

@@ -1,18 +1,37 @@
-"""Sources: where messages come from.  Each runs its own thread and hands every message to a
-sink (normally :meth:`gateway.app.Gateway.ingest`).
+"""Sources: where messages come from.  Each hands every message to a sink (normally
+:meth:`gateway.app.Gateway.ingest`).
 
-A source **must** implement ``start(sink)`` (return at once; work in its own thread) and
-``stop(timeout)`` (end within ``timeout``; safe twice).  It **might** implement ``stats()``
-and set ``done`` (a ``threading.Event``) when it has nothing more to send (a replay's end).
-Every message it emits carries ``origin`` = the source's name.
+The contract, all of it public (the app uses nothing else):
+
+* ``name``; ``CONFIG`` (a :class:`gateway.config.Schema`), ``from_config(options, name)`` and
+  optionally ``default_name(options)``, which the configuration uses (the options arrive
+  validated: the constructor does not check them again);
+* ``attach(context)``, called before ``start`` with the gateway's
+  :class:`gateway.backend.GatewayContext` (kept as ``context``);
+* ``start(sink)`` returns at once; the work happens on the source's own thread (or a port
+  engine's);
+* ``request_stop()`` asks it to stop and returns at once (so many sources wind down
+  together); ``stop(timeout)`` stops it and returns within about ``timeout``; both safe twice;
+* ``done``, a ``threading.Event`` set once the source has nothing more to send (a replay's
+  end, a one-flight simulation, or after ``stop``);
+* ``stats()``, a dict of counters.
+
+A subclass that needs a thread implements :meth:`Source.run` (loop until the ``stop`` event
+it is given is set) and hands messages to :meth:`Source.emit`; a source on a
+:class:`gateway.port.PortEngine` overrides ``start``/``stop`` instead.  Every message carries
+``origin`` = the source's name.
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
+import pkgutil
 import threading
 from collections.abc import Callable
 from typing import Any, ClassVar
+
+from gateway.backend import GatewayContext
 
 log = logging.getLogger(__name__)
 
@@ -27,16 +46,25 @@ class Source:
 
     def __init__(self, name: str | None = None) -> None:
         self.name = name or self.NAME
+        self.context = GatewayContext()
         self.done = threading.Event()
-        self._stop = threading.Event()
+        self._stop = threading.Event()  # what run() is given; set by request_stop()
         self._thread: threading.Thread | None = None
         self._sink: Sink | None = None
 
     @classmethod
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:
+        """An instance from options the class's ``CONFIG`` has already validated."""
         return cls(name=name, **options)
 
+    def attach(self, context: GatewayContext) -> None:
+        """Remember the gateway's context (called before :meth:`start`); a source that must
+        tell this gateway's own publications from others' reads ``context.own_ids``."""
+        self.context = context
+
     def start(self, sink: Sink) -> None:
+        """Begin delivering messages to ``sink``; returns at once; a second call does
+        nothing."""
         if self._thread is not None:
             return
         self._sink = sink
@@ -57,12 +85,22 @@ class Source:
         raise NotImplementedError
 
     def emit(self, msg: Any) -> None:
+        """Hand one message to the sink (from the source's thread)."""
         sink = self._sink
         if sink is not None:
             sink(msg)
 
-    def stop(self, timeout: float = 1.0) -> None:
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
+
+    def request_stop(self) -> None:
+        """Ask the source to stop, without waiting for it; safe twice."""
         self._stop.set()
+
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop and wait up to ``timeout`` for the thread to end; safe twice."""
+        self.request_stop()
         t = self._thread
         if t is not None and t is not threading.current_thread():
             t.join(timeout)
@@ -73,9 +111,45 @@ class Source:
         return {}
 
 
+def serial_url_schemes() -> list[str]:
+    """The URL schemes pyserial's ``serial_for_url`` has a handler module for."""
+    import serial
+
+    found: set[str] = set()
+    for package in serial.protocol_handler_packages:
+        try:
+            path = importlib.import_module(package).__path__
+        except (ImportError, AttributeError):
+            continue
+        found.update(m.name[len("protocol_"):] for m in pkgutil.iter_modules(path)
+                     if m.name.startswith("protocol_"))
+    return sorted(found)
+
+
+def check_serial_url(url: str) -> None:
+    """ValueError unless ``url`` is a device path or has a scheme pyserial handles, looked up
+    the way ``serial.serial_for_url`` does.  A device path is not checked: it may appear
+    later (hot-plug), and the source retries it."""
+    if "://" not in url:
+        return
+    scheme = url.split("://", 1)[0].lower()
+    import serial
+
+    for package in serial.protocol_handler_packages:
+        try:
+            importlib.import_module(package)
+            importlib.import_module(f".protocol_{scheme}", package)
+        except ImportError:
+            continue
+        return
+    raise ValueError(f"unknown URL scheme {scheme!r}; known: "
+                     f"{', '.join(s + '://' for s in serial_url_schemes())} or a device path")
+
+
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
     """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
-    pyserial URL → (source type, options)."""
+    pyserial URL → (source type, options); ValueError for a malformed one.  The options go
+    through the source's ``CONFIG`` like a file's (a serial URL's scheme is checked there)."""
     if url in ("sim", "sim:"):
         return "sim", {}
     if url.startswith("replay:"):
@@ -92,4 +166,4 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
         return "zenoh", {"url": url}  # zenoh:[VEHICLE@][ENDPOINT,…], parsed by the source
     if not url:
         raise ValueError("empty source URL")
-    return "serial", {"url": url}
+    return "serial", {"url": url}  # its scheme is checked with the url key (check_serial_url)

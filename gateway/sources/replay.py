@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway import recording
-from gateway.config import ConfigError, Key, Schema
+from gateway.config import Key, Schema
 from gateway.pacing import paced
 from gateway.sources import Source
 from gateway.wire import Decoder
@@ -19,7 +19,7 @@ log = logging.getLogger(__name__)
 class ReplaySource(Source):
     NAME = "replay"
     CONFIG = Schema(
-        path=Key(str, help="recording file"),
+        path=Key(str, help="recording file", validator=recording.check_file),
         speed=Key(float, 1.0, "1 = real time, N = N times faster, 0 = as fast as possible",
                   minimum=0),
         loop=Key(bool, False, "start again at the end"),
@@ -32,16 +32,7 @@ class ReplaySource(Source):
     def __init__(self, path: str, speed: float = 1.0, loop: bool = False,
                  name: str | None = None) -> None:
         super().__init__(name or f"replay:{Path(path).name}")
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise ConfigError(f"replay: no recording at {path}")
-        try:  # a file that is not a recording is a configuration error, not a thread's crash
-            with self.path.open("rb") as f:
-                recording._check_header(f.read(len(recording.HEADER)), path)
-        except recording.RecordingError as exc:
-            raise ConfigError(str(exc)) from None
-        except OSError as exc:
-            raise ConfigError(f"replay: cannot read {path}: {exc.strerror or exc}") from None
+        self.path = Path(path)  # checked by CONFIG (recording.check_file) before we are built
         self.speed = speed
         self.loop = loop
         self.decoder = Decoder(origin=self.name)

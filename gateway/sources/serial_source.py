@@ -14,7 +14,7 @@ from typing import Any
 from gateway.backoff import Backoff
 from gateway.config import Key, Schema
 from gateway.port import PortEngine
-from gateway.sources import Sink, Source
+from gateway.sources import Sink, Source, check_serial_url
 from gateway.transport import open_serial
 from gateway.wire import Decoder
 
@@ -25,7 +25,7 @@ class SerialSource(Source):
     NAME = "serial"
     CONFIG = Schema(
         url=Key(str, help="pyserial port or URL: /dev/ttyUSB0, loop://, socket://host:port, "
-                "rfc2217://host:port"),
+                "rfc2217://host:port", validator=check_serial_url),
         baudrate=Key(int, 115200, "host UART speed", minimum=50),
         reconnect_max_s=Key(float, 5.0, "longest wait between reopen attempts", minimum=0.01),
     )
