@@ -274,9 +274,16 @@ class PortEngine:
 
         Nothing is read or written by the engine meanwhile; submitted frames queue (up to
         ``queue_depth``).  Raises :class:`PortNotReady` when the port is down, the engine is
-        not running, or it cannot be parked within ``timeout`` (a write stuck that long)."""
+        not running, or it cannot be parked within ``timeout`` (a write stuck that long).
+        Settings the block changed (``baudrate``, ``timeout``: an exchange at another rate)
+        are put back before the engine resumes; if that fails the port is reopened."""
         if self._loop.in_loop_thread:
-            yield self._require_port()
+            port = self._require_port()
+            saved = _lent_settings(port)
+            try:
+                yield port
+            finally:
+                self._restore_lent(port, saved)
             return
         if not self._started or self._closing or not self._loop.running:
             raise PortNotReady(f"{self.name}: the port engine is not running")
@@ -294,11 +301,28 @@ class PortEngine:
             release.set()
             raise PortNotReady(f"{self.name}: the port is busy (not free within {timeout} s)")
         try:
-            if lent[0] is None:
+            port = lent[0]
+            if port is None:
                 raise PortNotReady(f"{self.name}: the port is down")
-            yield lent[0]
+            saved = _lent_settings(port)
+            try:
+                yield port
+            finally:
+                self._restore_lent(port, saved)  # still ours: the engine is parked
         finally:
             release.set()
+
+    def _restore_lent(self, port: Any, saved: dict[str, Any]) -> None:
+        """Put back the settings an exclusive block changed; reopen the port if that fails."""
+        for name, value in saved.items():
+            try:
+                if getattr(port, name) != value:
+                    setattr(port, name, value)
+            except Exception as exc:
+                log.warning("%s: cannot restore the port's %s after exclusive use (%s); "
+                            "reopening it", self.name, name, exc)
+                self.reconnect()
+                return
 
     def close(self, timeout: float = 1.0) -> None:
         """Write what is queued (while the port is up), close the port and stop, returning
@@ -381,7 +405,8 @@ class PortEngine:
     def _attach(self, port: Any) -> None:
         if hasattr(port, "timeout") and not getattr(port, "datagram", False):
             with contextlib.suppress(Exception):
-                port.timeout = 0  # reads return what is waiting, at once
+                if port.timeout != 0:  # (a needless set costs an RFC 2217 round trip)
+                    port.timeout = 0  # reads return what is waiting, at once
         fd = None
         with contextlib.suppress(Exception):
             fd = port.fileno()
@@ -431,9 +456,18 @@ class PortEngine:
         if port is None:
             return
         datagram = getattr(port, "datagram", False)
+        many = getattr(self.protocol, "feed_many", None) if datagram else None
+        if many is not None:
+            self._read_datagrams(port, many)
+            return
+        # A polled stream is drained at each poll: some ports hand over a single byte a read
+        # when they must not wait (pyserial's rfc2217:// at timeout 0).
+        drain = self._fd is None and not datagram
         for _ in range(DATAGRAM_BATCH if datagram else 1):
             try:
                 data = port.read(READ_SIZE)
+                if drain and data:
+                    data = _read_more(port, data)
             except Exception as exc:  # pyserial: SerialException / OSError / TypeError
                 self.stats.read_errors += 1
                 self._fail(exc, "read failed")
@@ -444,6 +478,37 @@ class PortEngine:
             self._deliver(data)
             if self._port is not port:
                 return  # a handler closed or reopened the port
+
+    def _read_datagrams(self, port: Any, feed_many: Callable[[list[bytes]], Any]) -> None:
+        """A datagram port whose protocol has ``feed_many(datagrams)``: what is waiting (up to
+        DATAGRAM_BATCH datagrams) is handed over in one call (a router's per-frame path)."""
+        batch: list[bytes] = []
+        error: Exception | None = None
+        for _ in range(DATAGRAM_BATCH):
+            try:
+                data = port.read(READ_SIZE)
+            except Exception as exc:
+                error = exc
+                break
+            if not data:
+                break
+            batch.append(data)
+        if batch:
+            self.stats.received_bytes += sum(map(len, batch))
+            try:
+                events = feed_many(batch)
+            except Exception:
+                self.stats.protocol_errors += 1
+                log.exception("%s: the protocol failed on %d datagrams (skipped)", self.name,
+                              len(batch))
+                events = ()
+            handler = self.on_event
+            if handler is not None:
+                for ev in events:
+                    handler(ev)
+        if error is not None and self._port is port:
+            self.stats.read_errors += 1
+            self._fail(error, "read failed")
 
     def _deliver(self, data: bytes) -> None:
         protocol = self.protocol
@@ -583,6 +648,32 @@ class PortEngine:
             self._poll.cancel()
         if port is not None:
             self._close_port(port)
+
+
+def _read_more(port: Any, data: bytes) -> bytes:
+    """``data`` and whatever else ``port`` has waiting, up to ``READ_SIZE`` bytes."""
+    parts = [data]
+    total = len(data)
+    while total < READ_SIZE:
+        more = port.read(READ_SIZE - total)
+        if not more:
+            break
+        parts.append(more)
+        total += len(more)
+    return b"".join(parts) if len(parts) > 1 else data
+
+
+LENT_SETTINGS = ("baudrate", "timeout")
+
+
+def _lent_settings(port: Any) -> dict[str, Any]:
+    """The settings of ``port`` an exclusive block may change and the engine puts back."""
+    saved: dict[str, Any] = {}
+    for name in LENT_SETTINGS:
+        with contextlib.suppress(Exception):
+            if hasattr(port, name):
+                saved[name] = getattr(port, name)
+    return saved
 
 
 class PortServer:
