@@ -133,6 +133,10 @@ class UdpPort:
         self.send_errors = 0
         self.send_dropped = 0
         self.not_sent = 0  # writes with nobody to send to (udpin before any peer)
+        self.connected = False  # udpout from open_udp: connected, so refusals are reported
+        if dest is not None:
+            with contextlib.suppress(OSError):
+                self.connected = sock.getpeername() is not None
 
     @property
     def destinations(self) -> tuple[Any, ...]:
@@ -172,7 +176,10 @@ class UdpPort:
             return len(data)
         for d in dests:
             try:
-                self.sock.sendto(data, d)
+                if self.connected:
+                    self.sock.send(data)
+                else:
+                    self.sock.sendto(data, d)
             except BlockingIOError:
                 self.send_dropped += 1
             except OSError:
@@ -185,22 +192,36 @@ class UdpPort:
 
 def open_udp(host: str, port: int, *, listen: bool) -> UdpPort:
     """``listen``: bind ``host:port`` and answer the peers (udpin); otherwise send to
-    ``host:port`` from an ephemeral port (udpout).  Raises :class:`TransportError`."""
+    ``host:port`` from an ephemeral port connected to it (udpout: what comes back from there
+    is read).  Raises :class:`TransportError`."""
     family, addr = resolve(host, port, socket.SOCK_DGRAM)
+    if listen:
+        return UdpPort(_udp_socket(family, "bind", addr, host, port), None)
+    try:
+        # Connected: Linux reports "port unreachable" only on a connected UDP socket, so
+        # "nobody listening" is seen and counted rather than silent.
+        sock = _udp_socket(family, "connect", addr, host, port)
+    except TransportError:  # no route yet, or a broadcast address: send unconnected
+        any_addr = ("::", 0) if family == socket.AF_INET6 else ("0.0.0.0", 0)
+        sock = _udp_socket(family, "bind", any_addr, host, port)
+    return UdpPort(sock, addr)
+
+
+def _udp_socket(family: int, how: str, addr: Any, host: str, port: int) -> socket.socket:
     sock = socket.socket(family, socket.SOCK_DGRAM)
     try:
         sock.setblocking(False)
         for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
             with contextlib.suppress(OSError):
                 sock.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER)
-        if listen:
-            sock.bind(addr)
+        if how == "connect":
+            sock.connect(addr)
         else:
-            sock.bind(("::", 0) if family == socket.AF_INET6 else ("0.0.0.0", 0))
+            sock.bind(addr)
     except OSError as exc:
         sock.close()
-        raise TransportError(f"cannot bind udp {host}:{port}: {exc.strerror or exc}") from None
-    return UdpPort(sock, None if listen else addr)
+        raise TransportError(f"cannot {how} udp {host}:{port}: {exc.strerror or exc}") from None
+    return sock
 
 
 def open_tcp_listener(host: str, port: int, backlog: int = 16) -> socket.socket:
