@@ -333,8 +333,8 @@ class PortEngine:
             if not self._started:
                 return
             self._closing = True
-        if self._loop.in_loop_thread:
-            self._shutdown()
+        if self._loop.in_loop_thread or not self._loop.alive:
+            self._shutdown()  # (a shared loop already stopped would never run it)
         else:
             self._loop.call_soon(self._shutdown)
             if not self._shut.wait(timeout):
@@ -573,7 +573,8 @@ class PortEngine:
         self._outage_logged = True     # sees the count
         self._detach(port)
         if exc is not None:
-            log.warning("%s: %s (%s); reopening", self.name, what, exc)
+            log.warning("%s: %s (%s); %s", self.name, what, exc,
+                        "reopening" if self.reopen else "closed (not reopened)")
         self._flush_protocol()
         if self.on_link is not None:
             self.on_link(False)
