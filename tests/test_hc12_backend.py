@@ -59,7 +59,7 @@ def backend_on(url: str, **options: Any) -> Iterator[Hc12Backend]:
 
 
 def send(b: Hc12Backend, msg: Any) -> Outcome:
-    return getattr(b, msg.HOOK)(msg)
+    return dict(b.routes())[type(msg)](msg)
 
 
 def wait_air(emu: Any, n: int) -> bytes:
@@ -142,7 +142,7 @@ def test_budget_measured_on_the_far_side_of_a_real_port(settings_file: Path) -> 
                 break
             for msg in dec.feed(fr):
                 offered += 1
-                statuses += msg.KIND == "status"
+                statuses += isinstance(msg, Status)
                 if send(b, msg) is Outcome.ACCEPTED:
                     accepted_n += 1
                     admitted.append(time.monotonic())

@@ -17,6 +17,7 @@ from backends.hc12.setline import BENCH_HINT, NoSetLine, SetLineError, parse_set
 from backends.hc12.vehicle import VehicleWatch
 from gateway.backend import Outcome
 from gateway.flight import FlightModel, FlightProfile
+from gateway.model import Status
 from gateway.sources.sim import flight_messages
 from gateway.wire import decode_all, encode
 
@@ -135,17 +136,17 @@ def test_100hz_stream_into_9600_baud_budget(revision: int) -> None:
     reader = None
     try:
         assert backend.engine.wait_connected(5.0)
-        reader = FarSide(backend._port)  # loop://: what the worker writes is read back here
+        reader = FarSide(backend.engine.port)  # loop://: what the engine writes comes back here
         accepted: list[tuple[float, bytes]] = []
         outcomes: dict[Outcome, int] = {}
         statuses = 0
         duration = 20.0
         for t, msg in _stream(duration, revision):
             clock.now = t
-            hook = backend.send_status if msg.KIND == "status" else backend.send_sm_update
+            hook = backend.send_status if isinstance(msg, Status) else backend.send_sm_update
             outcome = hook(msg)
             outcomes[outcome] = outcomes.get(outcome, 0) + 1
-            statuses += msg.KIND == "status"
+            statuses += isinstance(msg, Status)
             if outcome is Outcome.ACCEPTED:
                 accepted.append((t, msg.raw))
         assert backend.engine.drain(10.0)

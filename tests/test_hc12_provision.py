@@ -6,9 +6,11 @@ command line against a running gateway."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import wait_for
 from test_hc12_support import (
     DEADLINE_S,
     ROOT,
@@ -36,6 +39,7 @@ from backends.hc12.setline import BENCH_HINT, GpioSetLine, SetLineSpec
 from gateway import config
 from gateway.app import Gateway
 from gateway.backend import Outcome
+from gateway.ioloop import IoLoop
 from gateway.wire import decode_all, encode
 
 BASE = ["--set-line", "rts", "--listen", "0", "--bench", "--baud", "19200"]
@@ -180,8 +184,8 @@ def test_a_set_line_that_fails_on_entry_still_restores(emulator: Any) -> None:
     rate comes back all the same."""
     port = open_port(emulator.url, 19200, SetLineSpec("none"))
     try:
-        res = run_request(port, GpioSetLine("gpiochip-that-does-not-exist", 3),
-                          threading.RLock(), "info", None, host_baud=19200)
+        res = run_request(port, GpioSetLine("gpiochip-that-does-not-exist", 3), "info", None,
+                          host_baud=19200)
         assert port.baudrate == 19200
     finally:
         port.close()
@@ -204,8 +208,8 @@ def test_a_port_that_dies_mid_exchange_is_a_clear_error(emulator: Any) -> None:
     killer = threading.Thread(target=kill_after_command)
     killer.start()
     try:
-        res = run_request(port, make_set_line(spec, port), threading.RLock(), "info", None,
-                          host_baud=19200, timing=Timing(reply_timeout_s=10.0))
+        res = run_request(port, make_set_line(spec, port), "info", None, host_baud=19200,
+                          timing=Timing(reply_timeout_s=10.0))
     finally:
         killer.join()
         port.close()
@@ -288,6 +292,37 @@ def test_standalone_hears_an_idle_vehicle_and_proceeds(
                         "--listen", "0.5")
     assert rc == 0, err
     assert emulator.model.settings.channel == 9
+
+
+def test_standalone_port_lost_while_listening_is_a_clear_failure(
+        capsys: pytest.CaptureFixture[str], emulator: Any,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The adapter vanishes during --listen: the engine sees it, the command stops listening
+    at once and fails; nothing was sent."""
+    engines: list[Any] = []
+    make = cli._listening_engine
+
+    def keep(*args: Any) -> Any:
+        engines.append(make(*args))
+        return engines[-1]
+
+    monkeypatch.setattr(cli, "_listening_engine", keep)
+
+    def pull() -> None:  # once the engine has the port (it is listening), pull the cable
+        if wait_for(lambda: bool(engines)) and engines[0].wait_connected(DEADLINE_S):
+            emulator.unplug()
+
+    puller = threading.Thread(target=pull)
+    puller.start()
+    start = time.monotonic()
+    try:
+        rc, _out, err = hc12(capsys, "info", "--port", emulator.url, "--set-line", "rts",
+                            "--listen", "60", "--bench")
+    finally:
+        puller.join()
+    assert rc == 1 and "failed while listening" in err
+    assert time.monotonic() - start < 30  # not the whole minute (generous for a loaded host)
+    assert emulator.model.at_commands == [] and emulator.model.event_values("set") == []
 
 
 INVALID = [
@@ -434,6 +469,8 @@ def test_the_command_line_reaches_a_running_gateway(
         rc, out, err = hc12(capsys, "channel", "200", "--gateway", str(path))
         assert rc == 2 and "channel: expected 1–127" in err
         stats = gw.dispatcher.stats()["hc12"]
+        # Served on the port engine's own loop: no thread of the backend's own.
+        assert not [t.name for t in threading.enumerate() if "control" in t.name]
     finally:
         gw.stop()
         emu.stop()
@@ -442,6 +479,7 @@ def test_the_command_line_reaches_a_running_gateway(
     assert emu.model.at_commands == ["AT+RX", "AT+C012"]
     assert emu.model.settings.channel == 12
     assert stats["at_exchanges"] == 2 and stats["sent"] > 0
+    assert stats["link"] == 1 and stats["errors"] == 0
 
 
 def test_an_unreachable_gateway_socket_is_a_clear_error(
@@ -449,3 +487,125 @@ def test_an_unreachable_gateway_socket_is_a_clear_error(
     rc, _out, err = hc12(capsys, "info", "--port", "rfc2217://127.0.0.1:9",
                         "--gateway", str(tmp_path / "nobody.sock"))
     assert rc == 1 and "no gateway answers at" in err
+
+
+# -- the port engine's part ------------------------------------------------------------------------
+
+
+def test_what_an_exclusive_block_changes_is_put_back_and_frames_flow_after(
+        settings_file: Path) -> None:
+    """A block that leaves the port at the AT rate: the engine restores the host rate before it
+    writes again, so the frames queued meanwhile are not garbled."""
+    write_settings(settings_file, baud=19200)
+    emu = emu_mod.Hc12Emulator(settings_file).start()
+    b = Hc12Backend(emu.url, baudrate=19200, air_baud=19200, control="off")
+    b.init()
+    try:
+        assert b.engine.wait_connected(DEADLINE_S)
+        with b.engine.exclusive() as port:
+            port.baudrate = 9600
+            assert b.send_status(status(0)) is Outcome.ACCEPTED  # queued, not written
+            assert b.engine.queued() == 1
+        assert b.engine.drain(DEADLINE_S)
+        assert emu.model.wait_for(lambda: len(emu.model.air_out) >= 14, DEADLINE_S)
+        assert b.engine.port.baudrate == 19200
+        stats = b.stats()
+    finally:
+        b.close()
+        emu.stop()
+    assert emu.model.event_values("baud") == [19200, 9600, 19200]
+    assert bytes(emu.model.air_out) == encode(status(0)) and emu.model.garbled_bytes == 0
+    assert stats["link"] == 1 and stats["errors"] == 0 and stats["sent"] == 1
+
+
+def test_provisioning_a_port_that_is_down_sends_nothing() -> None:
+    with socket.socket() as s:  # a free port with nobody listening
+        s.bind(("127.0.0.1", 0))
+        url = f"rfc2217://127.0.0.1:{s.getsockname()[1]}"
+    b = Hc12Backend(url, set_line="rts", control="off")
+    b.init()
+    try:
+        r = b.provision("info", bench=True)
+        stats = b.stats()
+    finally:
+        b.close()
+    assert (r.ok, r.kind) == (False, "failed") and "not available" in r.error
+    assert "nothing was sent" in r.error
+    assert stats["link"] == 0 and stats["at_exchanges"] == 0
+
+
+# -- the control protocol --------------------------------------------------------------------------
+
+
+def _events(chunks: list[bytes]) -> list[Any]:
+    reader = control.JsonLines(64)
+    out: list[Any] = []
+    for chunk in chunks:
+        out += reader.feed(chunk)
+    out += reader.flush()
+    return [e if isinstance(e, dict) else type(e) for e in out]
+
+
+def test_control_lines_read_the_same_whole_or_byte_by_byte() -> None:
+    """One reader for both ends: objects, bad lines and over-long lines, whatever the split;
+    a last line without its newline still counts at the end of the stream."""
+    bad = control.BadMessage
+    stream = (b'{"op": "info"}\n[1, 2]\nnot json\n{"op": "at", "arg": "' + b"X" * 100
+              + b'"}\n\n{"op": "power", "arg": "5"}')
+    whole = _events([stream])
+    assert whole == [{"op": "info"}, bad, bad, bad, bad, {"op": "power", "arg": "5"}]
+    assert _events([stream[i:i + 1] for i in range(len(stream))]) == whole
+    assert _events([stream[:30], stream[30:77], stream[77:]]) == whole
+    assert _events([b""]) == [] and _events([b"\n"]) == [bad]
+
+
+@pytest.fixture
+def io_loop() -> Iterator[IoLoop]:
+    loop = IoLoop("ctl-test")
+    loop.start()
+    try:
+        yield loop
+    finally:
+        loop.stop()
+        loop.close()
+
+
+def test_the_control_server_runs_requests_on_its_loop(
+        io_loop: IoLoop, private_runtime_dir: Path, monkeypatch: pytest.MonkeyPatch,
+        caplog: pytest.LogCaptureFixture) -> None:
+    """Requests run on the loop's thread; a probe, a bad request and a silent client are
+    handled without a thread or a warning; a second server on the same socket refuses."""
+    monkeypatch.setattr(control, "REQUEST_TIMEOUT_S", 0.2)
+    caplog.set_level(logging.WARNING)
+    path = private_runtime_dir / "ctl.sock"
+    ran_on: list[str] = []
+
+    def handler(request: dict[str, Any]) -> dict[str, Any]:
+        ran_on.append(threading.current_thread().name)
+        return {"ok": True, "op": request["op"], "echo": request.get("arg")}
+
+    server = control.ControlServer(path, handler, io_loop, name="t")
+    server.start()
+    try:
+        assert oct(path.stat().st_mode & 0o777) == "0o600"
+        assert control.reachable(path)  # connects and leaves without a word
+        reply = control.call(path, {"op": "info", "arg": "ü" * 500}, DEADLINE_S)
+        assert reply == {"ok": True, "op": "info", "echo": "ü" * 500}
+        assert ran_on == [f"io-{io_loop.name}"]
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(DEADLINE_S)
+            s.connect(str(path))
+            s.sendall(b"[1]\n")
+            answer = json.loads(s.makefile("rb").readline())
+        assert answer["kind"] == "usage" and "expected a JSON object" in answer["error"]
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(DEADLINE_S)
+            s.connect(str(path))
+            assert s.recv(100) == b""  # a client that says nothing is dropped
+        with pytest.raises(OSError, match="served by another running gateway"):
+            control.ControlServer(path, handler, io_loop, name="t2").start()
+        assert server.requests == 1 and ran_on == [f"io-{io_loop.name}"]
+    finally:
+        server.close()
+    assert not path.exists()
+    assert [r.getMessage() for r in caplog.records] == []

@@ -1,8 +1,9 @@
 """The HC-12 backend: relay or re-transmit Aurora frames within the air link's budget.
 
-Every frame goes through a :class:`gateway.link.LinkEngine` (bounded queue, default 16; a
-worker thread owns the port; full → dropped and counted; the producer never blocks; optional
-minimum interval between accepted SM_UPDATEs, STATUS exempt).  In front of the engine an
+Every frame goes through a :class:`gateway.port.PortEngine` (bounded queue, default 16; the
+engine's thread owns the port and reopens it with backoff; full → dropped and counted; the
+producer never blocks; optional minimum interval between accepted SM_UPDATEs, STATUS
+exempt).  In front of the engine an
 :class:`~backends.hc12.budget.AirBudget` admits a frame only if the air link can carry it
 (STATUS may use a small reserve but is charged like everything else); a frame it refuses is
 dropped as ``THROTTLED`` and counted as ``dropped_budget``.
@@ -17,8 +18,10 @@ Modes:
     STATUS and unknown frames as they are.
 
 Messages whose ``origin`` is this backend's port are never sent back to it.  The backend also
-serves provisioning (``aurora-gateway hc12 …``) through its control socket, under the
-worker's lock and with its knowledge of the vehicle's state (see ``control.py``).
+serves provisioning (``aurora-gateway hc12 …``) through its control socket, on the engine's
+own thread: the exchange takes the port with :meth:`~gateway.port.PortEngine.exclusive` (the
+firmware's TX lock; frames queue meanwhile) and judges the vehicle's state from the frames
+the backend relayed (see ``control.py``).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from typing import Any, ClassVar
 
 from backends.hc12 import at, control
 from backends.hc12.budget import DEFAULT_PRIORITY_RESERVE, AirBudget, figures
+from backends.hc12.control import ControlServer
 from backends.hc12.port import open_port
 from backends.hc12.provision import (
     ProvisionError,
@@ -44,10 +48,10 @@ from backends.hc12.provision import (
 )
 from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
-from gateway.backend import Backend, BackendError, Outcome
+from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.link import LinkEngine
 from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
+from gateway.port import PortEngine, PortNotReady
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)
@@ -118,11 +122,10 @@ class Hc12Backend(Backend):
         self.budget = AirBudget(figures(min(baudrate, air_baud), utilisation_pct, burst_bytes,
                                         DEFAULT_PRIORITY_RESERVE), clock=clock)
         self.watch = VehicleWatch(idle_max_age_s, clock=clock)
-        self.engine = LinkEngine(self._open, name=self.name, queue_depth=queue_depth,
+        self.engine = PortEngine(self._open, name=self.name, queue_depth=queue_depth,
                                  min_interval_s=min_interval_s, clock=clock)
-        self._port: Any = None
         self._set_line: SetLine | None = None
-        self._control: control.ControlServer | None = None
+        self._control: ControlServer | None = None
         self._provision_lock = threading.Lock()
         self.control_path: Any = None
         self.encoded = 0
@@ -156,9 +159,8 @@ class Hc12Backend(Backend):
     # -- life cycle ----------------------------------------------------------------------------
 
     def _open(self) -> Any:
-        port = open_port(self.url, self.baudrate, self.set_spec)
-        self._port = port
-        return port
+        """The engine's opener: SET released while opening; reads return at once."""
+        return open_port(self.url, self.baudrate, self.set_spec, timeout=0)
 
     def init(self) -> None:
         self.engine.start()
@@ -166,7 +168,9 @@ class Hc12Backend(Backend):
         try:
             path = control.resolve(self.control, self.url)
             if path is not None:
-                server = control.ControlServer(path, self.handle_control, name=self.name)
+                # Served on the engine's loop: an exchange runs on the port's own thread.
+                server = ControlServer(path, self.handle_control, self.engine.loop,
+                                       name=self.name)
                 server.start()
                 self._control = server
                 self.control_path = path
@@ -212,6 +216,10 @@ class Hc12Backend(Backend):
             self.budget.commit(len(data), now=now)
         return outcome
 
+    def routes(self) -> Routes:
+        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+                .on(RawFrame, self.send_raw))
+
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         self.watch.observe(msg)
         if self._loops_back(msg.origin):
@@ -235,42 +243,49 @@ class Hc12Backend(Backend):
     # -- provisioning ----------------------------------------------------------------------------
 
     def provision(self, op: str, arg: Any = None, bench: bool = False) -> Result:
-        """Run one provisioning request under the TX worker's lock (see provision.py)."""
-        with self._provision_lock:
+        """Run one provisioning request with the port taken from the engine (see
+        provision.py); from any thread, the engine's own included."""
+        try:
+            plan(op, arg)
+        except at.AtUsageError as exc:
+            return Result(False, op, error=str(exc), kind="usage")
+        # On the engine's thread another caller's exchange could only be waiting for that very
+        # thread to park: answer "busy" at once rather than stall both.
+        lock = self._provision_lock
+        if not (lock.acquire(blocking=False) if self.engine.loop.in_loop_thread
+                else lock.acquire(timeout=10.0)):
+            return Result(False, op, kind="failed",
+                          error="another provisioning exchange is running; nothing was sent")
+        try:
             try:
-                plan(op, arg)
-            except at.AtUsageError as exc:
-                return Result(False, op, error=str(exc), kind="usage")
-            engine_lock = self.engine.lock
-            if not engine_lock.acquire(timeout=5.0):
+                with self.engine.exclusive(timeout=5.0) as port:
+                    return self._exchange(port, op, arg, bench)
+            except PortNotReady as exc:
                 return Result(False, op, kind="failed",
-                              error="the HC-12 port stayed busy; nothing was sent")
-            try:
-                port = self._port
-                if port is None or not getattr(port, "is_open", False):
-                    return Result(False, op, kind="failed",
-                                  error=f"{self.url} is not open (the gateway keeps retrying "
-                                        f"it); nothing was sent")
-                if self._set_line is None or getattr(self._set_line, "port", port) is not port:
-                    self._set_line = make_set_line(self.set_spec, port)
-                set_line = self._set_line
-                try:
-                    check_allowed(set_line, self.watch, bench)
-                except Refused as exc:
-                    self.at_refused += 1
-                    return Result(False, op, error=str(exc), kind="refused")
-                except ProvisionError as exc:
-                    self.at_failures += 1
-                    return Result(False, op, error=str(exc), kind="failed")
-                result = run_request(port, set_line, engine_lock, op, arg,
-                                     host_baud=self.baudrate, at_baud=self.at_baud,
-                                     timing=self.timing)
-            finally:
-                engine_lock.release()
-            self.at_exchanges += 1
-            if not result.ok:
-                self.at_failures += 1
-            return result
+                              error=f"the HC-12 port is not available ({exc}); nothing was "
+                                    f"sent")
+        finally:
+            self._provision_lock.release()
+
+    def _exchange(self, port: Any, op: str, arg: Any, bench: bool) -> Result:
+        """The checks and the exchange, on the port lent by the engine."""
+        if self._set_line is None or getattr(self._set_line, "port", port) is not port:
+            self._set_line = make_set_line(self.set_spec, port)
+        set_line = self._set_line
+        try:
+            check_allowed(set_line, self.watch, bench)
+        except Refused as exc:
+            self.at_refused += 1
+            return Result(False, op, error=str(exc), kind="refused")
+        except ProvisionError as exc:
+            self.at_failures += 1
+            return Result(False, op, error=str(exc), kind="failed")
+        result = run_request(port, set_line, op, arg, host_baud=self.baudrate,
+                             at_baud=self.at_baud, timing=self.timing)
+        self.at_exchanges += 1
+        if not result.ok:
+            self.at_failures += 1
+        return result
 
     def handle_control(self, request: dict[str, Any]) -> dict[str, Any]:
         """A control-socket request → a JSON-able reply."""
@@ -285,6 +300,7 @@ class Hc12Backend(Backend):
         s = self.engine.stats
         b = self.budget
         return {
+            "link": int(self.engine.connected),
             "sent": s.sent_frames,
             "sent_bytes": s.sent_bytes,
             "dropped": s.dropped + b.refused_frames,
@@ -297,6 +313,8 @@ class Hc12Backend(Backend):
             "budget_bytes_per_s": round(b.fig.rate_bps, 1),
             "capacity_bytes_per_s": round(b.fig.capacity_bps, 1),
             "write_errors": s.write_errors,
+            "errors": s.errors,
+            "disconnects": s.disconnects,
             "encoded": self.encoded,
             "skipped_loop": self.skipped_loop,
             "at_exchanges": self.at_exchanges,

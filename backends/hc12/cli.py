@@ -1,9 +1,11 @@
 """``aurora-gateway hc12 info | channel N | baud RATE | power N | mode N | reset | at CMD``.
 
 Against a running gateway (its HC-12 backend's control socket, found from the port URL or
-named with ``--gateway``) the exchange runs inside the gateway, under its TX worker's lock
+named with ``--gateway``) the exchange runs inside the gateway, on the port its engine owns
 and with its knowledge of the vehicle.  Otherwise the command opens the port itself
-(exclusively), listens ``--listen`` seconds for the vehicle's frames, and runs the exchange.
+(exclusively) and runs it the gateway's way: a :class:`~gateway.port.PortEngine` reads it
+into the wire decoder, whose SM_UPDATE/STATUS feed a :class:`VehicleWatch` for ``--listen``
+seconds; then the exchange takes the port with :meth:`~gateway.port.PortEngine.exclusive`.
 
 Exit status: 0 done, 1 failed (no answer, garbage, port trouble), 2 invalid arguments
 (nothing sent), 3 refused by a safety rule (nothing sent), 130 interrupted.
@@ -14,7 +16,6 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -30,14 +31,16 @@ from backends.hc12.provision import (
     plan,
     run_request,
 )
-from backends.hc12.setline import SetLineSpec, make_set_line, parse_set_line
+from backends.hc12.setline import SetLine, SetLineSpec, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.model import SmUpdate, Status
+from gateway.port import PortEngine, PortNotReady
 from gateway.transport import TransportError
 from gateway.wire import Decoder
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REFUSED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 DEFAULT_LISTEN_S = 1.5
+ENGINE_DEADLINE_S = 5.0  # to take the port into the engine, and to hand it back on close
 PROG = "aurora-gateway hc12"
 
 DESCRIPTION = """\
@@ -147,7 +150,7 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
 # -- the two ways to run ---------------------------------------------------------------------------
 
 def _via_gateway(path: Path, args: argparse.Namespace, timeout: float) -> Result:
-    # The exchange inside the gateway may wait for the port lock and then for each reply.
+    # The exchange inside the gateway may wait for the port and then for each reply.
     budget = 10.0 + 3 * timeout + 1.0
     try:
         reply = control.call(path, {"op": args.command, "arg": args.argument,
@@ -158,62 +161,69 @@ def _via_gateway(path: Path, args: argparse.Namespace, timeout: float) -> Result
     return Result.from_dict(reply)
 
 
-def _listen(port: Any, seconds: float, watch: VehicleWatch) -> int:
-    """Feed what arrives on the port for ``seconds`` to ``watch``; returns frames heard."""
-    decoder = Decoder(origin="hc12-listen")
-    heard = 0
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        waiting = port.in_waiting
-        data = port.read(waiting if waiting > 0 else 1)
-        for msg in decoder.feed(data) if data else ():
-            if isinstance(msg, SmUpdate | Status):
-                watch.observe(msg)
-                heard += 1
-    return heard
+def _listening_engine(port: Any, name: str, watch: VehicleWatch,
+                      down: threading.Event) -> PortEngine:
+    """An engine around the open ``port``: what arrives is decoded and every SM_UPDATE/STATUS
+    goes to ``watch``; ``down`` is set if the port fails (it is not reopened)."""
+    def heard(msg: Any) -> None:
+        if isinstance(msg, SmUpdate | Status):
+            watch.observe(msg)
+
+    def link(up: bool) -> None:
+        if not up:
+            down.set()
+
+    return PortEngine(lambda: port, name=name, protocol=Decoder(origin="hc12-listen"),
+                      on_event=heard, on_link=link, reopen=False)
 
 
 def _standalone(s: dict[str, Any], args: argparse.Namespace) -> Result:
     op, arg = args.command, args.argument
     spec: SetLineSpec = s["spec"]
-    set_line = make_set_line(spec, None)
-    watch = VehicleWatch(s["max_age"])
+    url = s["url"]
     try:  # before touching the port: SET wired at all, GPIO bindings present
-        check_allowed(set_line, VehicleWatch(), bench=True)
+        check_allowed(make_set_line(spec, None), VehicleWatch(), bench=True)
     except Refused as exc:
         return Result(False, op, kind="refused", error=str(exc))
     except ProvisionError as exc:
         return Result(False, op, kind="failed", error=str(exc))
+    watch = VehicleWatch(s["max_age"])
     if s["listen"] == 0 and not args.bench:
         return Result(False, op, kind="refused", error=watch.refusal(False) or "")
     try:
-        port = open_port(s["url"], s["baud"], spec)
+        port = open_port(url, s["baud"], spec, timeout=0)
     except TransportError as exc:
         hint = (" (is a gateway driving it? its control socket was not found)"
                 if "lock" in str(exc).lower() or "busy" in str(exc).lower() else "")
         return Result(False, op, kind="failed", error=f"{exc}{hint}")
+    down = threading.Event()
+    engine = _listening_engine(port, url, watch, down)
+    set_line: SetLine | None = None
     try:
-        if s["listen"] > 0:
+        engine.start()
+        if not engine.wait_connected(ENGINE_DEADLINE_S) or (
+                s["listen"] > 0 and down.wait(s["listen"])):
+            return Result(False, op, kind="failed",
+                          error=f"{url} failed while listening for the vehicle")
+        with engine.exclusive(ENGINE_DEADLINE_S) as lent:
+            set_line = make_set_line(spec, lent)
             try:
-                _listen(port, s["listen"], watch)
-            except Exception as exc:  # SerialException, OSError: the port failed
-                return Result(False, op, kind="failed",
-                              error=f"{s['url']} failed while listening: {exc}")
-        set_line = make_set_line(spec, port)
-        try:
-            check_allowed(set_line, watch, bool(args.bench))
-        except Refused as exc:
-            return Result(False, op, kind="refused", error=str(exc))
-        except ProvisionError as exc:
-            return Result(False, op, kind="failed", error=str(exc))
-        return run_request(port, set_line, threading.RLock(), op, arg, host_baud=s["baud"],
-                           at_baud=s["at_baud"], timing=Timing(reply_timeout_s=s["timeout"]))
+                check_allowed(set_line, watch, bool(args.bench))
+            except Refused as exc:
+                return Result(False, op, kind="refused", error=str(exc))
+            except ProvisionError as exc:
+                return Result(False, op, kind="failed", error=str(exc))
+            return run_request(lent, set_line, op, arg, host_baud=s["baud"],
+                               at_baud=s["at_baud"],
+                               timing=Timing(reply_timeout_s=s["timeout"]))
+    except PortNotReady as exc:
+        return Result(False, op, kind="failed", error=f"{url} failed: {exc}")
     finally:
         try:
-            if spec.kind == "gpio":
+            if set_line is not None and spec.kind == "gpio":
                 set_line.release()
         finally:
-            port.close()
+            engine.close(ENGINE_DEADLINE_S)
 
 
 # -- the handler ---------------------------------------------------------------------------------

@@ -1,10 +1,10 @@
 """The control socket: how ``aurora-gateway hc12 …`` reaches a running gateway's HC-12 backend.
 
-A running gateway owns the port (opened exclusively) and its TX worker holds the port lock for
-every frame.  An AT exchange must hold the *same* lock and know the vehicle's state, so the
-command-line tool does not open the port itself: it sends its request over a Unix socket that
-the backend serves, and the backend runs the exchange under its own lock, applying its own
-knowledge of the vehicle (the latest SM_UPDATE/STATUS it relayed).
+A running gateway owns the port (opened exclusively) through its port engine.  An AT exchange
+must take the port from that engine (:meth:`gateway.port.PortEngine.exclusive`) and know the
+vehicle's state, so the command-line tool does not open the port itself: it sends its request
+over a Unix socket that the backend serves, and the backend runs the exchange itself,
+applying its own knowledge of the vehicle (the latest SM_UPDATE/STATUS it relayed).
 
 * The socket lives in a per-user directory: ``$XDG_RUNTIME_DIR/aurora-gateway/`` or else
   ``/tmp/aurora-gateway-<uid>/`` (created 0700, refused if anyone else owns it or may write
@@ -13,6 +13,11 @@ knowledge of the vehicle (the latest SM_UPDATE/STATUS it relayed).
   ``--gateway PATH`` name it explicitly.
 * One request per connection: a JSON object on one line (``{"op": "channel", "arg": "5",
   "bench": false}``), answered by one JSON line (a :class:`~backends.hc12.provision.Result`).
+  Both ends read with the one sans-I/O :class:`JsonLines` reader.
+* The server is a :class:`~gateway.port.PortServer` on an :class:`~gateway.ioloop.IoLoop` —
+  the backend passes its port engine's, so a request runs on the thread that owns the port
+  and connections need no threads of their own.  A client that sends nothing is dropped
+  after ``REQUEST_TIMEOUT_S``.
 * If the client goes away mid-exchange (Ctrl-C), the backend still completes the exchange and
   restores the port itself.
 """
@@ -25,6 +30,7 @@ import json
 import logging
 import os
 import re
+import selectors
 import socket
 import stat
 import threading
@@ -32,10 +38,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from gateway.ioloop import IoLoop, Timer
+from gateway.port import PortServer
+
 log = logging.getLogger(__name__)
 
 PROTOCOL_VERSION = 1
 MAX_REQUEST = 4096
+MAX_REPLY = 1 << 20
+REQUEST_TIMEOUT_S = 2.0
 
 
 def runtime_dir(create: bool = True) -> Path:
@@ -70,22 +81,87 @@ def resolve(control: str, url: str, create: bool = True) -> Path | None:
     return Path(control)
 
 
+class BadMessage(ValueError):
+    """A control line that is not one JSON object (or is too long)."""
+
+
+class JsonLines:
+    """Sans-I/O reader of the control protocol, both ends: bytes in, one event per line out —
+    the JSON object, or a :class:`BadMessage`.  A line longer than ``limit`` is a
+    :class:`BadMessage` and is dropped."""
+
+    def __init__(self, limit: int = MAX_REQUEST) -> None:
+        self.limit = limit
+        self._buf = b""
+        self._skipping = False  # inside an over-long line: drop up to its end
+
+    def feed(self, data: bytes) -> list[dict[str, Any] | BadMessage]:
+        self._buf += data
+        out: list[dict[str, Any] | BadMessage] = []
+        while True:
+            line, sep, rest = self._buf.partition(b"\n")
+            if not sep:
+                if len(self._buf) > self.limit and not self._skipping:
+                    out.append(BadMessage(f"a line longer than {self.limit} bytes"))
+                    self._skipping = True
+                if self._skipping:
+                    self._buf = b""
+                return out
+            self._buf = rest
+            if self._skipping:
+                self._skipping = False
+            elif len(line) > self.limit:
+                out.append(BadMessage(f"a line longer than {self.limit} bytes"))
+            else:
+                out.append(_parse(line))
+
+    def flush(self) -> list[dict[str, Any] | BadMessage]:
+        """End of the stream: a last line without its newline still counts."""
+        line, self._buf = self._buf, b""
+        if not line.strip() or self._skipping:
+            return []
+        return [_parse(line)]
+
+
+def _parse(line: bytes) -> dict[str, Any] | BadMessage:
+    try:
+        value = json.loads(line or b"null")
+    except ValueError as exc:
+        return BadMessage(str(exc))
+    if not isinstance(value, dict):
+        return BadMessage("expected a JSON object")
+    return value
+
+
+def encode_line(message: dict[str, Any]) -> bytes:
+    return json.dumps(message).encode() + b"\n"
+
+
 class ControlServer:
-    """Serves requests on a Unix socket, one connection at a time per thread."""
+    """Serves one-line JSON requests on a Unix socket, on ``loop`` (see the module doc)."""
 
     def __init__(self, path: Path, handler: Callable[[dict[str, Any]], dict[str, Any]],
-                 name: str = "hc12") -> None:
+                 loop: IoLoop, name: str = "hc12") -> None:
         self.path = Path(path)
         self.handler = handler
+        self.loop = loop
         self.name = name
-        self._sock: socket.socket | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._inode: int | None = None
         self.requests = 0
+        self._inode: int | None = None
+        self._bound: socket.socket | None = None
+        self._server: PortServer | None = None
+        self._clients: set[_Client] = set()
 
     def start(self) -> None:
-        """Bind and serve; raises OSError if another live server already answers there."""
+        """Bind (now, so a clash is known at once) and serve on the loop; raises OSError if
+        another live server already answers there."""
+        self._bound = self._listen()
+        server = PortServer(self._listener, self._accepted, loop=self.loop,
+                            name=f"{self.name} control")
+        self._server = server
+        server.start()
+
+    def _listen(self) -> socket.socket:
         if self.path.exists() or self.path.is_symlink():
             if _alive(self.path):
                 raise OSError(f"{self.path} is served by another running gateway")
@@ -94,74 +170,122 @@ class ControlServer:
         old_umask = os.umask(0o177)
         try:
             sock.bind(str(self.path))
+            os.chmod(self.path, 0o600)
+            self._inode = self.path.stat().st_ino
+            sock.listen(4)
+            sock.setblocking(False)
         except OSError:
             sock.close()
             raise
         finally:
             os.umask(old_umask)
-        os.chmod(self.path, 0o600)
-        self._inode = self.path.stat().st_ino
-        sock.listen(4)
-        sock.settimeout(0.2)
-        self._sock = sock
-        self._thread = threading.Thread(target=self._serve, name=f"{self.name}-control",
-                                        daemon=True)
-        self._thread.start()
+        return sock
 
-    def _serve(self) -> None:
-        sock = self._sock
-        assert sock is not None
-        while not self._stop.is_set():
-            try:
-                conn, _ = sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            threading.Thread(target=self._handle, args=(conn,), name=f"{self.name}-control-req",
-                             daemon=True).start()
+    def _listener(self) -> socket.socket:
+        """The PortServer's opener: the socket bound by start(), later a fresh one."""
+        sock, self._bound = self._bound, None
+        return sock if sock is not None else self._listen()
 
-    def _handle(self, conn: socket.socket) -> None:
-        with conn:
-            conn.settimeout(2.0)
-            try:
-                data = b""
-                while b"\n" not in data and len(data) < MAX_REQUEST:
-                    chunk = conn.recv(MAX_REQUEST)
-                    if not chunk:
-                        break
-                    data += chunk
-                request = json.loads(data.split(b"\n", 1)[0] or b"null")
-                if not isinstance(request, dict):
-                    raise ValueError("expected a JSON object")
-            except (OSError, ValueError) as exc:
-                reply: dict[str, Any] = {"ok": False, "op": "", "kind": "usage",
-                                         "error": f"bad control request: {exc}"}
-            else:
-                self.requests += 1
-                try:
-                    reply = self.handler(request)
-                except Exception as exc:  # never let one request kill the server
-                    log.exception("%s: control request failed", self.name)
-                    reply = {"ok": False, "op": str(request.get("op", "")), "kind": "failed",
-                             "error": f"{type(exc).__name__}: {exc}"}
-            with contextlib.suppress(OSError):
-                conn.sendall(json.dumps(reply).encode() + b"\n")
+    def _accepted(self, conn: socket.socket, _addr: Any) -> None:
+        client = _Client(self, conn)
+        self._clients.add(client)
+        self.loop.register(conn, selectors.EVENT_READ, client.on_ready)
+        client.timer = self.loop.call_later(REQUEST_TIMEOUT_S, client.close)
+
+    def answer(self, request: dict[str, Any] | BadMessage) -> dict[str, Any]:
+        """The reply to one request (on the loop's thread); never raises."""
+        if isinstance(request, BadMessage):
+            return {"ok": False, "op": "", "kind": "usage",
+                    "error": f"bad control request: {request}"}
+        self.requests += 1
+        try:
+            return self.handler(request)
+        except Exception as exc:  # never let one request kill the server
+            log.exception("%s: control request failed", self.name)
+            return {"ok": False, "op": str(request.get("op", "")), "kind": "failed",
+                    "error": f"{type(exc).__name__}: {exc}"}
 
     def close(self) -> None:
-        """Stop serving and remove the socket file (if it is still ours); safe twice."""
-        self._stop.set()
-        sock, self._sock = self._sock, None
-        if sock is not None:
-            sock.close()
-        if self._thread is not None:
-            self._thread.join(1.0)
-            self._thread = None
+        """Stop serving, drop open connections and remove the socket file (if it is still
+        ours); safe twice, from any thread."""
+        server, self._server = self._server, None
+        if server is not None:
+            server.close()
+        bound, self._bound = self._bound, None
+        if bound is not None:
+            bound.close()
+        _on_loop(self.loop, self._drop_clients)
         if self._inode is not None:
             with contextlib.suppress(OSError):
                 if self.path.stat().st_ino == self._inode:
                     self.path.unlink()
             self._inode = None
+
+    def _drop_clients(self) -> None:
+        for client in list(self._clients):
+            client.close()
+
+
+class _Client:
+    """One control connection, read on the loop until its request line is complete."""
+
+    def __init__(self, server: ControlServer, conn: socket.socket) -> None:
+        self.server = server
+        self.conn = conn
+        self.reader = JsonLines(MAX_REQUEST)
+        self.timer: Timer | None = None
+        conn.setblocking(False)
+
+    def on_ready(self, _mask: int) -> None:
+        try:
+            data = self.conn.recv(MAX_REQUEST)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.close()
+            return
+        events = self.reader.feed(data) if data else self.reader.flush()
+        if events:
+            self.respond(events[0])
+        elif not data:
+            self.close()  # gone without a word (a liveness probe)
+
+    def respond(self, request: dict[str, Any] | BadMessage) -> None:
+        self.server.loop.unregister(self.conn)
+        if self.timer is not None:
+            self.timer.cancel()
+        reply = self.server.answer(request)  # may run an AT exchange: seconds
+        with contextlib.suppress(OSError):
+            self.conn.settimeout(REQUEST_TIMEOUT_S)
+            self.conn.sendall(encode_line(reply))
+        self.close()
+
+    def close(self) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+        self.server._clients.discard(self)
+        self.server.loop.unregister(self.conn)
+        with contextlib.suppress(OSError):
+            self.conn.close()
+
+
+def _on_loop(loop: IoLoop, fn: Callable[[], Any], timeout: float = 1.0) -> None:
+    """Run ``fn`` on ``loop``'s thread and wait for it (at once if that is not running)."""
+    if loop.in_loop_thread or not loop.running:
+        fn()
+        return
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            fn()
+        finally:
+            done.set()
+
+    loop.call_soon(run)
+    if not done.wait(timeout):
+        log.debug("loop %s busy; closing control connections from here", loop.name)
+        fn()
 
 
 def _alive(path: Path) -> bool:
@@ -184,17 +308,19 @@ def reachable(path: Path) -> bool:
 def call(path: Path, request: dict[str, Any], timeout: float) -> dict[str, Any]:
     """Send one request and wait up to ``timeout`` for its answer; OSError/ValueError on
     failure."""
+    reader = JsonLines(MAX_REPLY)
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
         s.settimeout(timeout)
         s.connect(str(path))
-        s.sendall(json.dumps({"version": PROTOCOL_VERSION, **request}).encode() + b"\n")
-        data = b""
-        while b"\n" not in data:
+        s.sendall(encode_line({"version": PROTOCOL_VERSION, **request}))
+        events: list[dict[str, Any] | BadMessage] = []
+        while not events:
             chunk = s.recv(65536)
+            events = reader.feed(chunk) if chunk else reader.flush()
             if not chunk:
                 break
-            data += chunk
-    reply = json.loads(data.split(b"\n", 1)[0] or b"null")
-    if not isinstance(reply, dict):
+    if not events:
         raise ValueError("the gateway sent no answer")
-    return reply
+    if isinstance(events[0], BadMessage):
+        raise events[0]
+    return events[0]

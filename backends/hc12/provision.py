@@ -1,16 +1,17 @@
 """Provisioning the HC-12: one AT exchange with every safety rule of the firmware's shell.
 
-:class:`AtSession` owns the port for one exchange:
+:class:`AtSession` runs one exchange on a port its caller owns for the whole exchange — the
+port engine's :meth:`~gateway.port.PortEngine.exclusive` (the firmware's TX lock), so
+transparent-mode frame bytes can never interleave with AT commands; frames queue meanwhile
+and drain when the port is handed back.  The session:
 
-1. takes the port lock (the TX worker's :attr:`gateway.link.LinkEngine.lock` when a gateway
-   runs), so transparent-mode frame bytes can never interleave with AT commands; frames
-   queue meanwhile and drain when the lock is released;
-2. drains what the worker already wrote (``flush``), remembers the host UART rate and
+1. drains what the engine already wrote (``flush``), remembers the host UART rate and
    switches it to 9600 baud, asserts SET and waits for the module (≥ 40 ms);
-3. sends commands and checks each reply;
-4. on **every** exit path — success, bad reply, timeout, port failure, Ctrl-C — releases SET,
+2. sends commands and checks each reply (a port with a zero read timeout, as the engine
+   keeps it, is polled every few milliseconds);
+3. on **every** exit path — success, bad reply, timeout, port failure, Ctrl-C — releases SET,
    waits for the module to return to transparent mode (≤ 80 ms) and restores the host UART
-   rate, with SIGINT deferred while it does, then releases the lock.
+   rate, with SIGINT deferred while it does.
 
 :func:`run_request` turns an operator request (``info``, ``channel N`` …) into commands
 (validated before anything is touched), runs them and words the result.
@@ -39,6 +40,7 @@ NEEDS_ARG = {"channel": "a channel 1–127", "baud": "a rate (" + "|".join(map(s
              + ")", "power": "a power level 1–8", "mode": "a mode 1–4",
              "at": "an AT command, e.g. AT+V"}
 REPLY_LIMIT = 512  # bytes; a flood of noise is garbage, not a reply
+POLL_S = 0.005  # between reads of a port that returns at once when nothing is waiting
 
 
 class ProvisionError(Exception):
@@ -95,20 +97,15 @@ _last_exit: dict[int, float] = {}  # id(port) → monotonic time AT mode was las
 class AtSession:
     """One AT exchange on an open port (see the module docstring)."""
 
-    def __init__(self, port: Any, set_line: SetLine, lock: Any = None, *,
-                 at_baud: int = at.AT_BAUD, timing: Timing = Timing(),
-                 lock_timeout_s: float = 5.0,
-                 sleep: Callable[[float], None] = time.sleep,
+    def __init__(self, port: Any, set_line: SetLine, *, at_baud: int = at.AT_BAUD,
+                 timing: Timing = Timing(), sleep: Callable[[float], None] = time.sleep,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.port = port
         self.set_line = set_line
-        self.lock = lock if lock is not None else threading.RLock()
         self.at_baud = at_baud
         self.timing = timing
-        self.lock_timeout_s = lock_timeout_s
         self._sleep = sleep
         self._clock = clock
-        self._locked = False
         self._saved_baud: int | None = None
         self._set_asserted = False
         self.restore_error: str | None = None
@@ -117,10 +114,6 @@ class AtSession:
 
     def __enter__(self) -> AtSession:
         try:
-            if not self.lock.acquire(timeout=self.lock_timeout_s):
-                raise ProvisionError("the HC-12 port stayed busy (the TX worker is stuck in a "
-                                     "write?); nothing was sent")
-            self._locked = True
             port = self.port
             port.flush()  # frame bytes already written leave at the transparent-mode rate
             left = _last_exit.get(id(port))
@@ -146,8 +139,8 @@ class AtSession:
         self._exit()
 
     def _exit(self) -> None:
-        """Release SET, restore the host baud rate, release the lock — each step attempted
-        whatever happened before it, with Ctrl-C held off."""
+        """Release SET and restore the host baud rate — each step attempted whatever
+        happened before it, with Ctrl-C held off."""
         errors: list[str] = []
         with sigint_deferred():
             port = self.port
@@ -170,9 +163,6 @@ class AtSession:
                         port.baudrate = saved
                 except Exception as exc:
                     errors.append(f"restoring {saved} baud: {exc}")
-            if self._locked:
-                self._locked = False
-                self.lock.release()
         if errors:
             self.restore_error = "; ".join(errors)
             log.error("HC-12 AT exit: %s", self.restore_error)
@@ -197,6 +187,8 @@ class AtSession:
             waiting = port.in_waiting
             chunk = port.read(waiting if waiting > 0 else 1)
             if not chunk:
+                if not getattr(port, "timeout", None):  # returned at once: do not spin
+                    self._sleep(POLL_S)
                 continue
             buf += chunk
             last_rx = self._clock()
@@ -289,10 +281,16 @@ def interpret(op: str, arg: Any, replies: list[list[str]], host_baud: int) -> Re
     """Word the replies of a successful exchange."""
     res = Result(True, op, replies=replies)
     settings = at.parse_rx(replies[-1]) if op in ("info", "mode", "reset") else None
-    if settings is not None:
+    if settings is not None:  # info, mode, reset: the module's settings read back
         res.settings = settings.as_dict()
-    if op == "info":
-        res.message = describe(settings)
+        if op == "info":
+            res.message = describe(settings)
+        else:
+            head = (f"mode set to FU{int(str(arg))}" if op == "mode"
+                    else "factory defaults restored")
+            res.message = head + "; the module now reports:\n" + describe(settings)
+            if settings.baud != host_baud:
+                res.warnings.append(follow_warning(settings.baud, host_baud))
     elif op == "channel":
         n = int(str(arg))
         res.message = (f"channel set to {n} ({at.channel_mhz(n):.1f} MHz); the ground module "
@@ -305,12 +303,6 @@ def interpret(op: str, arg: Any, replies: list[list[str]], host_baud: int) -> Re
     elif op == "power":
         n = int(str(arg))
         res.message = f"power set to {n} ({at.POWER_DBM[n]:+d} dBm)"
-    elif op in ("mode", "reset"):
-        head = (f"mode set to FU{int(str(arg))}" if op == "mode"
-                else "factory defaults restored")
-        res.message = head + "; the module now reports:\n" + describe(settings)
-        if settings.baud != host_baud:
-            res.warnings.append(follow_warning(settings.baud, host_baud))
     else:
         res.message = "\n".join(replies[0]) if replies[0] else "(no reply)"
         cmd = str(arg).strip().upper()
@@ -338,9 +330,10 @@ def check_allowed(set_line: SetLine, watch: VehicleWatch, bench: bool) -> None:
         raise Refused(reason)
 
 
-def run_request(port: Any, set_line: SetLine, lock: Any, op: str, arg: Any, *,
-                host_baud: int, at_baud: int = at.AT_BAUD, timing: Timing = Timing()) -> Result:
-    """Validate, exchange and word one request on an open port (checks done by the caller).
+def run_request(port: Any, set_line: SetLine, op: str, arg: Any, *, host_baud: int,
+                at_baud: int = at.AT_BAUD, timing: Timing = Timing()) -> Result:
+    """Validate, exchange and word one request on an open port the caller owns (from
+    :meth:`~gateway.port.PortEngine.exclusive`; checks done by the caller).
 
     Failures come back as a :class:`Result` with ``ok`` False; KeyboardInterrupt propagates
     (after the session restored the port)."""
@@ -349,7 +342,7 @@ def run_request(port: Any, set_line: SetLine, lock: Any, op: str, arg: Any, *,
     except AtUsageError as exc:
         return Result(False, op, error=str(exc), kind="usage")
     replies: list[list[str]] = []
-    session = AtSession(port, set_line, lock, at_baud=at_baud, timing=timing)
+    session = AtSession(port, set_line, at_baud=at_baud, timing=timing)
     try:
         with session:
             for cmd in commands:

@@ -131,7 +131,7 @@ class GpioSetLine:
 
     def _gpiod(self) -> Any:
         try:
-            import gpiod  # type: ignore[import-not-found]
+            import gpiod
         except ImportError:
             raise SetLineError("set_line gpio needs libgpiod's Python bindings: "
                                "pip install 'gpiod>=2'") from None
@@ -145,7 +145,7 @@ class GpioSetLine:
 
     def assert_(self) -> None:
         gpiod = self._gpiod()
-        from gpiod.line import Direction, Value  # type: ignore[import-not-found]
+        from gpiod.line import Direction, Value
 
         if self._request is None:
             try:
@@ -162,7 +162,7 @@ class GpioSetLine:
         req, self._request = self._request, None
         if req is None:
             return
-        from gpiod.line import Value  # type: ignore[import-not-found]
+        from gpiod.line import Value
 
         try:
             req.set_value(self.line, Value.INACTIVE)

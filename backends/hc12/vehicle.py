@@ -21,7 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from dialects.states import IDLE_STATE, state_name
-from gateway.model import SmUpdate, Status
+from gateway.model import SmUpdate, Status, kind
 
 DEFAULT_MAX_AGE_S = 3.0
 
@@ -57,7 +57,7 @@ class VehicleWatch:
         self.last: Heard | None = None
 
     def observe(self, msg: SmUpdate | Status) -> None:
-        heard = Heard(msg.KIND, msg.sm_type, msg.state, bool(msg.armed), self._clock(),
+        heard = Heard(kind(msg), msg.sm_type, msg.state, bool(msg.armed), self._clock(),
                       msg.origin)
         with self._lock:
             self.last = heard
