@@ -93,6 +93,29 @@ BAD_FLAGS = [
     (["--duration", "soon"], "--duration"),  # the default command is run
 ]
 
+# Flag values the file's own keys refuse: one line naming the flag and what is allowed, even
+# when nothing would use the value (no serial source for --baud, no sim for --sim-speed).
+RANGE_FLAGS = [
+    (["run", "--link-timeout", "0.01"], "--link-timeout", "≥ 0.05"),
+    (["run", "--baud", "-5", "--duration", "5"], "--baud", "≥ 50"),
+    (["run", "--source", "loop://", "--sim-speed", "-1", "--duration", "5"], "--sim-speed",
+     "≥ 0"),
+    (["run", "--status-interval", "-1"], "--status-interval", "≥ 0"),
+    (["run", "--duration", "-1"], "--duration", "≥ 0"),
+    (["run", "--log-level", "loud"], "--log-level", "'warning'"),
+    (["record", "/nonexistent/x.agrec", "--sim-speed", "fast"], "--sim-speed", "≥ 0"),
+    (["record", "/nonexistent/x.agrec", "--baud", "9600.5"], "--baud", "an integer"),
+    (["replay", "/nonexistent/x.agrec", "--speed", "-2"], "--speed", "≥ 0"),
+    (["simulate", "--out", "loop://", "--cycles", "-1"], "--cycles", "≥ 0"),
+    (["simulate", "--out", "loop://", "--baud", "0"], "--baud", "≥ 50"),
+    (["simulate", "--out", "loop://", "--status-hz", "1000"], "--status-hz", "from 0 to 100"),
+    # a URL scheme pyserial has no handler for: refused, not retried for ever
+    (["run", "--source", "nosuch://x"], "--source", "unknown URL scheme 'nosuch'"),
+    (["record", "/nonexistent/x.agrec", "--source", "nosuch://x"], "--source",
+     "unknown URL scheme"),
+    (["simulate", "--out", "nosuch://x", "--cycles", "1"], "--out", "unknown URL scheme"),
+]
+
 BAD_TOML = [
     ('[gateway]\nstatus_interval_s = "x"\n', "gateway.status_interval_s"),
     ("[gateway]\nstatus_interval = 1\n", "gateway.status_interval"),
@@ -113,6 +136,8 @@ def short_runs(tmp_path_factory: pytest.TempPathFactory
     for command in HELP_CASES:
         jobs[("help", command)] = [*([command] if command else []), "--help"]
     for args, _ in BAD_FLAGS:
+        jobs[("flag", *args)] = args
+    for args, _, _ in RANGE_FLAGS:
         jobs[("flag", *args)] = args
     for i, (toml, _) in enumerate(BAD_TOML):
         path = d / f"bad{i}.toml"
@@ -151,6 +176,120 @@ def test_a_bad_flag_value_is_one_line_naming_it_and_exit_2(short_runs: dict, arg
     assert key in lines[0]
     assert "Traceback" not in r.stderr
     assert r.stdout == ""
+
+
+@pytest.mark.parametrize(("args", "flag", "allowed"), RANGE_FLAGS)
+def test_a_flag_value_is_checked_by_the_key_it_sets_whether_used_or_not(
+        short_runs: dict, args: list[str], flag: str, allowed: str) -> None:
+    r = short_runs[("flag", *args)]
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = own_lines(r.stderr)
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"aurora-gateway: {flag}"), lines[0]
+    assert allowed in lines[0], lines[0]
+    assert "Traceback" not in r.stderr and r.stdout == ""
+
+
+def _bad_value(key: config.Key) -> object:
+    """A value ``key`` refuses: outside its range or its choices."""
+    if key.choices is not None:
+        return "no-such-choice"
+    assert key.minimum is not None, "a key with nothing to refuse"
+    return key.minimum - 1
+
+
+def _file_error(section: str, key: str, value: object) -> str:
+    table = ({"gateway": {key: value}} if section == "gateway"
+             else {"sources": [{"type": section, key: value,
+                                **({"url": "loop://"} if section == "serial" else {})}]})
+    with pytest.raises(config.ConfigError) as info:
+        config.parse(table)
+    return str(info.value)
+
+
+def _flag_error(argv: list[str]) -> str:
+    args = cli.build_parser(backend_flags=False).parse_args(argv)
+    with pytest.raises(config.ConfigError) as info:
+        cli.config_from_args(args)
+    return str(info.value)
+
+
+@pytest.mark.parametrize(("dest", "flag", "key"), [
+    f for f in cli.GATEWAY_FLAGS  # the keys that refuse some value (not record: any path)
+    if config.GATEWAY_SCHEMA.keys[f[2]].choices or config.GATEWAY_SCHEMA.keys[f[2]].minimum
+    is not None])
+def test_a_gateway_flag_is_refused_exactly_as_its_file_key(dest: str, flag: str,
+                                                          key: str) -> None:
+    spec = config.GATEWAY_SCHEMA.keys[key]
+    bad = _bad_value(spec)
+    from_file = _file_error("gateway", key, bad)
+    from_flag = _flag_error(["run", flag, str(bad)])
+    assert from_file.startswith(f"gateway.{key}: ")
+    assert from_flag.startswith(f"{flag} (gateway.{key}): ")
+    assert from_flag.split(": ", 1)[1] == from_file.split(": ", 1)[1]  # the same judgement
+
+
+@pytest.mark.parametrize(("dest", "flag", "source_type", "key"), cli.SOURCE_FLAGS)
+def test_a_source_flag_is_refused_exactly_as_its_file_key(dest: str, flag: str,
+                                                         source_type: str, key: str) -> None:
+    spec = config.registry.load(config.registry.SOURCE_GROUP, source_type).CONFIG.keys[key]
+    bad = _bad_value(spec)
+    from_file = _file_error(source_type, key, bad)
+    # the flag is checked with no source of that type configured at all
+    other = "sim" if source_type != "sim" else "loop://"
+    from_flag = _flag_error(["run", "--source", other, flag, str(bad)])
+    assert from_file.startswith(f"sources[0].{key}: ")
+    assert from_flag.startswith(f"{flag} (")
+    assert from_flag.split(": ", 1)[1] == from_file.split(": ", 1)[1]
+
+
+def test_a_flag_sets_the_key_a_file_would_on_every_source_of_its_type(tmp_path: Path) -> None:
+    path = tmp_path / "two.toml"
+    path.write_text('[[sources]]\ntype = "serial"\nurl = "loop://"\n\n'
+                    '[[sources]]\ntype = "serial"\nname = "b"\nurl = "/dev/ttyNOPE9"\n'
+                    'baudrate = 9600\n\n[gateway]\nlink_timeout_s = 5\n')
+    args = cli.build_parser(backend_flags=False).parse_args(
+        ["run", "-c", str(path), "--baud", "57600", "--link-timeout", "0.5"])
+    cfg = cli.config_from_args(args)
+    assert [p.options["baudrate"] for p in cfg.sources] == [57600, 57600]
+    assert cfg.gateway["link_timeout_s"] == 0.5 and type(cfg.gateway["link_timeout_s"]) is float
+
+
+# -- Ctrl-C during start-up ------------------------------------------------------------------------
+
+# Runs the console script's entry point with an import hook that sends the process a real
+# SIGINT the moment a given module is imported: Ctrl-C pressed at exactly that point.
+CTRL_C_AT_IMPORT = r"""
+import importlib.abc, os, signal, sys
+
+class CtrlC(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == TARGET:
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+TARGET = sys.argv[1]
+sys.argv = ["aurora-gateway", *sys.argv[2:]]
+sys.meta_path.insert(0, CtrlC())
+from gateway.cli import console_main
+console_main()
+"""
+
+
+@pytest.mark.parametrize(("module", "args"), [
+    # while the backends import, building the parser (pymavlink's dialect is slow)
+    ("backends.mavlink", ["run", "--duration", "5"]),
+    # while a command imports what it needs, before it handles signals itself
+    ("gateway.flight", ["simulate", "--out", "loop://", "--cycles", "1"]),
+])
+def test_ctrl_c_during_start_up_ends_quietly_with_status_130(module: str,
+                                                             args: list[str]) -> None:
+    r = subprocess.run([sys.executable, "-c", CTRL_C_AT_IMPORT, module, *args], cwd=ROOT,
+                       capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert r.returncode == 130, (r.returncode, r.stderr)
+    assert "Traceback" not in r.stderr and "KeyboardInterrupt" not in r.stderr, r.stderr
+    assert own_lines(r.stderr) == [], r.stderr
 
 
 @pytest.mark.parametrize(("toml", "key"), BAD_TOML)

@@ -3,13 +3,25 @@ every kind of mistake."""
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 
 import pytest
 
 from backends.console import ConsoleBackend
-from gateway.config import ConfigError, GatewayConfig, embedded_default, load, parse
+from gateway import registry
+from gateway.config import (
+    GATEWAY_SCHEMA,
+    ConfigError,
+    GatewayConfig,
+    check_flag,
+    embedded_default,
+    flag_value,
+    load,
+    parse,
+)
+from gateway.recording import Recorder
 from gateway.sources.serial_source import SerialSource
 from gateway.sources.sim import SimSource
 
@@ -210,3 +222,104 @@ def test_load_of_a_valid_file_with_a_bad_value_names_the_key(tmp_path: Path) -> 
     path.write_text('[gateway]\nlog_level = "chatty"\n', encoding="utf-8")
     with pytest.raises(ConfigError, match=r"^gateway\.log_level: expected one of"):
         load(path)
+
+
+# -- a source URL's scheme, checked by the url key ---------------------------------------------
+
+
+@pytest.mark.parametrize("url", ["nosuch://x", "serial2://dev", "http://example.com"])
+def test_a_serial_url_with_a_scheme_pyserial_does_not_know_is_refused(url: str) -> None:
+    message = config_error(f'[[sources]]\ntype = "serial"\nurl = "{url}"\n')
+    scheme = url.split("://")[0]
+    assert message.startswith(f"sources[0].url: unknown URL scheme '{scheme}'"), message
+    for known in ("loop://", "socket://", "rfc2217://", "a device path"):
+        assert known in message
+
+
+@pytest.mark.parametrize("url", ["/dev/ttyNOTTHEREYET0", "COM7", "loop://", "LOOP://",
+                                 "socket://127.0.0.1:7777", "rfc2217://host:2217",
+                                 "spy://loop://?file=/dev/null", "hwgrep://0403:6001"])
+def test_device_paths_and_known_schemes_are_accepted(url: str) -> None:
+    """A device path that does not exist yet is accepted: the source retries it (hot-plug)."""
+    cfg = parse_toml(f'[[sources]]\ntype = "serial"\nurl = "{url}"\n')
+    assert cfg.sources[0].options["url"] == url
+
+
+# -- flags: the same keys ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("text", "value"), [("5", 5), ("-5", -5), ("0.01", 0.01),
+                                             ("1e3", 1000.0), ("fast", "fast"), ("", "")])
+def test_a_number_flag_reads_as_a_file_value_would(text: str, value: object) -> None:
+    got = flag_value(text)
+    assert got == value and type(got) is type(value)
+
+
+def test_a_flag_is_judged_by_its_key_and_named_in_the_message() -> None:
+    key = GATEWAY_SCHEMA.keys["link_timeout_s"]
+    assert check_flag("--link-timeout", key, 2) == 2.0
+    for bad, shown in ((0.01, "0.01"), (flag_value("nan"), "nan"), ("x", "'x'")):
+        with pytest.raises(ConfigError) as info:
+            check_flag("--link-timeout", key, bad, "gateway.link_timeout_s")
+        assert str(info.value) == ("--link-timeout (gateway.link_timeout_s): expected a number "
+                                   f"≥ 0.05, got {shown}")
+
+
+# -- the example file shows every key -------------------------------------------------------------
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "gateway.toml"
+_COMMENTED = re.compile(r"^# (\[\[?[\w.]+\]\]?|\w+ = .*)$")
+_TABLE = re.compile(r"^(?:# )?(\[\[sources\]\]|\[backends\.(\w+)\])")
+
+
+def _sections(text: str) -> list[tuple[str, str, str]]:
+    """(group, type, block) for every table of the example, commented out or not."""
+    out: list[tuple[str, str, str]] = []
+    lines = text.splitlines()
+    starts = [i for i, ln in enumerate(lines) if _TABLE.match(ln)]
+    for i, j in zip(starts, [*starts[1:], len(lines)], strict=True):
+        block = "\n".join(lines[i:j])
+        m = _TABLE.match(lines[i])
+        assert m is not None
+        if m.group(2) is not None:
+            typed = re.search(r'^(?:# )?type = "(\w+)"', block, re.M)
+            out.append((registry.BACKEND_GROUP, typed.group(1) if typed else m.group(2),
+                        block))
+        else:
+            typed = re.search(r'^(?:# )?type = "(\w+)"', block, re.M)
+            assert typed, f"a [[sources]] table without a type:\n{block}"
+            out.append((registry.SOURCE_GROUP, typed.group(1), block))
+    return out
+
+
+@pytest.mark.parametrize("group", [registry.SOURCE_GROUP, registry.BACKEND_GROUP])
+def test_the_example_file_shows_every_key_of_every_source_and_backend(group: str) -> None:
+    """What the README promises: examples/gateway.toml lists every key with its default."""
+    sections = _sections(EXAMPLE.read_text(encoding="utf-8"))
+    for name in registry.names(group):
+        cls = registry.load(group, name)
+        blocks = [b for g, t, b in sections if g == group and t == name]
+        assert blocks, f"examples/gateway.toml has no table for {name}"
+        block = "\n".join(blocks)
+        for key in (cls.CONFIG.keys if cls.CONFIG else {}):
+            assert re.search(rf"^(# )?{key} = ", block, re.M), \
+                f"examples/gateway.toml: {name} does not show {key}"
+
+
+def test_the_example_file_is_valid_with_every_commented_key_switched_on(
+        tmp_path: Path) -> None:
+    """Every value shown, commented out or not, is one the schema accepts."""
+    text = EXAMPLE.read_text(encoding="utf-8")
+    on = "\n".join(m.group(1) if (m := _COMMENTED.match(ln)) else ln
+                   for ln in text.splitlines())
+    data = tomllib.loads(on)
+    replay = tmp_path / "flight.agrec"
+    Recorder(replay).close()  # the example's path names a recording the user has
+    for table in data["sources"]:
+        if table["type"] == "replay":
+            table["path"] = str(replay)
+    cfg = parse(data)
+    assert {p.type for p in cfg.sources} == set(registry.source_names())
+    assert {p.type for p in cfg.backends} == {"console"}  # the others are shown disabled
+    commented = sum(1 for ln in text.splitlines() if _COMMENTED.match(ln))
+    assert commented > 40  # the switch above did switch something on
