@@ -35,7 +35,13 @@ from helpers import BlockingTransport, run_within, wait_for
 from gateway.backend import Outcome
 from gateway.backoff import Backoff
 from gateway.ioloop import IoLoop, Timer
-from gateway.port import DEFAULT_QUEUE_DEPTH, PortEngine, PortNotReady, PortServer
+from gateway.port import (
+    DATAGRAM_BATCH,
+    DEFAULT_QUEUE_DEPTH,
+    PortEngine,
+    PortNotReady,
+    PortServer,
+)
 from gateway.transport import (
     SocketPort,
     open_serial,
@@ -581,6 +587,44 @@ def test_udpin_learns_its_peers_and_answers_each(
     assert (eng.stats.connects, eng.stats.disconnects, eng.stats.errors) == (1, 0, 0)
 
 
+class Batches(Collect):
+    """A datagram protocol taking what is waiting in one call (a router's per-frame path);
+    a batch holding ``b"boom"`` makes it raise."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: list[list[bytes]] = []
+
+    def feed(self, data: bytes) -> list[Any]:
+        raise AssertionError("feed() called although feed_many() exists")
+
+    def feed_many(self, datagrams: list[bytes]) -> list[Any]:
+        self.batches.append(list(datagrams))
+        if b"boom" in datagrams:
+            raise ValueError("the protocol choked")
+        return list(datagrams)
+
+
+def test_udp_datagrams_go_to_feed_many_in_batches_and_its_errors_are_counted(
+        engines: Any, stack: contextlib.ExitStack) -> None:
+    proto = Batches()
+    ev = Events()
+    eng = started(engines, lambda: open_udp("127.0.0.1", 0, listen=True), events=ev,
+                  protocol=proto, name="udpin")
+    peer = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+    sent = [b"d%d" % i for i in range(100)]
+    for d in sent:
+        peer.sendto(d, eng.port.address())
+    assert ev.wait(lambda: len(ev.datagrams()) == len(sent))
+    assert ev.datagrams() == sent  # in order, none lost or merged
+    assert all(1 <= len(b) <= DATAGRAM_BATCH for b in proto.batches)
+    peer.sendto(b"boom", eng.port.address())
+    assert wait_for(lambda: eng.stats.protocol_errors == 1)
+    peer.sendto(b"after", eng.port.address())
+    assert ev.wait_data(b"after")
+    assert (eng.stats.connects, eng.stats.disconnects, eng.stats.read_errors) == (1, 0, 0)
+
+
 def test_loop_url_without_a_descriptor_is_polled_and_reopened(engines: Any) -> None:
     ports: list[serial.SerialBase] = []
 
@@ -1015,6 +1059,19 @@ def test_exclusive_parks_the_engine_and_frames_queue_until_it_is_released(
     assert ev.wait_data(b"123")
     assert eng.drain(DEADLINE_S) and eng.stats.sent_frames == 3
     assert ev.data() == b"123"
+
+
+def test_exclusive_puts_back_the_settings_the_borrower_changed(engines: Any) -> None:
+    port = open_serial("loop://", 19200, timeout=0)
+    ev = Events()
+    eng = started(engines, lambda: port, events=ev)
+    with eng.exclusive(DEADLINE_S) as raw:
+        raw.baudrate = 9600  # e.g. a radio's command mode runs at another rate
+        raw.timeout = 0.5  # and the exchange waits for its answers
+    assert (port.baudrate, port.timeout) == (19200, 0)
+    assert eng.submit(b"resumed") is Outcome.ACCEPTED
+    assert ev.wait_data(b"resumed")
+    assert eng.stats.reconnects_requested == 0
 
 
 def test_exclusive_is_refused_when_the_port_is_down_or_the_engine_is_not_running(
