@@ -40,7 +40,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere, without installi
     sys.path.insert(0, str(ROOT))
 
 from gateway import wire  # noqa: E402
-from gateway.backend import Outcome  # noqa: E402
+from gateway.backend import Outcome, Routes  # noqa: E402
 from gateway.dispatcher import Dispatcher  # noqa: E402
 from gateway.model import SmUpdate  # noqa: E402
 
@@ -53,6 +53,9 @@ class TrivialBackend:
 
     def __init__(self, name: str) -> None:
         self.name = name
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
 
     def send_sm_update(self, msg: SmUpdate) -> None:
         return None
@@ -67,6 +70,9 @@ class AcceptingBackend:
     def __init__(self, name: str) -> None:
         self.name = name
 
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
+
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         return ACCEPTED
 
@@ -76,6 +82,9 @@ class LookupAcceptingBackend:
 
     def __init__(self, name: str) -> None:
         self.name = name
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_sm_update)
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         return Outcome.ACCEPTED
