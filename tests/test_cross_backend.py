@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import os
 
+from mavlink_peer import MavPeer
+
 from backends.crsf import CrsfBackend
 from backends.crsf.frames import LinkStatistics, encode
 from backends.mavlink import MavlinkBackend
-from backends.mavlink.testing import MavPeer
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats
 

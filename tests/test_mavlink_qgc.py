@@ -20,9 +20,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from mavlink_peer import MavPeer
 
 from backends.mavlink import MavlinkBackend
-from backends.mavlink.testing import MavPeer
 from backends.mavlink.translate import sm_update_from_mavlink, status_from_mavlink
 from dialects import aurora_mavlink as aurora
 from dialects.states import SimpleState as S

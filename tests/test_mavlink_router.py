@@ -13,8 +13,7 @@ import time
 from typing import Any
 
 import pytest
-
-from backends.mavlink.testing import MavPeer, running_backend, upstream_dialect
+from mavlink_peer import MavPeer, running_backend, upstream_dialect
 
 WAIT = 10.0
 dev = upstream_dialect()

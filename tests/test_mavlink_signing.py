@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from mavlink_peer import MavPeer, running_backend, upstream_dialect
 
 from backends.mavlink import MavlinkBackend
 from backends.mavlink.frames import FramerStats, split_datagram
@@ -23,7 +24,6 @@ from backends.mavlink.signing import (
     key_from_passphrase,
     now_timestamp,
 )
-from backends.mavlink.testing import MavPeer, running_backend, upstream_dialect
 from gateway import config
 from gateway.app import Gateway
 from gateway.config import ConfigError

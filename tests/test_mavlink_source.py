@@ -8,10 +8,10 @@ import time
 from typing import Any
 
 import pytest
+from mavlink_peer import MavPeer, upstream_dialect
 
 from backends.mavlink import MavlinkBackend, MavlinkSource
 from backends.mavlink.source import classic_mode_name
-from backends.mavlink.testing import MavPeer, upstream_dialect
 from gateway import config
 from gateway.dispatcher import Dispatcher
 from gateway.model import Battery, Position, SmUpdate, Status, VehicleState

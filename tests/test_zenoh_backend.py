@@ -6,14 +6,7 @@ import json
 import threading
 
 import pytest
-
-zenoh = pytest.importorskip("zenoh")
-
-from backends.zenoh import ZenohBackend, ZenohSource  # noqa: E402
-from backends.zenoh import encoding as enc  # noqa: E402
-from backends.zenoh.keys import make_attachment  # noqa: E402
-from backends.zenoh.session import SessionOptions  # noqa: E402
-from backends.zenoh.testing import (  # noqa: E402
+from zenoh_peer import (
     Recorder,
     RouterProcess,
     free_endpoint,
@@ -21,6 +14,13 @@ from backends.zenoh.testing import (  # noqa: E402
     wait_for_gateway,
     wait_until,
 )
+
+zenoh = pytest.importorskip("zenoh")
+
+from backends.zenoh import ZenohBackend, ZenohSource  # noqa: E402
+from backends.zenoh import encoding as enc  # noqa: E402
+from backends.zenoh.keys import make_attachment  # noqa: E402
+from backends.zenoh.session import SessionOptions  # noqa: E402
 from gateway import config, wire  # noqa: E402
 from gateway.app import Gateway  # noqa: E402
 from gateway.backend import Outcome  # noqa: E402

@@ -14,13 +14,8 @@ import time
 from pathlib import Path
 
 import pytest
-
-zenoh = pytest.importorskip("zenoh")
-
-from backends.zenoh import ZenohBackend  # noqa: E402
-from backends.zenoh.session import SessionOptions  # noqa: E402
-from backends.zenoh.testing import (  # noqa: E402
-    REPO,
+from helpers import ROOT as REPO
+from zenoh_peer import (
     Recorder,
     RouterProcess,
     free_endpoint,
@@ -29,6 +24,11 @@ from backends.zenoh.testing import (  # noqa: E402
     stop_process,
     wait_for_gateway,
 )
+
+zenoh = pytest.importorskip("zenoh")
+
+from backends.zenoh import ZenohBackend  # noqa: E402
+from backends.zenoh.session import SessionOptions  # noqa: E402
 from gateway import registry  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
 from gateway.model import SmUpdate  # noqa: E402

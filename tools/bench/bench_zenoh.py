@@ -51,19 +51,21 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:  # run as a script from anywhere, without installing
     sys.path.insert(0, str(ROOT))
+if str(ROOT / "tests") not in sys.path:  # the Zenoh test helpers (zenoh_peer)
+    sys.path.insert(0, str(ROOT / "tests"))
 
 import zenoh  # noqa: E402
-
-from backends.zenoh import ZenohBackend  # noqa: E402
-from backends.zenoh import encoding as enc  # noqa: E402
-from backends.zenoh.keys import SeqTracker, make_attachment, parse_attachment  # noqa: E402
-from backends.zenoh.testing import (  # noqa: E402
+from zenoh_peer import (  # noqa: E402
     free_endpoint,
     peer_config,
     read_line,
     stop_process,
     wait_for_gateway,
 )
+
+from backends.zenoh import ZenohBackend  # noqa: E402
+from backends.zenoh import encoding as enc  # noqa: E402
+from backends.zenoh.keys import SeqTracker, make_attachment, parse_attachment  # noqa: E402
 from gateway import wire  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
 from gateway.model import SmUpdate  # noqa: E402

@@ -1,6 +1,7 @@
-"""Helpers for tests and benchmarks: free loopback endpoints, a router subprocess, and a
+"""Zenoh helpers for tests and benchmarks: free loopback endpoints, a router subprocess, and a
 subscriber that records what it receives and lets callers wait for it.
 
+Importable as ``zenoh_peer`` (pytest puts ``tests/`` on ``sys.path``; ``tools/bench`` adds it).
 Nothing here sleeps to synchronise: every wait is on a condition, with a deadline.
 """
 
@@ -20,9 +21,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from backends.zenoh.keys import parse_attachment
+from helpers import ROOT, wait_for
 
-REPO = Path(__file__).resolve().parents[2]
+from backends.zenoh.keys import parse_attachment
 
 
 def free_port() -> int:
@@ -86,7 +87,7 @@ class RouterProcess:
                  cwd: str | Path | None = None) -> None:
         self.endpoint = endpoint or free_endpoint()
         self.config = config
-        self.cwd = cwd or REPO
+        self.cwd = cwd or ROOT
         self.proc: subprocess.Popen | None = None
         self.started_at: float | None = None
 
@@ -94,7 +95,7 @@ class RouterProcess:
         cmd = [sys.executable, "-m", "backends.zenoh.router", "--listen", self.endpoint]
         if self.config:
             cmd += ["--config", str(self.config)]
-        env = {**os.environ, "PYTHONPATH": str(REPO)}
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
         self.proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=subprocess.PIPE,
                                      stderr=subprocess.PIPE, text=True)
         line = read_line(self.proc, timeout)
@@ -178,13 +179,7 @@ class Recorder:
 def wait_until(predicate: Callable[[], bool], timeout: float = 20.0,
                interval: float = 0.01) -> bool:
     """Poll ``predicate`` until it holds (True) or ``timeout`` passes (False)."""
-    deadline = time.monotonic() + timeout
-    pause = threading.Event()
-    while not predicate():
-        if time.monotonic() >= deadline:
-            return False
-        pause.wait(interval)
-    return True
+    return wait_for(predicate, timeout, interval)
 
 
 def wait_for_gateway(session: Any, prefix: str, vehicle: str, timeout: float = 20.0) -> list:

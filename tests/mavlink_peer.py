@@ -4,7 +4,7 @@
 It parses what it receives with a pymavlink generated dialect module — by default pymavlink's
 own ``development`` module (upstream definitions, what QGroundControl's MAVLink library is
 generated from), not this package's dialect — and packs what it sends with it too.  Never
-``mavutil``.
+``mavutil``.  Importable as ``mavlink_peer`` (pytest puts ``tests/`` on ``sys.path``).
 """
 
 from __future__ import annotations
