@@ -72,13 +72,15 @@ def _gateway_key(key: str) -> Key:
 
 def _key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
               dest: str | None = None, metavar: str | None = None,
-              aliases: Sequence[str] = ()) -> None:
+              aliases: Sequence[str] = (), required: bool = False) -> None:
     """A flag whose text becomes the value a file would hold; :func:`_checked` validates it
     with ``key`` (argparse converts nothing, so every error reads like a file's)."""
     kinds = key.kind if isinstance(key.kind, tuple) else (key.kind,)
     numeric = int in kinds or float in kinds
+    if numeric or key.choices is not None:
+        help = f"{help} ({key.describe()})"
     kwargs: dict[str, Any] = {"type": config.flag_value if numeric else str,
-                              "metavar": metavar, "help": f"{help} ({key.describe()})"}
+                              "metavar": metavar, "help": help, "required": required}
     if dest is not None:
         kwargs["dest"] = dest
     p.add_argument(flag, *aliases, **kwargs)
@@ -202,7 +204,7 @@ def build_parser(backend_flags: bool = True,
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
     _key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
-              metavar="URL", aliases=("-o",))
+              metavar="URL", aliases=("-o",), required=True)
     _key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
               metavar="N")
     sim_help = {"rate_hz": ("SM_UPDATE rate (default 10)", "HZ"),
@@ -290,8 +292,11 @@ def config_from_args(args: argparse.Namespace) -> GatewayConfig:
             continue
         current = by_name.get(name)
         merged = {**(current.options if current else {}), **opts}
-        part = config.make_backend(current.type if current else name, merged, name,
-                                   f"backends.{name}")
+        try:  # the file's table passed already: what fails now is a flag's value
+            part = config.make_backend(current.type if current else name, merged, name,
+                                       f"backends.{name}")
+        except ConfigError as exc:
+            raise ConfigError(f"{exc} (set by a --{name}… flag)") from None
         if current is None:
             cfg.backends.append(part)
         else:

@@ -29,6 +29,7 @@ from dialects.states import state_name
 from gateway import cli, config, recording
 from gateway.app import STOP_BUDGET_S, Gateway
 from gateway.flight import FlightModel, FlightProfile
+from gateway.model import SmUpdate
 from gateway.recording import Recorder
 from gateway.sources.sim import flight_frames
 from gateway.wire import decode_all, frame, to_wire_dict
@@ -91,6 +92,7 @@ BAD_FLAGS = [
     (["replay", "/no/such/file.agrec"], "no recording"),
     (["decode", "/no/such/capture.bin"], "/no/such/capture.bin"),
     (["--duration", "soon"], "--duration"),  # the default command is run
+    (["run", "--crsf-baud", "-5"], "--crsf"),  # a backend's flag: the key and the flag
 ]
 
 # Flag values the file's own keys refuse: one line naming the flag and what is allowed, even
@@ -502,6 +504,64 @@ def test_record_command_records_what_its_source_receives(tmp_path: Path) -> None
            "--status-interval", "0")
     assert r.returncode == 0, r.stderr
     assert [f for _, f in recording.read(out)] == [f for _, f in items]
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_record_from_a_mavlink_vehicle_records_its_sm_updates_and_reports_the_rest(
+        tmp_path: Path) -> None:
+    """A MAVLink source delivers AURORA_SM_UPDATEs (no wire frame: built from MAVLink
+    fields) and vehicle states (no wire form).  The first are recorded as the frames they
+    encode to; the others are counted and named in the stop report (once an empty file)."""
+    from dialects import aurora_mavlink as mav
+
+    port = _free_udp_port()
+    out = tmp_path / "mav.agrec"
+    node = mav.MAVLink(None, srcSystem=1, srcComponent=1)
+    heartbeat = node.heartbeat_encode(
+        mav.MAV_TYPE_ROCKET, mav.MAV_AUTOPILOT_GENERIC,
+        mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_SAFETY_ARMED, 3, 4)
+    sent: dict[int, tuple] = {}
+    p = Running("record", str(out), "--source", f"mavlink:udpin:127.0.0.1:{port}",
+                "--status-interval", "0.1", "--duration", "60")
+
+    def recorded(ln: str) -> bool:
+        m = re.search(r"\| rec (\d+)$", ln)
+        return m is not None and int(m.group(1)) >= 5
+
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            deadline = time.monotonic() + TIMEOUT_S
+            k = 0
+            while not p.wait_line("stderr", recorded, 0.05):
+                assert time.monotonic() < deadline, p.text("stderr")[-2000:]
+                k += 1
+                # values an f32 (MAVLink's float) holds exactly
+                fields = (5000 + 100 * k, 3, 1, 0, 0, 100.0 + k, 9.5, -9.75, 12.25, 0.5, -0.25,
+                          1.0, 64)
+                sent[fields[0]] = fields
+                tx.sendto(heartbeat.pack(node), ("127.0.0.1", port))
+                tx.sendto(node.aurora_sm_update_encode(*fields).pack(node),
+                          ("127.0.0.1", port))
+        p.proc.send_signal(signal.SIGINT)
+        assert p.finish(10) == 0, p.text("stderr")[-2000:]
+    finally:
+        p.kill()
+    got = [m for _, f in recording.read(out) for m in decode_all(f)]
+    assert len(got) >= 5
+    for m in got:
+        ts, state, armed, sm_type, reserved, *floats, plen = sent[m.timestamp_ms]
+        want = SmUpdate(ts, state, bool(armed), sm_type, *floats, payload_len=plen,
+                        reserved=reserved)
+        assert m.fields() == want.fields()
+    err = p.text("stderr")
+    assert re.search(r"\d+ frames recorded, \d+ messages with no wire frame not recorded "
+                     r"\(.*vehicle_state \d+", err), err[-2000:]
+    assert "Traceback" not in err
 
 
 @pytest.fixture
