@@ -1,8 +1,10 @@
-"""Backends and sources found by name, imported lazily (python-can's ``BACKENDS`` idiom).
+"""Backends, sources and commands found by name, imported lazily (python-can's ``BACKENDS``
+idiom).
 
-Names come from the entry-point groups below (declared in ``pyproject.toml``; any installed
-package can add its own) plus the built-ins, so a source checkout works before it is
-installed.  Adding a backend touches neither the dispatcher nor the CLI.
+The entry-point groups below are the one list: the built-ins are declared in this project's
+``pyproject.toml`` exactly as a third-party package declares its own, so the package must be
+installed (``pip install -e .`` for a checkout; ``make`` does it) for its metadata to exist.
+Adding a backend touches neither the dispatcher nor the CLI.
 """
 
 from __future__ import annotations
@@ -15,27 +17,6 @@ BACKEND_GROUP = "aurora_gateway.backends"
 SOURCE_GROUP = "aurora_gateway.sources"
 COMMAND_GROUP = "aurora_gateway.commands"
 
-_BUILTIN: dict[str, dict[str, str]] = {
-    BACKEND_GROUP: {
-        "console": "backends.console:ConsoleBackend",
-        "mavlink": "backends.mavlink:MavlinkBackend",
-        "crsf": "backends.crsf:CrsfBackend",
-        "zenoh": "backends.zenoh:ZenohBackend",
-        "hc12": "backends.hc12:Hc12Backend",
-    },
-    SOURCE_GROUP: {
-        "serial": "gateway.sources.serial_source:SerialSource",
-        "sim": "gateway.sources.sim:SimSource",
-        "replay": "gateway.sources.replay:ReplaySource",
-        "mavlink": "backends.mavlink:MavlinkSource",
-        "zenoh": "backends.zenoh:ZenohSource",
-    },
-    COMMAND_GROUP: {
-        "listen": "backends.zenoh.cli:add_command",
-        "hc12": "backends.hc12.cli:add_command",
-    },
-}
-
 _cache: dict[tuple[str, str], Any] = {}
 
 
@@ -44,11 +25,8 @@ class RegistryError(LookupError):
 
 
 def names(group: str) -> dict[str, str]:
-    """Every registered name in ``group`` → its ``module:attr`` target."""
-    found = dict(_BUILTIN.get(group, {}))
-    for ep in entry_points(group=group):
-        found[ep.name] = ep.value
-    return dict(sorted(found.items()))
+    """Every name installed in ``group`` → its ``module:attr`` target, sorted by name."""
+    return dict(sorted((ep.name, ep.value) for ep in entry_points(group=group)))
 
 
 def load(group: str, name: str) -> Any:
@@ -61,9 +39,9 @@ def load(group: str, name: str) -> Any:
     if target is None:
         kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source",
                 COMMAND_GROUP: "command"}.get(group, group)
-        raise RegistryError(
-            f"unknown {kind} {name!r}; available: {', '.join(targets) or 'none'}"
-        )
+        available = ", ".join(targets) or (
+            "none (no aurora_gateway entry points: install the package, pip install -e .)")
+        raise RegistryError(f"unknown {kind} {name!r}; available: {available}")
     module_name, _, attr = target.partition(":")
     try:
         obj = importlib.import_module(module_name)

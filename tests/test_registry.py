@@ -1,5 +1,6 @@
-"""The registry: names from the built-ins and installed entry points, lazy imports, clear
-errors, and third-party plug-ins found through a real (temporary) installed distribution."""
+"""The registry: names from installed entry points only (the built-ins are declared in
+pyproject.toml like any plug-in), lazy imports, clear errors, and third-party plug-ins found
+through a real (temporary) installed distribution."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import importlib
 import subprocess
 import sys
 import textwrap
+import tomllib
 import uuid
 from importlib.metadata import entry_points
 from pathlib import Path
@@ -19,13 +21,45 @@ from gateway.config import ConfigError, embedded_default, parse
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_backend_names_include_the_builtins_and_installed_entry_points() -> None:
+GROUPS = (registry.BACKEND_GROUP, registry.SOURCE_GROUP, registry.COMMAND_GROUP)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_the_installed_entry_points_are_the_ones_pyproject_declares(group: str) -> None:
+    """pyproject.toml is the one list of built-ins; the installed metadata must carry it
+    (stale after an edit of pyproject.toml until the package is installed again)."""
+    declared = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["entry-points"]
+    ours = {ep.name: ep.value for ep in entry_points(group=group)
+            if ep.dist is not None and ep.dist.name == "aurora-gateway"}
+    assert ours == declared[group], (
+        f"installed {group} entry points differ from pyproject.toml: pip install -e .")
+
+
+def test_names_are_exactly_the_installed_entry_points() -> None:
     installed = {ep.name: ep.value for ep in entry_points(group=registry.BACKEND_GROUP)}
-    assert installed.get("console") == "backends.console:ConsoleBackend"  # editable install
     names = registry.names(registry.BACKEND_GROUP)
+    assert names == installed
     assert names["console"] == "backends.console:ConsoleBackend"
-    assert installed.items() <= names.items()
-    assert registry.backend_names() == sorted(names)
+    assert registry.backend_names() == sorted(installed)
+
+
+def test_without_the_package_metadata_the_error_says_to_install_it(tmp_path: Path) -> None:
+    """The sources on sys.path but not installed (no site-packages, no egg-info): nothing is
+    registered, and the error says what to do."""
+    (tmp_path / "gateway").symlink_to(REPO / "gateway")
+    code = textwrap.dedent("""
+        from gateway import registry as r
+        print(r.backend_names())
+        try:
+            r.load(r.BACKEND_GROUP, "mavlink")
+        except r.RegistryError as exc:
+            print(exc)
+    """)
+    out = subprocess.run([sys.executable, "-S", "-c", code], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=60, check=True).stdout.splitlines()
+    assert out[0] == "[]"
+    assert out[1].startswith("unknown backend 'mavlink'; available: none (")
+    assert "pip install -e ." in out[1]
 
 
 def test_source_names_include_sim_serial_and_replay() -> None:
