@@ -1,19 +1,18 @@
-"""Channels (seed 003): per message kind a mailbox and a ring, never blocking a producer.
+"""Channels (seed 003): a mailbox and a ring, never blocking a producer.
 
 * :class:`Mailbox` holds the latest value; a new one overwrites it (FreeRTOS
-  ``xQueueOverwrite`` on a depth-1 queue).  Consumers that poll at their own rate (CRSF,
-  MAVLink streams) read it.
+  ``xQueueOverwrite`` on a depth-1 queue).  A consumer that polls at its own rate (the CRSF
+  scheduler, one per frame type) reads it.
 * :class:`Ring` is a short FIFO history (default depth 32); when full the *newest* value is
-  dropped and counted, like ``xQueueSend`` with a zero timeout.  Recorders drain it.
+  dropped and counted, like ``xQueueSend`` with a zero timeout (the CRSF scheduler keeps its
+  state changes in one).
 """
 
 from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Any, Generic, TypeVar
-
-from gateway.backend import Backend, Outcome
+from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -78,70 +77,3 @@ class Ring(Generic[T]):
 
     def __len__(self) -> int:
         return len(self._items)
-
-
-class Channel(Generic[T]):
-    """A mailbox and a ring for one message kind."""
-
-    __slots__ = ("kind", "mailbox", "ring")
-
-    def __init__(self, kind: str, ring_depth: int = RING_DEPTH) -> None:
-        self.kind = kind
-        self.mailbox: Mailbox[T] = Mailbox()
-        self.ring: Ring[T] = Ring(ring_depth)
-
-    def publish(self, value: T) -> bool:
-        """Overwrite the mailbox and append to the ring; False when the ring dropped it."""
-        self.mailbox.put(value)
-        return self.ring.put(value)
-
-
-class Channels:
-    """One channel per message kind (``msg.KIND``), created on first use."""
-
-    def __init__(self, ring_depth: int = RING_DEPTH) -> None:
-        self._ring_depth = ring_depth
-        self._channels: dict[str, Channel[Any]] = {}
-        self._lock = threading.Lock()
-
-    def __getitem__(self, kind: str) -> Channel[Any]:
-        ch = self._channels.get(kind)
-        if ch is None:
-            with self._lock:
-                ch = self._channels.setdefault(kind, Channel(kind, self._ring_depth))
-        return ch
-
-    def publish(self, msg: Any) -> bool:
-        return self[msg.KIND].publish(msg)
-
-    def latest(self, kind: str) -> Any | None:
-        return self[kind].mailbox.peek()
-
-    def kinds(self) -> list[str]:
-        return list(self._channels)
-
-
-class ChannelBackend(Backend):
-    """A backend that publishes every message into :class:`Channels` for polling consumers.
-
-    Always ``ACCEPTED``: the mailbox holds the latest value whatever the ring does; a full
-    ring's drops are the ring's to count (``stats()`` reports them per kind), since a consumer
-    that only polls mailboxes never drains the rings.
-    """
-
-    NAME = "channels"
-
-    def __init__(self, channels: Channels | None = None, name: str | None = None) -> None:
-        super().__init__(name)
-        self.channels = channels if channels is not None else Channels()
-
-    def _publish(self, msg: Any) -> Outcome:
-        self.channels.publish(msg)
-        return Outcome.ACCEPTED
-
-    send_sm_update = send_status = send_raw = on_link = _publish
-    send_link_stats = send_position = send_battery = send_vehicle_state = _publish
-
-    def stats(self) -> dict[str, int]:
-        return {f"ring_dropped_{kind}": self.channels[kind].ring.dropped
-                for kind in self.channels.kinds()}

@@ -1,6 +1,5 @@
 """Channels (seed 003): mailbox overwrite and version polling, ring depth 32 dropping the newest,
-FIFO drains, producers that never block and lose nothing uncounted, and ChannelBackend behind a
-real dispatcher."""
+FIFO drains, producers that never block and lose nothing uncounted."""
 
 from __future__ import annotations
 
@@ -9,10 +8,8 @@ import threading
 import pytest
 from helpers import run_within
 
-from gateway.backend import Outcome
-from gateway.channels import RING_DEPTH, ChannelBackend, Channels, Mailbox, Ring
-from gateway.dispatcher import Dispatcher
-from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+from gateway.channels import RING_DEPTH, Mailbox, Ring
+from gateway.model import SmUpdate
 
 DEADLINE_S = 5.0
 
@@ -142,54 +139,3 @@ def test_concurrent_producers_lose_nothing_but_the_counted_drops() -> None:
         mine = [k for q, k in drained if q == p]
         assert mine == sorted(mine)
     assert mailbox.version == total
-
-
-# -- channels and the backend ---------------------------------------------------------------
-
-
-def test_channels_are_created_per_kind_on_first_use() -> None:
-    ch = Channels(ring_depth=4)
-    assert ch.kinds() == []
-    assert ch.latest("sm_update") is None
-    assert ch["sm_update"] is ch["sm_update"]
-    assert ch["sm_update"].ring.depth == 4
-    assert ch.publish(sm(1)) is True
-    assert ch.latest("sm_update") == sm(1)
-    assert ch.kinds() == ["sm_update"]
-
-
-def test_channel_backend_fills_a_mailbox_and_ring_per_kind_through_the_dispatcher() -> None:
-    backend = ChannelBackend()
-    d = Dispatcher([backend])
-    assert d.start() == []
-    st = Status(5, 1, 0, 0x0F)
-    raw = RawFrame(0x42, b"\x01\x02")
-    up = LinkEvent("sim", True)
-    for msg in (sm(1), st, sm(2), raw, up, sm(3)):
-        assert d.dispatch(msg) is Outcome.ACCEPTED
-    ch = backend.channels
-    assert sorted(ch.kinds()) == ["link", "raw", "sm_update", "status"]
-    assert ch.latest("sm_update") == sm(3)
-    assert ch.latest("status") == st
-    assert ch.latest("raw") == raw
-    assert ch.latest("link") == up
-    assert ch["sm_update"].mailbox.version == 3
-    assert ch["sm_update"].ring.drain() == [sm(1), sm(2), sm(3)]
-    assert ch["status"].ring.drain() == [st]
-
-
-def test_channel_backend_accepts_with_a_full_ring_and_still_updates_the_mailbox() -> None:
-    """A full ring (nobody drains it) must not make every dispatch look failed: the latest
-    value still reaches pollers, and the ring counts its own drops."""
-    backend = ChannelBackend(Channels(ring_depth=RING_DEPTH))
-    d = Dispatcher([backend])
-    d.start()
-    results = [d.dispatch(sm(i)) for i in range(RING_DEPTH + 3)]
-    assert results == [Outcome.ACCEPTED] * (RING_DEPTH + 3)
-    ch = backend.channels["sm_update"]
-    assert ch.mailbox.peek() == sm(RING_DEPTH + 2)  # the latest still reaches pollers
-    assert ch.ring.dropped == 3
-    assert d.stats()["channels"] == {"accepted": RING_DEPTH + 3, "ring_dropped_sm_update": 3}
-    st = Status(1, 0, 0, 0)
-    assert d.dispatch(st) is Outcome.ACCEPTED
-    assert backend.channels.latest("status") == st
