@@ -236,8 +236,18 @@ def test_a_serial_url_with_a_scheme_pyserial_does_not_know_is_refused(url: str) 
         assert known in message
 
 
+@pytest.mark.parametrize("url", ["socket://nohost", "socket://host:99999", "socket://host:x",
+                                 "rfc2217://:2217"])
+def test_a_socket_or_rfc2217_url_without_host_and_port_is_refused(url: str) -> None:
+    """pyserial would fail every reopen of these the same way: retrying cannot help."""
+    message = config_error(f'[[sources]]\ntype = "serial"\nurl = "{url}"\n')
+    assert message.startswith("sources[0].url: expected "), message
+    assert "://HOST:PORT" in message and repr(url) in message
+
+
 @pytest.mark.parametrize("url", ["/dev/ttyNOTTHEREYET0", "COM7", "loop://", "LOOP://",
-                                 "socket://127.0.0.1:7777", "rfc2217://host:2217",
+                                 "socket://127.0.0.1:7777", "socket://[::1]:7777",
+                                 "rfc2217://host:2217?ign_set_control",
                                  "spy://loop://?file=/dev/null", "hwgrep://0403:6001"])
 def test_device_paths_and_known_schemes_are_accepted(url: str) -> None:
     """A device path that does not exist yet is accepted: the source retries it (hot-plug)."""

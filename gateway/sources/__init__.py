@@ -30,6 +30,7 @@ import pkgutil
 import threading
 from collections.abc import Callable
 from typing import Any, ClassVar
+from urllib.parse import urlsplit
 
 from gateway.backend import GatewayContext
 
@@ -126,10 +127,25 @@ def serial_url_schemes() -> list[str]:
     return sorted(found)
 
 
+_HOST_PORT_SCHEMES = ("socket", "rfc2217")
+
+
+def _check_host_port(url: str, scheme: str) -> None:
+    """``socket://`` and ``rfc2217://`` need HOST:PORT, or every reopen fails the same way."""
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if not parts.hostname or port is None:
+        raise ValueError(f"expected {scheme}://HOST:PORT, got {url!r}")
+
+
 def check_serial_url(url: str) -> None:
     """ValueError unless ``url`` is a device path or has a scheme pyserial handles, looked up
-    the way ``serial.serial_for_url`` does.  A device path is not checked: it may appear
-    later (hot-plug), and the source retries it."""
+    the way ``serial.serial_for_url`` does (and, for ``socket://`` and ``rfc2217://``, unless
+    it names HOST:PORT).  A device path is not checked: it may appear later (hot-plug), and
+    the source retries it."""
     if "://" not in url:
         return
     scheme = url.split("://", 1)[0].lower()
@@ -141,6 +157,8 @@ def check_serial_url(url: str) -> None:
             importlib.import_module(f".protocol_{scheme}", package)
         except ImportError:
             continue
+        if scheme in _HOST_PORT_SCHEMES:
+            _check_host_port(url, scheme)
         return
     raise ValueError(f"unknown URL scheme {scheme!r}; known: "
                      f"{', '.join(s + '://' for s in serial_url_schemes())} or a device path")
