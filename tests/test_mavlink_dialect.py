@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import re
 import struct
 import sys
 from pathlib import Path
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.generator import mavparse
@@ -29,10 +31,26 @@ sys.path.insert(0, str(ROOT / "tools"))
 import gen_mavlink_dialect as gen  # noqa: E402
 
 
+def test_the_installed_pymavlink_is_the_pinned_one_that_generated_the_module() -> None:
+    pinned = gen.pinned_pymavlink()
+    assert pinned is not None, "pyproject.toml must pin pymavlink exactly: pymavlink==X"
+    installed = gen.installed_pymavlink()
+    assert installed == pinned, (
+        f"this checkout expects pymavlink=={pinned} (pinned in pyproject.toml; it generated "
+        f"dialects/aurora_mavlink.py), but {installed} is installed: pip install -e '.[test]'")
+    assert gen.generated_with(gen.MODULE) == pinned, (
+        f"dialects/aurora_mavlink.py says it was generated with pymavlink "
+        f"{gen.generated_with(gen.MODULE)}, pyproject.toml pins {pinned}: regenerate it with "
+        f"tools/gen_mavlink_dialect.py")
+
+
 def test_checked_in_module_is_what_the_xml_generates(tmp_path: Path) -> None:
+    """Byte for byte, against a fresh generation with the installed (pinned) pymavlink."""
     fresh = gen.generate(gen.XML, tmp_path / "aurora_mavlink.py")
     assert fresh.read_bytes() == gen.MODULE.read_bytes(), (
-        "dialects/aurora_mavlink.py differs from its XML: run tools/gen_mavlink_dialect.py")
+        f"dialects/aurora_mavlink.py differs from what pymavlink {gen.installed_pymavlink()} "
+        f"generates from its XML (pyproject.toml pins {gen.pinned_pymavlink()}): run "
+        "tools/gen_mavlink_dialect.py")
 
 
 def test_the_regeneration_check_notices_a_changed_xml(tmp_path: Path) -> None:
@@ -42,6 +60,21 @@ def test_the_regeneration_check_notices_a_changed_xml(tmp_path: Path) -> None:
     module.write_bytes(gen.MODULE.read_bytes())
     assert gen.main(["--xml", str(xml), "--output", str(module), "--check"]) == 1
     assert gen.main(["--output", str(gen.MODULE), "--check"]) == 0
+
+
+def test_the_generator_refuses_a_pymavlink_other_than_the_pinned_one(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+) -> None:
+    pyproject = tmp_path / "pyproject.toml"
+    pyproject.write_text(re.sub(r'"pymavlink==[^"]*"', '"pymavlink==0.0.1"',
+                                gen.PYPROJECT.read_text()))
+    monkeypatch.setattr(gen, "PYPROJECT", pyproject)
+    assert gen.pinned_pymavlink(pyproject) == "0.0.1"
+    module = tmp_path / "aurora_mavlink.py"
+    assert gen.main(["--output", str(module)]) == 2
+    assert not module.exists()
+    err = capsys.readouterr().err
+    assert "pins pymavlink==0.0.1" in err and f"installed: {gen.installed_pymavlink()}" in err
 
 
 def test_the_generated_module_imports_on_its_own(tmp_path: Path) -> None:
