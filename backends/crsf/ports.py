@@ -27,7 +27,8 @@ A reader that keeps up costs one such check per ``backlog_bytes`` written, which
 to discard: it loses nothing.  Bytes taken while a reader is reading at that very instant are
 written back at once, so a frame may be split (CRSF's CRC catches it) but is not dropped
 unless the backlog is over the bound.  The bound holds for backlogs up to the line
-discipline's 4 KiB; the default is 1 KiB.
+discipline's 4 KiB (the default is 1 KiB) while the slave stays in raw mode, as the pair sets
+it (a reader that switches it to canonical mode gets its lines, unbounded).
 """
 
 from __future__ import annotations
@@ -101,7 +102,9 @@ class PtyPair:
             raise
 
     def port(self) -> PtyPort:
-        """The master end, for the port engine."""
+        """The master end, for the port engine (an opener: raises once the pair is closed)."""
+        if self._closed:
+            raise OSError("pty closed")
         return PtyPort(self)
 
     @property
