@@ -152,6 +152,19 @@ def test_verifier_rules() -> None:
                                  "rejected_stale": 1}
 
 
+def test_a_signature_wrong_in_any_one_of_its_six_bytes_is_rejected() -> None:
+    clock = time.time()
+    raw = _signed_frame(KEY, now_timestamp(clock)).raw
+    for i in range(1, 7):
+        bad = bytearray(raw)
+        bad[-i] ^= 0x01
+        (frame,) = split_datagram(bytes(bad), FramerStats())
+        assert SignatureVerifier(KEY, clock=lambda: clock).check(frame) is \
+            Verdict.BAD_SIGNATURE, f"signature byte {6 - i} not checked"
+    (frame,) = split_datagram(raw, FramerStats())
+    assert SignatureVerifier(KEY, clock=lambda: clock).check(frame) is Verdict.OK
+
+
 def test_keys_from_passphrase_and_files(tmp_path: Path) -> None:
     assert key_from_passphrase(PASS) == KEY  # MAVProxy's `signing setup` / QGC derivation
     raw = tmp_path / "raw.key"

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import enum
 import hashlib
+import hmac
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -141,7 +142,7 @@ class SignatureVerifier:
             st.rejected_bad_signature += 1
             return Verdict.BAD_SIGNATURE
         digest = hashlib.sha256(self.key + raw[:-6]).digest()[:6]
-        if digest != raw[-6:]:
+        if not hmac.compare_digest(digest, raw[-6:]):  # constant time: no timing oracle
             st.rejected_bad_signature += 1
             return Verdict.BAD_SIGNATURE
         link_id = raw[-SIGNATURE_LEN]
