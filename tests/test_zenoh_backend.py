@@ -23,9 +23,9 @@ from backends.zenoh.keys import make_attachment  # noqa: E402
 from backends.zenoh.session import SessionOptions  # noqa: E402
 from gateway import config, wire  # noqa: E402
 from gateway.app import Gateway  # noqa: E402
-from gateway.backend import Outcome  # noqa: E402
+from gateway.backend import Backend, Outcome, Routes  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
-from gateway.model import LinkEvent, LinkStats, RawFrame, SmUpdate, Status  # noqa: E402
+from gateway.model import LinkEvent, LinkStats, RawFrame, SmUpdate, Status, kind  # noqa: E402
 from gateway.sources.sim import flight_messages  # noqa: E402
 
 VEHICLE = "r1"
@@ -46,7 +46,7 @@ def first_sm_update() -> SmUpdate:
 
 
 def send(backend: ZenohBackend, msg) -> Outcome:
-    return getattr(backend, msg.HOOK)(msg)
+    return dict(backend.routes())[type(msg)](msg)
 
 
 @pytest.fixture
@@ -111,7 +111,7 @@ def test_packed_encoding(endpoint, subscriber):
         assert rec.wait_for(lambda s: len(s) >= 3)
         for m, s in zip(msgs, rec.snapshot(), strict=True):
             assert s.payload == m.raw[4:-2]
-            assert enc.decode(m.KIND, s.payload, s.encoding) == m._replace(origin="")
+            assert enc.decode(kind(m), s.payload, s.encoding) == m._replace(origin="")
         assert rec.matching(f"aurora/{VEHICLE}/raw/1") == []
     finally:
         b.close()
@@ -121,7 +121,7 @@ def test_late_joiner_gets_the_latest_value_of_each_key(backend, endpoint):
     msgs = flight(25)
     for m in msgs:
         send(backend, m)
-    backend.send_link_stats(LinkStats(rssi_dbm=-60.0, link_quality_pct=100))
+    send(backend, LinkStats(rssi_dbm=-60.0, link_quality_pct=100))
     assert wait_until(lambda: backend.processed == backend.accepted)
     with zenoh.open(peer_config(connect=[endpoint])) as late:
         latest = {str(s.key_expr): s for s in wait_for_gateway(late, "aurora", VEHICLE)}
@@ -172,7 +172,7 @@ def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
         m = first_sm_update()
         outcomes = []
         for _ in range(20):  # bursts of back-to-back hooks outrun a worker with a queue of 4
-            outcomes += [b.send_sm_update(m) for _ in range(200)]
+            outcomes += [b.publish(m) for _ in range(200)]
             assert wait_until(lambda: b.processed == b.accepted)
         accepted = outcomes.count(Outcome.ACCEPTED)
         full = outcomes.count(Outcome.QUEUE_FULL)
@@ -193,7 +193,7 @@ def test_not_ready_until_the_router_comes_then_publishes():
     try:
         assert not b.ready
         m = first_sm_update()
-        assert b.send_sm_update(m) == Outcome.NOT_READY
+        assert b.publish(m) == Outcome.NOT_READY
         assert b.stats()["dropped_not_ready"] == 1
         router.start()
         assert b.wait_ready(20), b.stats()
@@ -202,7 +202,7 @@ def test_not_ready_until_the_router_comes_then_publishes():
             rec = Recorder()
             sub.declare_subscriber("aurora/**", rec)
             wait_for_gateway(sub, "aurora", VEHICLE)
-            assert b.send_sm_update(m) == Outcome.ACCEPTED
+            assert b.publish(m) == Outcome.ACCEPTED
             assert rec.wait_for(lambda s: any(x.key.endswith("/sm_update") for x in s))
     finally:
         b.close()
@@ -217,13 +217,13 @@ def test_updates_published_while_the_router_is_gone_are_counted_as_unrouted():
         assert b.wait_ready(20)
         assert wait_until(lambda: b.stats()["connected"] == 1)
         m = first_sm_update()
-        b.send_sm_update(m)
+        b.publish(m)
         assert wait_until(lambda: b.processed == b.accepted)
         assert b.stats()["unrouted"] == 0
         router.kill()
         assert wait_until(lambda: b.stats()["connected"] == 0)
         for _ in range(5):
-            assert b.send_sm_update(m) == Outcome.ACCEPTED  # the session is still open
+            assert b.publish(m) == Outcome.ACCEPTED  # the session is still open
         assert wait_until(lambda: b.processed == b.accepted)
         assert b.stats()["unrouted"] == 5
         router.start()  # and it comes back on its own
@@ -255,6 +255,7 @@ def test_second_session_on_a_taken_default_port_joins_the_first():
 
 def test_own_publications_never_come_back_through_a_source(endpoint, backend):
     src = ZenohSource(connect=[endpoint], vehicle=VEHICLE)
+    src.attach(backend.context)  # one gateway: the backend's id is in the shared context
     got: list = []
     src.start(got.append)
     try:
@@ -277,21 +278,24 @@ def test_own_publications_never_come_back_through_a_source(endpoint, backend):
         src.stop()
 
 
-class Capture:
+class Capture(Backend):
     """A backend that keeps what the dispatcher hands it."""
 
-    name = "capture"
-
     def __init__(self) -> None:
+        super().__init__("capture")
         self.seen: list = []
         self.cond = threading.Condition()
+
+    def routes(self) -> Routes:
+        keep = self.keep
+        return (Routes().on(SmUpdate, keep).on(Status, keep).on(RawFrame, keep)
+                .on(LinkEvent, keep))
 
     def keep(self, msg) -> None:
         with self.cond:
             self.seen.append(msg)
             self.cond.notify_all()
 
-    send_sm_update = send_status = send_raw = on_link = keep
 
 
 @pytest.mark.parametrize("keys", ["raw", "json"])
@@ -317,13 +321,13 @@ def test_relay_feeds_the_dispatcher_and_never_republishes(keys, tmp_path):
             src = gw.sources[0]
             assert src.ready.wait(20)
             pubs = {}
-            for kind in ("sm_update", "status", "raw/1", "raw/2"):
-                pubs[kind] = rocket.declare_publisher(f"aurora/{VEHICLE}/{kind}")
+            for key in ("sm_update", "status", "raw/1", "raw/2"):
+                pubs[key] = rocket.declare_publisher(f"aurora/{VEHICLE}/{key}")
             assert wait_until(lambda: all(p.matching_status.matching for k, p in pubs.items()
                                           if k.startswith("raw/") == (keys == "raw")))
             seqs: dict[str, int] = {}
             for i, m in enumerate(msgs):
-                key = f"raw/{m.raw[2]}" if keys == "raw" else m.KIND
+                key = f"raw/{m.raw[2]}" if keys == "raw" else kind(m)
                 seq = seqs[key] = seqs.get(key, -1) + (2 if i == 10 else 1)  # one gap
                 att = make_attachment("rocket", seq)
                 if keys == "raw":
@@ -337,6 +341,7 @@ def test_relay_feeds_the_dispatcher_and_never_republishes(keys, tmp_path):
                 links = [x for x in seen if isinstance(x, LinkEvent)]
             assert [x.fields() for x in relayed] == [m.fields() for m in msgs]
             assert {x.origin for x in relayed} == {"from-rocket"}
+            assert {x.via for x in relayed} == {"zenoh:rocket"}  # where it came from
             if keys == "raw":
                 assert [x.raw for x in relayed] == [m.raw for m in msgs]  # untouched frames
             assert links and links[0].source == "from-rocket" and links[0].up
@@ -347,3 +352,42 @@ def test_relay_feeds_the_dispatcher_and_never_republishes(keys, tmp_path):
             assert st["sent"] == 0 and st["puts"] == 0
         finally:
             gw.stop()
+
+
+def test_two_gateways_in_one_process_share_no_loop_prevention_state() -> None:
+    """Gateway A publishes; gateway B, in the same process, subscribes: B hears A (A is not
+    B), while A's own source would ignore A's publications — nothing process-wide decides."""
+    ep = free_endpoint()
+    a = Gateway(config.parse({
+        "sources": [{"type": "zenoh", "url": f"zenoh:{VEHICLE}@{ep}", "name": "a-in"}],
+        "backends": {"zenoh": {"listen": [ep], "vehicle": VEHICLE}}}))
+    b = Gateway(config.parse({
+        "sources": [{"type": "zenoh", "url": f"zenoh:{VEHICLE}@{ep}", "name": "b-in"}],
+        "backends": {}}))
+    assert a.context.gateway_id != b.context.gateway_id
+    got_b = Capture()
+    b.dispatcher.add(got_b)
+    got_a = Capture()
+    a.dispatcher.add(got_a)
+    a.start()
+    b.start()
+    try:
+        zb = a.dispatcher.backends()[0]
+        assert zb.wait_ready(20) and a.sources[0].ready.wait(20) and b.sources[0].ready.wait(20)
+        m = first_sm_update()
+
+        def b_heard_a() -> bool:
+            send(zb, m)
+            with got_b.cond:
+                return any(isinstance(x, SmUpdate) for x in got_b.seen)
+
+        assert wait_until(b_heard_a, interval=0.05), b.sources[0].stats()
+        with got_b.cond:
+            heard = [x for x in got_b.seen if isinstance(x, SmUpdate)]
+        assert heard[0].via == f"zenoh:{a.context.gateway_id}"
+        assert a.sources[0].stats()["ignored_own"] >= 1
+        assert a.sources[0].stats()["emitted"] == 0
+        assert not any(isinstance(x, SmUpdate) for x in got_a.seen)
+    finally:
+        b.stop()
+        a.stop()
