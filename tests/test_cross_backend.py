@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import os
 
+from helpers import wait_for
 from mavlink_peer import MavPeer
 
 from backends.crsf import CrsfBackend
 from backends.crsf.frames import LinkStatistics, encode
 from backends.mavlink import MavlinkBackend
+from gateway.backend import GatewayContext
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats
 
@@ -26,12 +28,14 @@ def test_receiver_link_statistics_reach_a_ground_station_as_radio_status() -> No
     mavlink = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
     crsf = CrsfBackend(url=os.ttyname(slave), name="elrs")
     d = Dispatcher([crsf, mavlink])
-    crsf.attach(d.dispatch)
+    crsf.attach(GatewayContext(emit=d.dispatch))
     try:
         assert d.start() == []
         # The receiver (the pty's other end) reports: uplink -67 dBm, SNR 8 dB, LQ 95 %;
         # downlink -71 dBm, SNR 5 dB.
         stats = LinkStatistics(-67, -70, 95, 8, 0, 5, 2, -71, 99, 5)
+        # pyserial flushes a port's input as it opens it: write once the engine has it open
+        assert wait_for(lambda: crsf.engine.connected)
         os.write(master, encode(stats))
         got = gcs.wait_for("RADIO_STATUS", timeout=WAIT)
     finally:
