@@ -38,7 +38,7 @@ class Key:
     maximum: float | None = None
     nullable: bool = False
     #: a further check of a well-typed value: raise ValueError saying what is wrong
-    validator: Callable[[Any], None] | None = None
+    validator: Callable[[Any], object] | None = None
 
     def describe(self) -> str:
         if self.choices is not None:

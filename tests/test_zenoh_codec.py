@@ -185,8 +185,14 @@ def test_key_layout():
                                             ("a", ""), ("a b", "r"), ("a", "$*")])
 def test_bad_prefix_or_vehicle_is_a_config_error_naming_the_key(prefix, vehicle):
     with pytest.raises(ConfigError) as info:
-        ZenohBackend(prefix=prefix, vehicle=vehicle)
-    assert str(info.value).split(":")[0] in ("prefix", "vehicle")
+        config.parse({"backends": {"zenoh": {"prefix": prefix, "vehicle": vehicle}}})
+    assert str(info.value).split(":")[0] in ("backends.zenoh.prefix", "backends.zenoh.vehicle")
+
+
+def test_a_bad_gateway_id_is_a_config_error_naming_the_key():
+    with pytest.raises(ConfigError) as info:
+        config.parse({"backends": {"zenoh": {"gateway_id": "a/b"}}})
+    assert str(info.value).startswith("backends.zenoh.gateway_id:")
 
 
 @given(st.text(alphabet=st.characters(blacklist_characters=";=", blacklist_categories=["Cs"]),

@@ -88,10 +88,12 @@ class ZenohBackend(Backend):
 
     NAME = "zenoh"
     CONFIG = Schema(
-        prefix=Key(str, DEFAULT_PREFIX, "first chunk(s) of every key"),
-        vehicle=Key(str, DEFAULT_VEHICLE, "this vehicle's key chunk"),
+        prefix=Key(str, DEFAULT_PREFIX, "first chunk(s) of every key", validator=check_prefix),
+        vehicle=Key(str, DEFAULT_VEHICLE, "this vehicle's key chunk",
+                    validator=lambda v: check_chunk(v, "vehicle")),
         gateway_id=Key(str, "", "this gateway's id in attachments and its liveliness token "
-                       "(default <host>-<pid>)"),
+                       "(default: the gateway's own, <host>-<pid>-<n>)",
+                       validator=lambda v: v and check_chunk(v, "gateway_id")),
         encoding=Key(str, "json", "payload of sm_update/status", choices=enc.ENCODINGS),
         raw=Key(bool, True, "also publish each untouched wire frame on raw/<type>"),
         congestion_control=Key(str, "drop", "when the network cannot keep up: drop "
@@ -112,31 +114,11 @@ class ZenohBackend(Backend):
                  queue_depth: int = 1024, liveliness: bool = True, queryable: bool = True,
                  **session: Any) -> None:
         super().__init__(name)
-        try:
-            check_prefix(prefix)
-        except ValueError as exc:
-            raise ConfigError(f"prefix: {exc}") from None
-        try:
-            check_chunk(vehicle, "vehicle")
-        except ValueError as exc:
-            raise ConfigError(f"vehicle: {exc}") from None
+        # The options were validated by CONFIG (the configuration or the flags); a caller
+        # building the backend directly passes valid ones.
         self.layout = KeyLayout(prefix, vehicle)
-        try:
-            self._own_id = check_chunk(gateway_id, "gateway_id") if gateway_id else ""
-        except ValueError as exc:
-            raise ConfigError(f"gateway_id: {exc}") from None
+        self._own_id = gateway_id
         self.gateway_id = self._own_id or self.context.gateway_id
-        if encoding not in enc.ENCODINGS:
-            raise ConfigError(f"encoding: expected one of {', '.join(enc.ENCODINGS)}, "
-                              f"got {encoding!r}")
-        if congestion_control not in ("drop", "block"):
-            raise ConfigError(f"congestion_control: expected 'drop' or 'block', "
-                              f"got {congestion_control!r}")
-        if priority not in PRIORITIES:
-            raise ConfigError(f"priority: expected one of {', '.join(PRIORITIES)}")
-        unknown = set(session) - set(SESSION_KEYS)
-        if unknown:
-            raise ConfigError(f"{sorted(unknown)[0]}: unknown key")
         self.session_options = SessionOptions.from_options(session)
         self.encoding = encoding
         self.publish_raw = raw
