@@ -123,8 +123,9 @@ def test_config_table_is_validated_naming_the_key() -> None:
                        ("max_frames_per_s", 0), ("speed", 3)):
         with pytest.raises(ConfigError, match=rf"backends\.crsf\.{key}"):
             config.parse({"backends": {"crsf": {key: value}}})
-    with pytest.raises(ValueError, match="disarmed_suffix"):
-        CrsfBackend(disarmed_suffix="DISARMED")
+    for key, value in (("disarmed_suffix", "DISARMED"), ("url", "")):
+        with pytest.raises(ConfigError, match=rf"backends\.crsf\.{key}"):
+            config.parse({"backends": {"crsf": {key: value}}})
 
 
 def test_embedded_default_runs_on_a_pty() -> None:

@@ -103,6 +103,16 @@ def health_marker(status: model.Status) -> str:
     return ""
 
 
+def _check_suffix(text: str) -> None:
+    if len(text) > 4 or not text.isascii():
+        raise ValueError("expected at most 4 ASCII characters")
+
+
+def _check_url(url: str) -> None:
+    if not url:
+        raise ValueError("expected a serial port, a pyserial URL or 'pty'")
+
+
 class CrsfBackend(Backend):
     """Sends the rocket's telemetry as CRSF frames; reads link statistics back."""
 
@@ -110,14 +120,15 @@ class CrsfBackend(Backend):
     CONFIG = Schema(
         url=Key(str, PTY_URL, "receiver UART: serial port or pyserial URL (/dev/ttyUSB0, "
                 "socket://host:port, rfc2217://…); 'pty' = create a pseudo-terminal and log "
-                "its path"),
+                "its path", validator=_check_url),
         baudrate=Key(int, DEFAULT_BAUD, "UART speed: 420000 for ExpressLRS, 416666 for TBS",
                      minimum=1200),
         sync=Key(int, SYNC_FC, "address byte of the frames sent (0xC8 = flight controller)",
                  choices=(SYNC_FC, SYNC_RADIO, SYNC_RX)),
         pitch=Key(str, "nose-up", "which pitch is positive (Betaflight/INAV: nose-down)",
                   choices=("nose-up", "nose-down")),
-        disarmed_suffix=Key(str, "*", "appended to the flight mode while disarmed; '' = none"),
+        disarmed_suffix=Key(str, "*", "appended to the flight mode while disarmed; '' = none",
+                            validator=_check_suffix),
         health_marker=Key(bool, True, "append !IMU/!BARO/!CAL/!LOG to the flight mode when "
                           "STATUS reports a failing check"),
         max_frames_per_s=Key(float, 20.0, "total frame rate cap", minimum=1, maximum=1000),
@@ -167,13 +178,7 @@ class CrsfBackend(Backend):
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         super().__init__(name)
-        if not url:
-            raise ValueError("url: expected a serial port, a pyserial URL or 'pty'")
-        if pitch not in ("nose-up", "nose-down"):
-            raise ValueError(f"pitch: expected 'nose-up' or 'nose-down', got {pitch!r}")
-        if len(disarmed_suffix) > 4 or not disarmed_suffix.isascii():
-            raise ValueError(f"disarmed_suffix: expected at most 4 ASCII characters, got "
-                             f"{disarmed_suffix!r}")
+        # The options were validated by CONFIG (the configuration or the flags).
         self.url = url
         self.baudrate = baudrate
         self.sync = sync
