@@ -454,6 +454,8 @@ class ZenohBackend(Backend):
                         + self.publish_errors),
             "dropped_queue_full": self.dropped_queue_full,
             "dropped_not_ready": self.dropped_not_ready,
+            "errors": self.put_errors + self.publish_errors + self.open_failures,
+            "link": int(self._ready.is_set()),
             "put_errors": self.put_errors,
             "publish_errors": self.publish_errors,
             "puts": self.puts,
