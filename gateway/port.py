@@ -150,6 +150,8 @@ class PortEngine:
         self._idle = threading.Condition(self._lock)
         self._writing = False
         self._flush_scheduled = False
+        self._drainers = 0  # threads waiting in drain()
+        self._loop_ident = 0  # the loop thread's id, set when the port is attached
         self._port: Any = None
         self._fd: Any = None
         self._interest = 0
@@ -198,17 +200,21 @@ class PortEngine:
             if len(self._queue) >= self.queue_depth:
                 st.dropped_queue_full += 1
                 return Outcome.QUEUE_FULL
-            self._queue.append(data)
             if limited:
                 self._last_accepted = now
             st.accepted += 1
             schedule = not self._flush_scheduled
-            self._flush_scheduled = True
-        if schedule:
-            if self._loop.in_loop_thread:
-                self._flush()  # already on the port's thread: write now, no hand-over
+            # nothing queued, nothing pending, and on the port's thread (the attaching one):
+            direct = schedule and threading.get_ident() == self._loop_ident
+            if direct:
+                self._writing = True
             else:
-                self._loop.call_soon(self._flush)
+                self._queue.append(data)
+                self._flush_scheduled = True
+        if direct:
+            self._write_now(data)  # on the port's thread: write it, no queue, no hand-over
+        elif schedule:
+            self._loop.call_soon(self._flush)
         return Outcome.ACCEPTED
 
     def queued(self) -> int:
@@ -245,6 +251,24 @@ class PortEngine:
             self._loop.start()
         self._loop.call_soon(self._open)
 
+    def start_with(self, port: Any) -> None:
+        """Start serving ``port``, already open (a client a :class:`PortServer` accepted):
+        no open attempt; on the loop's thread it is attached at once, so what is submitted
+        right after is not refused.  Reopening (if ``reopen``) goes through the opener."""
+        if self._started:
+            return
+        self._started = True
+        self._closing = False
+        self._shut.clear()
+        if self._own_loop:
+            if self._loop.closed:
+                self._loop = IoLoop(self.name)
+            self._loop.start()
+        if self._loop.in_loop_thread:
+            self._opened(port, None)
+        else:
+            self._loop.call_soon(lambda: self._opened(port, None))
+
     def wait_connected(self, timeout: float) -> bool:
         """Block until the port is open (for start-up and tests)."""
         return self._connected.wait(timeout)
@@ -253,11 +277,15 @@ class PortEngine:
         """Wait until every queued frame has been written (True) or ``timeout`` passes."""
         deadline = time.monotonic() + timeout
         with self._idle:
-            while self._queue or self._writing or self._pending:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._idle.wait(left)
+            self._drainers += 1
+            try:
+                while self._queue or self._writing or self._pending:
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    self._idle.wait(left)
+            finally:
+                self._drainers -= 1
         return True
 
     def reconnect(self) -> None:
@@ -412,6 +440,7 @@ class PortEngine:
             fd = port.fileno()
         self._port = port
         self._fd = fd
+        self._loop_ident = threading.get_ident()
         if fd is not None:
             self._set_interest(write=False)
         elif self.protocol is not None:
@@ -483,16 +512,17 @@ class PortEngine:
         """A datagram port whose protocol has ``feed_many(datagrams)``: what is waiting (up to
         DATAGRAM_BATCH datagrams) is handed over in one call (a router's per-frame path)."""
         batch: list[bytes] = []
+        read, keep = port.read, batch.append
         error: Exception | None = None
         for _ in range(DATAGRAM_BATCH):
             try:
-                data = port.read(READ_SIZE)
+                data = read(READ_SIZE)
             except Exception as exc:
                 error = exc
                 break
             if not data:
                 break
-            batch.append(data)
+            keep(data)
         if batch:
             self.stats.received_bytes += sum(map(len, batch))
             try:
@@ -563,6 +593,33 @@ class PortEngine:
                 if self._pending:
                     self._pending = b""
                     self._set_interest(write=False)
+
+    def _write_now(self, data: bytes) -> None:
+        """Write one frame submitted on the engine's thread while nothing was queued or
+        pending (the router's per-frame path): one write, no queue round trip."""
+        st = self.stats
+        try:
+            n = self._port.write(data)
+        except Exception as exc:
+            with self._lock:
+                self._writing = False
+                self._idle.notify_all()
+            st.write_errors += 1
+            self._fail(exc, "write failed")
+            return
+        st.sent_frames += 1  # (only this thread writes these counters)
+        st.sent_bytes += len(data)
+        if n is not None and n < len(data):
+            with self._lock:
+                self._pending = data[n:]  # the rest when the port has room, before the queue
+                self._flush_scheduled = True
+                self._writing = False
+                self._set_interest(write=True)
+            return
+        self._writing = False  # no lock: a drain() that starts waiting counts itself first
+        if self._drainers:
+            with self._lock:
+                self._idle.notify_all()
 
     def _fail(self, exc: BaseException | None, what: str) -> None:
         """Close the failed port, report the link down and reopen with backoff."""
