@@ -10,9 +10,11 @@ import select
 import socket
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import pytest
+from helpers import wait_for
 from mavlink_peer import MavPeer, running_backend, upstream_dialect
 
 WAIT = 10.0
@@ -188,15 +190,31 @@ def test_three_endpoints_route_like_mavlink_router() -> None:
             gcs.close()
 
 
-def test_a_tcp_client_endpoint_reconnects_when_the_server_drops_it() -> None:
+def listener(port: int = 0) -> socket.socket:
+    """A TCP server socket on 127.0.0.1 (``port`` again after a restart)."""
     srv = socket.socket()
-    srv.bind(("127.0.0.1", 0))
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind(("127.0.0.1", port))
     srv.listen(1)
     srv.settimeout(WAIT)
+    return srv
+
+
+def down_and_retried(b: Any, name: str) -> Callable[[], bool]:
+    """The endpoint has seen its port go and has failed to reopen it at least once."""
+    def check() -> bool:
+        st = b.stats()["endpoints"][name]
+        return st["link"] == 0 and st["connect_failures"] >= 1
+    return check
+
+
+def test_a_tcp_client_endpoint_reconnects_when_dropped_and_when_the_server_restarts() -> None:
+    srv = listener()
     port = srv.getsockname()[1]
+    name = f"tcp:127.0.0.1:{port}"
     try:
-        with backend(f"tcp:127.0.0.1:{port}", heartbeat_hz=5) as b:
-            for _ in range(2):
+        with backend(name, heartbeat_hz=5) as b:
+            for round_ in range(3):
                 conn, _ = srv.accept()
                 conn.settimeout(0.05)
                 peer = StreamPeer(255, 190, sock=conn)
@@ -208,10 +226,49 @@ def test_a_tcp_client_endpoint_reconnects_when_the_server_drops_it() -> None:
                     assert peer.wait(lambda m: m.get_type() == "AUTOPILOT_VERSION")
                 finally:
                     peer.close()  # the server drops the gateway; it must come back
-            stats = b.stats()["endpoints"][f"tcp:127.0.0.1:{port}"]
+                if round_ == 1:  # then the server itself goes away for a while
+                    srv.close()
+                    assert wait_for(down_and_retried(b, name), WAIT)
+                    srv = listener(port)
+            stats = b.stats()["endpoints"][name]
     finally:
         srv.close()
-    assert stats["connects"] >= 2
+    assert stats["connects"] == 3 and stats["disconnects"] >= 2
+    assert stats["connect_failures"] >= 1
+
+
+def test_a_serial_port_that_vanishes_is_reopened() -> None:
+    """``serial:socket://…``: a radio behind a TCP serial server (ser2net) that goes away and
+    comes back; traffic flows both ways again, through the same endpoint."""
+    srv = listener()
+    port = srv.getsockname()[1]
+    name = f"serial:socket://127.0.0.1:{port}"
+    gcs = MavPeer(255, 190)
+    try:
+        with backend(name, f"udpout:127.0.0.1:{gcs.port}", heartbeat_hz=5) as b:
+            for round_ in range(2):
+                conn, _ = srv.accept()
+                conn.settimeout(0.05)
+                radio = StreamPeer(9, 1, sock=conn)
+                try:
+                    assert radio.wait(lambda m: m.get_type() == "HEARTBEAT" and src(m) == (1, 1))
+                    hb = radio.send(heartbeat(dev.MAV_TYPE_QUADROTOR))  # a vehicle behind it
+                    assert gcs.wait_until(lambda b_=hb: b_ in gcs.raw_received, WAIT)
+                    gcs.command((9, 1), dev.MAV_CMD_NAV_TAKEOFF, round_ + 1)
+                    assert radio.wait(lambda m, r=round_: m.get_type() == "COMMAND_LONG"
+                                      and m.target_system == 9 and m.param1 == r + 1)
+                finally:
+                    radio.close()
+                if round_ == 0:
+                    srv.close()  # the port vanishes (the server is gone), then comes back
+                    assert wait_for(down_and_retried(b, name), WAIT)
+                    srv = listener(port)
+            stats = b.stats()["endpoints"][name]
+    finally:
+        srv.close()
+        gcs.close()
+    assert stats["connects"] == 2 and stats["disconnects"] >= 1
+    assert stats["connect_failures"] >= 1
 
 
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pty pair")
@@ -244,8 +301,9 @@ def test_routing_can_be_switched_off() -> None:
                 veh.send(heartbeat(dev.MAV_TYPE_QUADROTOR))
                 veh.send(text("marker"))
                 assert veh.wait_for("HEARTBEAT", lambda m: src(m) == (1, 1), timeout=WAIT)
-                gcs.send(heartbeat())
+                # (the ground station answers to where our first datagram came from)
                 assert gcs.wait_for("HEARTBEAT", lambda m: src(m) == (1, 1), timeout=WAIT)
+                gcs.send(heartbeat())
                 name = b.endpoints[0].name
                 assert gcs.wait_until(
                     lambda: b.stats()["endpoints"][name]["rx_frames"] == 2, WAIT)

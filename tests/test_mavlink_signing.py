@@ -75,9 +75,11 @@ def test_unsigned_replayed_and_wrongly_signed_commands_are_rejected_and_counted(
             MavPeer(255, 192, signing_key=hashlib.sha256(b"wrong").digest()) as wrong, \
             signed_backend(gcs.port, signing_passphrase=PASS) as b:
         assert gcs.wait_for("HEARTBEAT", timeout=WAIT)
-        dest = gcs.dest
-        plain.command((1, 1), REQ, HB_ID, dest=dest)  # unsigned
-        wrong.command((1, 1), REQ, HB_ID, dest=dest)  # signed with another key
+        # Sent through the ground station's socket (udpout takes datagrams from its
+        # destination only): packed by a peer without a key, and by one with another key.
+        cmd = dev.MAVLink_command_long_message(1, 1, REQ, 0, HB_ID, 0, 0, 0, 0, 0, 0)
+        gcs.send_raw(plain.pack(cmd))  # unsigned
+        gcs.send_raw(wrong.pack(cmd))  # signed with another key
         good = gcs.command((1, 1), REQ, HB_ID)  # valid: answered
         gcs.send_raw(good)  # the same bytes again: a replay
         # a forged packet far in the future must not lock the real sender out

@@ -13,6 +13,7 @@ from mavlink_peer import MavPeer, upstream_dialect
 from backends.mavlink import MavlinkBackend, MavlinkSource
 from backends.mavlink.source import classic_mode_name
 from gateway import config
+from gateway.backend import Backend, Routes
 from gateway.dispatcher import Dispatcher
 from gateway.model import Battery, Position, SmUpdate, Status, VehicleState
 
@@ -24,20 +25,24 @@ class Sink:
     """Where the source's messages go: a real Dispatcher with a backend that keeps what the
     other backends (CRSF, Zenoh, HC-12) would be handed."""
 
-    class Keeper:
-        name = "keeper"
+    class Keeper(Backend):
+        NAME = "keeper"
 
         def __init__(self) -> None:
+            super().__init__()
             self.got: list[Any] = []
             self.cond = threading.Condition()
+
+        def routes(self) -> Routes:
+            routes = Routes()
+            for kind in (VehicleState, Position, Battery, SmUpdate, Status):
+                routes.on(kind, self._keep)
+            return routes
 
         def _keep(self, msg: Any) -> None:
             with self.cond:
                 self.got.append(msg)
                 self.cond.notify_all()
-
-        send_vehicle_state = send_position = send_battery = _keep
-        send_sm_update = send_status = _keep
 
     def __init__(self) -> None:
         self.keeper = self.Keeper()

@@ -6,18 +6,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
-import threading
 from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
 from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
-from backends.mavlink.ioloop import IoLoop
 from backends.mavlink.router import Router
 from backends.mavlink.translate import DEFAULT_RATES, AuroraVehicle
 from gateway import __version__
-from gateway.backend import Backend, BackendError, Outcome
+from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.ioloop import IoLoop, Timer
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
 
 log = logging.getLogger(__name__)
@@ -102,7 +101,7 @@ class MavlinkBackend(Backend):
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
         self._inbox: deque[Any] = deque()
-        self._inbox_lock = threading.Lock()
+        self._ticker: Timer | None = None
         self.dropped_inbox = 0
         self.ignored_origins: set[str] = set()
 
@@ -147,22 +146,23 @@ class MavlinkBackend(Backend):
         from backends.mavlink.source import MavlinkSource  # loop prevention: see send_position
 
         self.ignored_origins = MavlinkSource.live_names
-        loop = IoLoop(self.name)
+        loop = IoLoop(self.name)  # every endpoint's port engine runs on this one thread
         router = Router(self.vehicle, forward=self.route, signing_key=key)
+        loop.start()
         started: list[Endpoint] = []
         try:
             for spec in self.specs:
                 ep = make_endpoint(spec, self.serial_queue_depth)
-                ep.start(loop, router)
                 started.append(ep)
+                ep.start(loop, router)
         except OSError as exc:
             for ep in started:
                 ep.close()
-            loop.close()
+            if loop.stop(0.5):
+                loop.close()
             raise BackendError(str(exc)) from None
         self.loop, self.router, self.endpoints = loop, router, started
-        loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
-        loop.start()
+        self._ticker = loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
         log.info("%s: MAVLink system %d on %s%s", self.name, self.sysid,
                  ", ".join(s.text for s in self.specs), " (signed)" if key else "")
 
@@ -170,13 +170,15 @@ class MavlinkBackend(Backend):
         loop, self.loop = self.loop, None
         if loop is None:
             return
-        loop.stop(0.5)
-        for ep in self.endpoints:
+        if self._ticker is not None:
+            self._ticker.cancel()
+        for ep in self.endpoints:  # through the running loop: queued frames are written
             try:
                 ep.close()
             except Exception:
                 log.debug("%s: closing %s failed", self.name, ep.name, exc_info=True)
-        loop.close()
+        if loop.stop(0.5):
+            loop.close()
 
     # -- the loop thread -----------------------------------------------------------------------
 
@@ -219,6 +221,11 @@ class MavlinkBackend(Backend):
         self._inbox.append(msg)
         loop.call_soon(self._flush_inbox)
         return Outcome.ACCEPTED
+
+    def routes(self) -> Routes:
+        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+                .on(Position, self.send_position).on(Battery, self.send_battery)
+                .on(LinkStats, self.send_link_stats))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         return self._post(msg)

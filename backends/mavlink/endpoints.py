@@ -12,39 +12,50 @@
                             ``rfc2217://…``, ``loop://``), with an optional ``,BAUD``
 ==========================  ==============================================================
 
-Nothing here blocks the caller: UDP and TCP-server sockets are non-blocking and owned by the
-router's I/O loop (a TCP client too slow to read gets a bounded buffer, then drops, counted);
-serial ports and TCP clients write through a :class:`~gateway.link.LinkEngine` (bounded
-queue, worker thread, reconnect with backoff) and are read by a reader thread of their own.
+Every port belongs to a :class:`gateway.port.PortEngine`, and all the engines of one router
+share one :class:`gateway.ioloop.IoLoop` (one thread, passed to :meth:`Endpoint.start`).  A
+link is its engine's protocol object: what the port yields goes straight into
+:meth:`.Router.receive` (the router frames it); every :meth:`PortLink.send` is a non-blocking
+``engine.submit`` (a full queue drops the frame, counted ``tx_dropped``; a port that is down
+counts ``tx_not_up``).  Serial ports, TCP clients and UDP sockets that fail are reopened with
+backoff; a ``tcpin`` listener is bound again; an accepted TCP client that leaves is removed
+from the router.  Nothing here blocks the loop: sockets are non-blocking, and serial writes
+never wait for room (the engine keeps the unwritten tail until the port can take it).
+
+UDP sockets and TCP listeners are opened in :meth:`Endpoint.start`, so an address that cannot
+be bound fails the start at once, with the endpoint's name in the message.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import re
-import selectors
-import socket
-import threading
-import time
-from collections import OrderedDict
+import select
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
-from backends.mavlink.ioloop import IoLoop
+from backends.mavlink.frames import StreamFramer
 from backends.mavlink.router import Link, Router
 from gateway.backend import Outcome
 from gateway.backoff import Backoff
-from gateway.link import LinkEngine
-from gateway.transport import TransportError, open_serial
+from gateway.ioloop import IoLoop
+from gateway.port import PortEngine, PortServer
+from gateway.transport import (
+    SocketPort,
+    TransportError,
+    UdpPort,
+    open_serial,
+    open_tcp_client,
+    open_tcp_listener,
+    open_udp,
+)
 
 log = logging.getLogger(__name__)
 
 DEFAULT_SERIAL_BAUD = 57600
-MAX_UDP_PEERS = 16
-TCP_OUT_CAP = 256 * 1024
-SOCKET_BUFFER = 4 * 1024 * 1024
-READ_BATCH = 64
+DEFAULT_QUEUE_DEPTH = 256
+START_WAIT_S = 2.0  # for the engine to take a socket opened in start()
+CLOSE_TIMEOUT_S = 0.5
 _COM = re.compile(r"^COM\d+$", re.IGNORECASE)
 
 KINDS = ("udpout", "udpin", "tcpin", "tcp", "serial")
@@ -114,6 +125,12 @@ def parse_endpoint(text: str) -> EndpointSpec:
     return EndpointSpec("serial", device=device, baudrate=baud, text=t)
 
 
+def _add_ints(total: dict[str, Any], more: dict[str, Any]) -> None:
+    for k, v in more.items():
+        if isinstance(v, int):
+            total[k] = total.get(k, 0) + v
+
+
 class Endpoint:
     """A configured endpoint: starts its link(s) on a router and reports their counters."""
 
@@ -122,9 +139,12 @@ class Endpoint:
         self.name = spec.text
 
     def start(self, loop: IoLoop, router: Router) -> None:
+        """Open (or start opening) on ``loop`` (running); raises OSError naming the endpoint
+        when it cannot be opened at all."""
         raise NotImplementedError
 
-    def close(self) -> None:
+    def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
+        """Write what is queued, close and leave the router; safe twice, any thread."""
         raise NotImplementedError
 
     def links(self) -> list[Link]:
@@ -133,383 +153,55 @@ class Endpoint:
     def stats(self) -> dict[str, Any]:
         total: dict[str, Any] = {}
         for link in self.links():
-            for k, v in link.stats().items():
-                if isinstance(v, int):
-                    total[k] = total.get(k, 0) + v
+            _add_ints(total, link.stats())
         return total
 
 
-# -- UDP ----------------------------------------------------------------------------------------
+# -- a link on a port engine -------------------------------------------------------------------
 
-class UdpEndpoint(Endpoint, Link):
-    """``udpout:`` (fixed destination) or ``udpin:`` (reply to the peers that talk to us)."""
+class PortLink(Link):
+    """A :class:`~.router.Link` whose port is a :class:`~gateway.port.PortEngine`'s; the link is
+    the engine's protocol object (it hands what the port yields to the router)."""
 
-    datagram = True
-
-    def __init__(self, spec: EndpointSpec) -> None:
-        Endpoint.__init__(self, spec)
-        Link.__init__(self, spec.text)
-        self.sock: socket.socket | None = None
-        self.dest: Any = None
-        self.peers: OrderedDict[Any, float] = OrderedDict()
-        self._router: Router | None = None
-
-    def start(self, loop: IoLoop, router: Router) -> None:
-        spec = self.spec
-        try:
-            infos = socket.getaddrinfo(spec.host, spec.port, type=socket.SOCK_DGRAM)
-        except socket.gaierror as exc:
-            raise OSError(f"{spec.text}: cannot resolve {spec.host!r}: {exc}") from None
-        family, _, _, _, addr = infos[0]
-        sock = socket.socket(family, socket.SOCK_DGRAM)
-        try:
-            sock.setblocking(False)
-            for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
-                with contextlib.suppress(OSError):
-                    sock.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER)
-            if spec.kind == "udpin":
-                sock.bind(addr)
-            else:
-                sock.bind(("::", 0) if family == socket.AF_INET6 else ("0.0.0.0", 0))
-                self.dest = addr
-        except OSError as exc:
-            sock.close()
-            raise OSError(f"{spec.text}: {exc.strerror or exc}") from None
-        self.sock = sock
-        self._router = router
-        loop.register(sock, selectors.EVENT_READ, self._on_readable)
-        router.add_link(self)
-
-    @property
-    def address(self) -> Any:
-        """The local address (the bound port of ``udpin:HOST:0``)."""
-        return self.sock.getsockname() if self.sock is not None else None
-
-    @property
-    def up(self) -> bool:
-        return self.sock is not None and (self.dest is not None or bool(self.peers))
-
-    def _on_readable(self, mask: int) -> None:
-        sock = self.sock
-        if sock is None:
-            return
-        batch: list[bytes] = []
-        is_in = self.dest is None
-        peers = self.peers
-        for _ in range(READ_BATCH):
-            try:
-                data, addr = sock.recvfrom(65536)
-            except BlockingIOError:
-                break
-            except ConnectionRefusedError:  # ICMP for an earlier send: nobody listens there
-                self.counters.tx_errors += 1
-                continue
-            except OSError:
-                break
-            if is_in:
-                if addr in peers:
-                    peers.move_to_end(addr)
-                else:
-                    peers[addr] = time.monotonic()
-                    log.info("%s: peer %s", self.name, addr)
-                    if len(peers) > MAX_UDP_PEERS:
-                        peers.popitem(last=False)
-            batch.append(data)
-        if batch:
-            self._router.receive_many(self, batch)  # type: ignore[union-attr]
-
-    def send(self, data: bytes) -> bool:
-        sock = self.sock
-        c = self.counters
-        dests = (self.dest,) if self.dest is not None else tuple(self.peers)
-        if sock is None or not dests:
-            c.tx_not_up += 1  # closed, or udpin: nobody has talked to us yet
-            return False
-        ok = False
-        for d in dests:
-            try:
-                sock.sendto(data, d)
-            except BlockingIOError:
-                c.tx_dropped += 1
-                continue
-            except OSError:
-                c.tx_errors += 1
-                continue
-            c.tx_frames += 1
-            c.tx_bytes += len(data)
-            ok = True
-        return ok
-
-    def close(self) -> None:
-        sock, self.sock = self.sock, None
-        if sock is not None:
-            if self._router is not None:
-                self._router.remove_link(self)
-            sock.close()
-
-    def links(self) -> list[Link]:
-        return [self]
-
-    def stats(self) -> dict[str, Any]:
-        d = Link.stats(self)
-        if self.dest is None:
-            d["peers"] = len(self.peers)
-        return d
-
-
-# -- TCP server -----------------------------------------------------------------------------------
-
-class TcpConnection(Link):
-    """One accepted TCP client of a ``tcpin:`` endpoint."""
-
-    def __init__(self, name: str, sock: socket.socket, loop: IoLoop, router: Router,
-                 on_close: Callable[[TcpConnection], None]) -> None:
+    def __init__(self, name: str) -> None:
         super().__init__(name)
-        self.sock: socket.socket | None = sock
-        self._loop = loop
-        self._router = router
-        self._on_close = on_close
-        self._out = bytearray()
-        self._want_write = False
+        self.engine: PortEngine | None = None
+
+    def make_engine(self, opener: Callable[[], Any], loop: IoLoop, *, queue_depth: int,
+                    reopen: bool = True, on_link: Callable[[bool], Any] | None = None,
+                    ) -> PortEngine:
+        self.engine = PortEngine(opener, name=self.name, protocol=self, loop=loop,
+                                 queue_depth=queue_depth, backoff=Backoff(0.1, 5.0),
+                                 reopen=reopen, on_link=on_link)
+        return self.engine
+
+    # -- the engine's protocol (the loop thread) -------------------------------------------
+
+    def feed(self, data: bytes) -> tuple[()]:
+        self.router.receive(self, data)  # type: ignore[union-attr]
+        return ()
+
+    def flush(self) -> tuple[()]:
+        """The stream broke: a frame it was in the middle of will not complete."""
+        framer, router = self.framer, self.router
+        if framer is not None and router is not None:
+            with router.lock:
+                fresh = StreamFramer()
+                fresh.stats = framer.stats
+                fresh.stats.bytes_skipped += framer.pending()
+                self.framer = fresh
+        return ()
+
+    # -- the router's side ---------------------------------------------------------------------
 
     @property
     def up(self) -> bool:
-        return self.sock is not None
-
-    def send(self, data: bytes) -> bool:  # called with the router lock held
-        c = self.counters
-        sock = self.sock
-        if sock is None:
-            c.tx_not_up += 1
-            return False
-        if self._out:
-            if len(self._out) + len(data) > TCP_OUT_CAP:
-                c.tx_dropped += 1  # the client does not keep up: drop whole frames
-                return False
-            self._out += data
-        else:
-            try:
-                n = sock.send(data)
-            except BlockingIOError:
-                n = 0
-            except OSError:
-                c.tx_errors += 1
-                self._loop.call_soon(self.close)
-                return False
-            if n < len(data):
-                self._out += data[n:]
-        c.tx_frames += 1
-        c.tx_bytes += len(data)
-        if self._out and not self._want_write:
-            self._want_write = True
-            self._loop.call_soon(self._watch_writes)
-        return True
-
-    def _watch_writes(self) -> None:
-        if self.sock is not None:
-            self._loop.modify(self.sock, selectors.EVENT_READ | selectors.EVENT_WRITE,
-                              self._on_event)
-
-    def _on_event(self, mask: int) -> None:
-        sock = self.sock
-        if sock is None:
-            return
-        if mask & selectors.EVENT_READ:
-            try:
-                data = sock.recv(65536)
-            except BlockingIOError:
-                data = None
-            except OSError:
-                data = b""
-            if data == b"":
-                self.close()
-                return
-            if data:
-                self._router.receive(self, data)
-        if mask & selectors.EVENT_WRITE:
-            with self._router.lock:
-                try:
-                    n = sock.send(self._out)
-                except BlockingIOError:
-                    n = 0
-                except OSError:
-                    self.counters.tx_errors += 1
-                    self.close()
-                    return
-                del self._out[:n]
-                if not self._out:
-                    self._want_write = False
-                    self._loop.modify(sock, selectors.EVENT_READ, self._on_event)
-
-    def close(self) -> None:
-        sock, self.sock = self.sock, None
-        if sock is None:
-            return
-        self._loop.unregister(sock)
-        self._router.remove_link(self)
-        with contextlib.suppress(OSError):
-            sock.close()
-        log.info("%s: disconnected", self.name)
-        self._on_close(self)
-
-
-class TcpServerEndpoint(Endpoint):
-    """``tcpin:HOST:PORT``: accepts any number of clients, each routed as its own link."""
-
-    def __init__(self, spec: EndpointSpec) -> None:
-        super().__init__(spec)
-        self.sock: socket.socket | None = None
-        self.clients: list[TcpConnection] = []
-        self.accepted = 0
-        self._closed_stats: dict[str, int] = {}
-        self._loop: IoLoop | None = None
-        self._router: Router | None = None
-
-    def start(self, loop: IoLoop, router: Router) -> None:
-        spec = self.spec
-        try:
-            infos = socket.getaddrinfo(spec.host, spec.port, type=socket.SOCK_STREAM)
-            family, _, _, _, addr = infos[0]
-            sock = socket.socket(family, socket.SOCK_STREAM)
-        except (socket.gaierror, OSError) as exc:
-            raise OSError(f"{spec.text}: {exc}") from None
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind(addr)
-            sock.listen(16)
-            sock.setblocking(False)
-        except OSError as exc:
-            sock.close()
-            raise OSError(f"{spec.text}: {exc.strerror or exc}") from None
-        self.sock = sock
-        self._loop, self._router = loop, router
-        loop.register(sock, selectors.EVENT_READ, self._on_accept)
-
-    @property
-    def address(self) -> Any:
-        return self.sock.getsockname() if self.sock is not None else None
-
-    def _on_accept(self, mask: int) -> None:
-        if self.sock is None:
-            return
-        try:
-            conn, addr = self.sock.accept()
-        except (BlockingIOError, OSError):
-            return
-        conn.setblocking(False)
-        with contextlib.suppress(OSError):
-            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.accepted += 1
-        link = TcpConnection(f"{self.name}<{addr[0]}:{addr[1]}>", conn, self._loop,  # type: ignore[arg-type]
-                             self._router, self._client_closed)  # type: ignore[arg-type]
-        self.clients.append(link)
-        self._router.add_link(link)  # type: ignore[union-attr]
-        self._loop.register(conn, selectors.EVENT_READ, link._on_event)  # type: ignore[union-attr]
-        log.info("%s: client %s:%s connected", self.name, addr[0], addr[1])
-
-    def _client_closed(self, link: TcpConnection) -> None:
-        if link in self.clients:
-            self.clients.remove(link)
-            for k, v in link.stats().items():
-                if isinstance(v, int):
-                    self._closed_stats[k] = self._closed_stats.get(k, 0) + v
-
-    def links(self) -> list[Link]:
-        return list(self.clients)
-
-    def stats(self) -> dict[str, Any]:
-        d = dict(self._closed_stats)
-        for k, v in super().stats().items():
-            d[k] = d.get(k, 0) + v
-        d["clients"] = len(self.clients)
-        d["accepted"] = self.accepted
-        return d
-
-    def close(self) -> None:
-        for c in list(self.clients):
-            c.close()
-        sock, self.sock = self.sock, None
-        if sock is not None:
-            if self._loop is not None:
-                self._loop.unregister(sock)
-            sock.close()
-
-
-# -- byte streams through the link engine: serial ports and TCP clients -------------------------
-
-class _SocketTransport:
-    """A connected TCP socket as a :class:`gateway.transport.Transport`."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        sock.settimeout(1.0)  # a write stuck this long is a dead peer: reconnect
-        with contextlib.suppress(OSError):
-            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.in_waiting = 0
-
-    def write(self, data: bytes) -> int:
-        self.sock.sendall(data)
-        return len(data)
-
-    def read(self, size: int = 1) -> bytes:
-        try:
-            data = self.sock.recv(max(size, 65536))
-        except TimeoutError:
-            return b""
-        if not data:
-            raise ConnectionError("connection closed by the peer")
-        return data
-
-    def close(self) -> None:
-        with contextlib.suppress(OSError):
-            self.sock.shutdown(socket.SHUT_RDWR)
-        self.sock.close()
-
-
-class StreamEndpoint(Endpoint, Link):
-    """``serial:`` and ``tcp:``: a LinkEngine writes, a reader thread reads, both reopen the
-    port (with backoff) when it fails."""
-
-    def __init__(self, spec: EndpointSpec, queue_depth: int = 256) -> None:
-        Endpoint.__init__(self, spec)
-        Link.__init__(self, spec.text)
-        self._port: Any = None
-        self._router: Router | None = None
-        self._stop = threading.Event()
-        self._reader: threading.Thread | None = None
-        self.read_errors = 0
-        self.engine = LinkEngine(self._open, name=spec.text, queue_depth=queue_depth,
-                                 backoff=Backoff(0.1, 5.0))
-
-    def _open(self) -> Any:
-        spec = self.spec
-        if spec.kind == "tcp":
-            try:
-                sock = socket.create_connection((spec.host, spec.port), timeout=2.0)
-            except OSError as exc:
-                raise TransportError(f"cannot connect to {spec.host}:{spec.port}: "
-                                     f"{exc.strerror or exc}") from None
-            port: Any = _SocketTransport(sock)
-        else:
-            port = open_serial(spec.device, spec.baudrate, timeout=0.05)
-        self._port = port
-        return port
-
-    @property
-    def up(self) -> bool:
-        return self.engine.connected
-
-    def start(self, loop: IoLoop, router: Router) -> None:
-        self._router = router
-        router.add_link(self)
-        self.engine.start()
-        self._reader = threading.Thread(target=self._read_loop, name=f"mavlink-rx-{self.name}",
-                                        daemon=True)
-        self._reader.start()
+        engine = self.engine
+        return engine is not None and engine.connected
 
     def send(self, data: bytes) -> bool:
+        outcome = self.engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
         c = self.counters
-        outcome = self.engine.submit(data, rate_limited=False)
         if outcome is Outcome.ACCEPTED:
             c.tx_frames += 1
             c.tx_bytes += len(data)
@@ -517,59 +209,298 @@ class StreamEndpoint(Endpoint, Link):
         if outcome is Outcome.NOT_READY:
             c.tx_not_up += 1  # the port is down: frames are not kept for when it is back
         else:
+            c.tx_dropped += 1  # the port does not keep up: its queue is full
+        return False
+
+    def close_engine(self, timeout: float) -> None:
+        engine, router = self.engine, self.router
+        if engine is not None:
+            engine.close(timeout)
+        if router is not None:
+            router.remove_link(self)
+
+    def stats(self) -> dict[str, Any]:
+        d = Link.stats(self)
+        engine = self.engine
+        if engine is not None:
+            es = engine.stats
+            d.update(connects=es.connects, connect_failures=es.connect_failures,
+                     disconnects=es.disconnects, write_errors=es.write_errors,
+                     read_errors=es.read_errors, link=int(engine.connected))
+        return d
+
+
+# -- UDP ----------------------------------------------------------------------------------------
+
+class UdpEndpoint(Endpoint, PortLink):
+    """``udpout:`` (fixed destination) or ``udpin:`` (reply to the peers that talk to us)."""
+
+    datagram = True
+
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
+        Endpoint.__init__(self, spec)
+        PortLink.__init__(self, spec.text)
+        self.queue_depth = queue_depth
+        self.listen = spec.kind == "udpin"
+        self.port: UdpPort | None = None
+        self._bound_port = spec.port  # udpin:HOST:0 binds the same port again on a reopen
+        self._first: UdpPort | None = None
+        self._new_peers = 0
+        self._closed_counts = {"tx_errors": 0, "tx_dropped": 0}  # from sockets reopened since
+
+    def _open(self) -> UdpPort:
+        spec = self.spec
+        try:
+            port = open_udp(spec.host, self._bound_port, listen=self.listen)
+        except TransportError as exc:
+            raise TransportError(f"{spec.text}: {exc}") from None
+        if self.listen:
+            self._bound_port = port.address()[1]
+        old, self.port = self.port, port
+        if old is not None:
+            self._closed_counts["tx_errors"] += old.send_errors
+            self._closed_counts["tx_dropped"] += old.send_dropped
+        self._new_peers = 0
+        return port
+
+    def _opener(self) -> UdpPort:
+        first, self._first = self._first, None
+        return first if first is not None else self._open()
+
+    def start(self, loop: IoLoop, router: Router) -> None:
+        self._first = self._open()  # raises (TransportError is an OSError) naming us
+        engine = self.make_engine(self._opener, loop, queue_depth=self.queue_depth)
+        router.add_link(self)
+        engine.start()
+        engine.wait_connected(START_WAIT_S)
+
+    @property
+    def address(self) -> Any:
+        """The local address (the bound port of ``udpin:HOST:0``)."""
+        port = self.port
+        return port.address() if port is not None else None
+
+    @property
+    def up(self) -> bool:
+        engine, port = self.engine, self.port
+        return (engine is not None and engine.connected and port is not None
+                and (not self.listen or bool(port.peers)))
+
+    def feed(self, data: bytes) -> tuple[()]:
+        return self.feed_many([data])
+
+    def feed_many(self, datagrams: list[bytes]) -> tuple[()]:
+        """What the engine read in one go (one router lock round trip for the lot)."""
+        port = self.port
+        if port is not None and port.new_peers != self._new_peers:
+            self._new_peers = port.new_peers
+            log.info("%s: peer %s", self.name, port.last_peer)
+        self.router.receive_many(self, datagrams)  # type: ignore[union-attr]
+        return ()
+
+    def send(self, data: bytes) -> bool:
+        c = self.counters
+        if self.listen:
+            port = self.port
+            if port is None or not port.peers:
+                c.tx_not_up += 1  # udpin: nobody has talked to us yet
+                return False
+        outcome = self.engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
+        if outcome is Outcome.ACCEPTED:  # (PortLink.send, inline: the router's hot path)
+            c.tx_frames += 1
+            c.tx_bytes += len(data)
+            return True
+        if outcome is Outcome.NOT_READY:
+            c.tx_not_up += 1
+        else:
             c.tx_dropped += 1
         return False
 
-    def _read_loop(self) -> None:
-        stop = self._stop
-        router = self._router
-        assert router is not None
-        while not stop.is_set():
-            port = self._port
-            if port is None or not self.engine.connected:
-                stop.wait(0.05)
-                continue
-            try:
-                n = getattr(port, "in_waiting", 0)
-                data = port.read(n if n > 0 else 1)
-            except Exception as exc:
-                if stop.is_set():
-                    return
-                self.read_errors += 1
-                log.warning("%s: read failed (%s); reopening", self.name, exc)
-                self._port = None
-                self.engine.reconnect()  # the engine's worker closes the port and reopens it
-                stop.wait(0.1)
-                continue
-            if data:
-                router.receive(self, data)
-
-    def close(self) -> None:
-        self._stop.set()
-        self.engine.close(0.5)
-        port, self._port = self._port, None
-        if port is not None:
-            with contextlib.suppress(Exception):
-                port.close()
-        if self._reader is not None:
-            self._reader.join(0.5)
-        if self._router is not None:
-            self._router.remove_link(self)
+    def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
+        self.close_engine(timeout)
 
     def links(self) -> list[Link]:
         return [self]
 
     def stats(self) -> dict[str, Any]:
-        d = Link.stats(self)
-        es = self.engine.stats
-        d.update(connects=es.connects, connect_failures=es.connect_failures,
-                 write_errors=es.write_errors, read_errors=self.read_errors)
+        d = PortLink.stats(self)
+        port = self.port
+        errors, dropped = self._closed_counts["tx_errors"], self._closed_counts["tx_dropped"]
+        if port is not None:
+            errors += port.send_errors
+            dropped += port.send_dropped
+        d["tx_errors"] += errors  # the OS refused a datagram (nobody listening, no route)
+        d["tx_dropped"] += dropped  # the socket buffer was full
+        if self.listen:
+            d["peers"] = len(port.peers) if port is not None else 0
         return d
 
 
-def make_endpoint(spec: EndpointSpec, queue_depth: int = 256) -> Endpoint:
+# -- TCP server -----------------------------------------------------------------------------------
+
+def _not_reopened() -> Any:
+    raise TransportError("an accepted client is not reopened")
+
+
+class TcpServerEndpoint(Endpoint):
+    """``tcpin:HOST:PORT``: accepts any number of clients, each routed as a link of its own
+    (a :class:`PortLink` on an engine that is not reopened: a client that leaves is gone)."""
+
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
+        super().__init__(spec)
+        self.queue_depth = queue_depth
+        self.clients: list[PortLink] = []
+        self.server: PortServer | None = None
+        self.address: Any = None
+        self._closed_stats: dict[str, int] = {}
+        self._first: Any = None
+        self._loop: IoLoop | None = None
+        self._router: Router | None = None
+        self._closing = False
+
+    def _listen(self) -> Any:
+        spec = self.spec
+        port = self.address[1] if self.address is not None else spec.port
+        try:
+            sock = open_tcp_listener(spec.host, port)
+        except TransportError as exc:
+            raise TransportError(f"{spec.text}: {exc}") from None
+        self.address = sock.getsockname()
+        return sock
+
+    def _opener(self) -> Any:
+        first, self._first = self._first, None
+        return first if first is not None else self._listen()
+
+    def start(self, loop: IoLoop, router: Router) -> None:
+        self._first = self._listen()  # raises (TransportError is an OSError) naming us
+        self._loop, self._router = loop, router
+        self.server = PortServer(self._opener, self._on_client, loop=loop, name=self.name,
+                                 backoff=Backoff(0.1, 5.0))
+        self.server.start()
+        self.server.wait_bound(START_WAIT_S)
+
+    @property
+    def accepted(self) -> int:
+        return self.server.accepted if self.server is not None else 0
+
+    def _on_client(self, sock: Any, addr: Any) -> None:  # the loop thread
+        loop, router = self._loop, self._router
+        assert loop is not None and router is not None
+        name = f"{self.name}<{addr[0]}:{addr[1]}>"
+        if self._closing:
+            sock.close()
+            return
+        link = PortLink(name)
+
+        def on_link(up: bool) -> None:
+            if not up:
+                loop.call_soon(lambda: self._client_closed(link))
+
+        engine = link.make_engine(_not_reopened, loop, queue_depth=self.queue_depth,
+                                  reopen=False, on_link=on_link)
+        self.clients.append(link)
+        router.add_link(link)
+        engine.start_with(SocketPort(sock, name))  # up at once: routed frames are not refused
+        log.info("%s: client %s:%s connected", self.name, addr[0], addr[1])
+
+    def _client_closed(self, link: PortLink) -> None:
+        if link not in self.clients:
+            return
+        self.clients.remove(link)
+        link.close_engine(CLOSE_TIMEOUT_S)
+        _add_ints(self._closed_stats, link.stats())
+        log.info("%s: disconnected", link.name)
+
+    def links(self) -> list[Link]:
+        return list(self.clients)
+
+    def stats(self) -> dict[str, Any]:
+        d: dict[str, Any] = dict(self._closed_stats)
+        _add_ints(d, super().stats())
+        for k in ("link", "connects", "disconnects"):  # per client: not totals worth showing
+            d.pop(k, None)
+        d["clients"] = len(self.clients)
+        d["accepted"] = self.accepted
+        return d
+
+    def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
+        self._closing = True
+        if self.server is not None:
+            self.server.close()
+        for link in list(self.clients):
+            link.close_engine(timeout)
+
+
+# -- byte streams: serial ports and TCP clients -------------------------------------------------
+
+class _SerialPort:
+    """A pyserial port for a shared loop: writes never wait for room.
+
+    pyserial's own non-blocking write spins while the port's buffer is full (a radio that has
+    stopped reading would hold the loop), so a port with a descriptor is asked first whether
+    it can take anything; when it cannot, nothing is written and the engine waits for room."""
+
+    def __init__(self, port: Any) -> None:
+        self.serial = port
+        try:
+            self._fd: int | None = port.fileno()
+        except Exception:  # loop://, rfc2217://: polled by the engine, written directly
+            self._fd = None
+
+    def fileno(self) -> int:
+        if self._fd is None:
+            raise OSError("no file descriptor")
+        return self._fd
+
+    def read(self, size: int = 1) -> bytes:
+        return self.serial.read(size)
+
+    def write(self, data: bytes) -> int | None:
+        fd = self._fd
+        if fd is not None:
+            _, ready, _ = select.select((), (fd,), (), 0)
+            if not ready:
+                return 0
+        n = self.serial.write(data)
+        return n if isinstance(n, int) else None
+
+    def close(self) -> None:
+        self.serial.close()
+
+
+class StreamEndpoint(Endpoint, PortLink):
+    """``serial:`` and ``tcp:``: one engine, reopening the port with backoff when it fails."""
+
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
+        Endpoint.__init__(self, spec)
+        PortLink.__init__(self, spec.text)
+        self.queue_depth = queue_depth
+
+    def _open(self) -> Any:
+        spec = self.spec
+        if spec.kind == "tcp":
+            return open_tcp_client(spec.host, spec.port)
+        return _SerialPort(open_serial(spec.device, spec.baudrate, timeout=0,
+                                       write_timeout=0))
+
+    def start(self, loop: IoLoop, router: Router) -> None:
+        engine = self.make_engine(self._open, loop, queue_depth=self.queue_depth)
+        router.add_link(self)
+        engine.start()
+
+    def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
+        self.close_engine(timeout)
+
+    def links(self) -> list[Link]:
+        return [self]
+
+    stats = PortLink.stats
+
+
+def make_endpoint(spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> Endpoint:
     if spec.kind in ("udpout", "udpin"):
-        return UdpEndpoint(spec)
+        return UdpEndpoint(spec, queue_depth)
     if spec.kind == "tcpin":
-        return TcpServerEndpoint(spec)
+        return TcpServerEndpoint(spec, queue_depth)
     return StreamEndpoint(spec, queue_depth)

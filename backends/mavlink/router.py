@@ -190,46 +190,43 @@ class Router:
                     route(link, f)
 
     def _route(self, link: Link, f: Frame) -> None:
+        raw, msgid, sysid, compid, seq, tsys, tcomp, _, _ = f  # one unpack: the hot path
         c = link.counters
         c.rx_frames += 1
-        c.rx_bytes += len(f.raw)
-        key = (f.sysid << 8) | f.compid
+        c.rx_bytes += len(raw)
+        key = (sysid << 8) | compid
         if key == self._own_key:
             self.stats.own_id_seen += 1  # our own echo, or a system using our id: drop
             return
-        last = link.last_seq.get(key)
+        last_seq = link.last_seq
+        last = last_seq.get(key)
         if last is not None:
-            gap = (f.seq - last - 1) & 0xFF
+            gap = (seq - last - 1) & 0xFF
             if gap:
                 c.seq_lost += gap
-        link.last_seq[key] = f.seq
+        last_seq[key] = seq
         if key not in link.seen:
             link.seen.add(key)
-            link.seen_sys.add(f.sysid)
-            log.info("%s: system %d component %d seen", link.name, f.sysid, f.compid)
+            link.seen_sys.add(sysid)
+            log.info("%s: system %d component %d seen", link.name, sysid, compid)
         node = self.node
-        tsys = f.target_system
-        if node is not None and f.msgid in node.consumed and (
-                tsys <= 0 or (tsys == node.sysid
-                              and f.target_component in (-1, 0, node.compid))):
+        if node is not None and msgid in node.consumed and (
+                tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))):
             self._deliver(link, f)
         if not self.forward:
             return
         others = self._others.get(link, ())
         if tsys <= 0:
             targets: Iterable[Link] = others
+        elif tcomp <= 0:
+            targets = [o for o in others if tsys in o.seen_sys]
         else:
-            tcomp = f.target_component
-            if tcomp <= 0:
-                targets = [o for o in others if tsys in o.seen_sys]
-            else:
-                tkey = (tsys << 8) | tcomp
-                targets = [o for o in others if tkey in o.seen]
-            if not targets:
-                if tsys != (node.sysid if node is not None else -1):
-                    self.stats.unroutable += 1
-                return
-        raw = f.raw
+            tkey = (tsys << 8) | tcomp
+            targets = [o for o in others if tkey in o.seen]
+        if not targets:
+            if tsys > 0 and tsys != (node.sysid if node is not None else -1):
+                self.stats.unroutable += 1
+            return
         n = 0
         for o in targets:
             if key in o.seen:

@@ -29,12 +29,12 @@ from typing import Any, ClassVar
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
-from backends.mavlink.ioloop import IoLoop
 from backends.mavlink.router import Router
 from backends.mavlink.translate import RateGate, sm_update_from_mavlink, status_from_mavlink
 from gateway.config import Key, Schema
+from gateway.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
-from gateway.sources import Source
+from gateway.sources import Sink, Source
 
 log = logging.getLogger(__name__)
 
@@ -312,19 +312,30 @@ class MavlinkSource(Source):
         elif signing_passphrase:
             self.signing_key = signing.key_from_passphrase(signing_passphrase)
         self._pending: deque[Any] = deque()
-        self._ready = threading.Event()
+        self._emit_scheduled = False
         self.listener = VehicleListener(self._queue, self.name, sysid=sysid, compid=compid,
                                         target_system=target_system, rate_hz=rate_hz,
                                         request_streams=request_streams)
         self.router: Router | None = None
+        self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
         self.emitted = 0
         self.started = threading.Event()
         self.start_error: str | None = None
+        self._heartbeats: Timer | None = None
 
-    def _queue(self, msg: Any) -> None:  # router threads, under the router lock
+    def _queue(self, msg: Any) -> None:  # the loop thread, under the router lock
         self._pending.append(msg)
-        self._ready.set()
+        if not self._emit_scheduled and self.loop is not None:
+            self._emit_scheduled = True
+            self.loop.call_soon(self._emit_pending)  # outside the router lock
+
+    def _emit_pending(self) -> None:  # the loop thread
+        self._emit_scheduled = False
+        pending = self._pending
+        while pending:
+            self.emit(pending.popleft())
+            self.emitted += 1
 
     def _heartbeat(self) -> None:
         router = self.router
@@ -333,41 +344,57 @@ class MavlinkSource(Source):
                 mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
                 mav.MAV_STATE_ACTIVE, 3)])
 
-    def run(self, stop: threading.Event) -> None:
+    # -- life cycle: the endpoints' engines and timers run on one loop; messages are emitted
+    # -- from its thread (the sink never blocks) -------------------------------------------------
+
+    @property
+    def running(self) -> bool:
+        return self._sink is not None and not self.done.is_set()
+
+    def start(self, sink: Sink) -> None:
+        if self._sink is not None:
+            return
+        self._sink = sink
         loop = IoLoop(self.name)
         router = Router(self.listener, signing_key=self.signing_key)
+        loop.start()
+        self.loop = loop
         try:
             for spec in self.specs:
                 ep = make_endpoint(spec)
-                ep.start(loop, router)
                 self.endpoints.append(ep)
+                ep.start(loop, router)
         except OSError as exc:
             self.start_error = str(exc)
             log.error("source %s: %s", self.name, exc)
-            for ep in self.endpoints:
-                ep.close()
-            loop.close()
+            self._shut_down()
             self.started.set()
             return
         self.router = router
         if self.heartbeat_hz > 0:
-            loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat)
-        loop.start()
+            self._heartbeats = loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat)
         MavlinkSource.live_names.add(self.name)
         self.started.set()
-        try:
-            while not stop.is_set():
-                self._ready.wait(0.1)
-                self._ready.clear()
-                while self._pending:
-                    self.emit(self._pending.popleft())
-                    self.emitted += 1
-        finally:
-            MavlinkSource.live_names.discard(self.name)
-            loop.stop(0.5)
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self._stop.set()
+        MavlinkSource.live_names.discard(self.name)
+        self._shut_down(timeout)
+
+    def _shut_down(self, timeout: float = 1.0) -> None:
+        loop, self.loop = self.loop, None
+        if loop is not None:
+            if self._heartbeats is not None:
+                self._heartbeats.cancel()
+            each = max(0.05, timeout / (2 * max(1, len(self.endpoints))))
             for ep in self.endpoints:
-                ep.close()
-            loop.close()
+                try:
+                    ep.close(each)
+                except Exception:
+                    log.debug("source %s: closing %s failed", self.name, ep.name, exc_info=True)
+            if loop.stop(max(0.05, timeout / 2)):
+                loop.close()
+        self.done.set()
 
     def stats(self) -> dict[str, Any]:
         router = self.router
