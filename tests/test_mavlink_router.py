@@ -315,3 +315,50 @@ def test_routing_can_be_switched_off() -> None:
         assert not gcs.messages(where=lambda m: src(m) == (7, 1))
     finally:
         gcs.close()
+
+
+def test_a_tcp_client_that_stops_reading_loses_whole_frames_and_holds_up_nothing() -> None:
+    """A bounded queue per client: once its socket is full, frames for it are dropped (whole,
+    counted) while the loop carries on serving the others; when it reads again, what it gets
+    is whole frames, never one cut by a partial write."""
+    with backend("udpin:127.0.0.1:0", "tcpin:127.0.0.1:0", heartbeat_hz=10,
+                 serial_queue_depth=8) as b:
+        ep_in, ep_tcp = b.endpoints
+        stalled = socket.socket()
+        stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a small window
+        stalled.connect(ep_tcp.address)
+        veh = MavPeer(7, 1, dest=ep_in.address)
+        try:
+            assert wait_for(lambda: b.stats()["endpoints"][ep_tcp.name]["clients"] == 1, WAIT)
+            big = veh.pack(dev.MAVLink_file_transfer_protocol_message(0, 0, 0, [0x55] * 251))
+            deadline = time.monotonic() + WAIT
+            while b.stats()["endpoints"][ep_tcp.name]["tx_dropped"] == 0:
+                assert time.monotonic() < deadline, "nothing was ever dropped"
+                for _ in range(100):
+                    veh.send_raw(big)  # broadcast: forwarded to the TCP client
+            # the loop is not stuck in a write: it still beats and answers on udpin
+            beats = len(veh.messages("HEARTBEAT", lambda m: src(m) == (1, 1)))
+            assert veh.wait_for("HEARTBEAT", lambda m: src(m) == (1, 1), count=beats + 3,
+                                timeout=WAIT)
+            veh.command((1, 1), dev.MAV_CMD_REQUEST_MESSAGE, dev.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+            assert veh.wait_for("AUTOPILOT_VERSION", timeout=WAIT)
+            assert b.stats()["endpoints"][ep_tcp.name]["clients"] == 1  # still connected
+            # it reads again: whole frames only, and fresh ones arrive
+            parser = dev.MAVLink(None)
+            parser.robust_parsing = True
+            got: list[Any] = []
+            stalled.settimeout(0.05)
+            deadline = time.monotonic() + WAIT
+            while sum(1 for m in got if m.get_type() == "HEARTBEAT") < 20:
+                assert time.monotonic() < deadline, "the client's stream did not resume"
+                try:
+                    data = stalled.recv(65536)
+                except TimeoutError:
+                    continue
+                assert data, "the gateway closed the connection"
+                got += parser.parse_buffer(data) or []
+        finally:
+            veh.close()
+            stalled.close()
+    kinds = {m.get_type() for m in got}
+    assert "BAD_DATA" not in kinds and "FILE_TRANSFER_PROTOCOL" in kinds
