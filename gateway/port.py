@@ -630,8 +630,12 @@ class PortEngine:
         self._outage_logged = True     # sees the count
         self._detach(port)
         if exc is not None:
-            log.warning("%s: %s (%s); %s", self.name, what, exc,
-                        "reopening" if self.reopen else "closed (not reopened)")
+            # A peer hanging up on a connection we do not reopen (an accepted client) is the
+            # normal end of it, not a fault.
+            level = (logging.INFO if not self.reopen and isinstance(exc, ConnectionError)
+                     else logging.WARNING)
+            log.log(level, "%s: %s (%s); %s", self.name, what, exc,
+                    "reopening" if self.reopen else "closed (not reopened)")
         self._flush_protocol()
         if self.on_link is not None:
             self.on_link(False)
