@@ -227,6 +227,7 @@ class PortLink(Link):
             d.update(connects=es.connects, connect_failures=es.connect_failures,
                      disconnects=es.disconnects, write_errors=es.write_errors,
                      read_errors=es.read_errors, link=int(engine.connected))
+            d["tx_errors"] += es.write_errors  # the OS refused a write (then: reopened)
         return d
 
 
