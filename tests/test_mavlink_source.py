@@ -164,7 +164,7 @@ def test_one_gateway_feeds_another_losslessly_over_mavlink() -> None:
         sink.dispatcher.close()
     assert got and got_st
     assert [m.fields() for m in relayed] == [m.fields() for m in sent]
-    assert all(m.origin == "upstream" for m in relayed)
+    assert all(m.origin == "upstream" and m.via.startswith("mavlink:") for m in relayed)
     assert got_st[0].fields() == st.fields()
 
 
@@ -173,16 +173,16 @@ def test_the_backend_does_not_echo_a_mavlink_sources_position() -> None:
     b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
     d = Dispatcher([b])
     assert d.start() == []
-    MavlinkSource.live_names.add("copter-x")
     try:
-        d.dispatch(Position(47.0, 8.0, 500.0, origin="copter-x"))
+        # from a MAVLink vehicle (as a MAVLink source stamps it): it speaks for itself
+        d.dispatch(Position(47.0, 8.0, 500.0, origin="copter-x", via="mavlink:1"))
+        d.dispatch(Battery(12.0, origin="copter-x", via="mavlink:1"))
         d.dispatch(Position(46.5, 7.5, 600.0, 10.0, 3.0, 45.0, 9, 3, origin="gps"))
         d.dispatch(Battery(7.4, 1.2, 100.0, 80, origin="gps"))
         pos = gcs.wait_for("GLOBAL_POSITION_INT", timeout=WAIT)
         assert gcs.wait_for("BATTERY_STATUS", timeout=WAIT)
         assert gcs.wait_for("GPS_RAW_INT", timeout=WAIT)
     finally:
-        MavlinkSource.live_names.discard("copter-x")
         d.close()
         gcs.close()
     assert [(p.lat, p.lon, p.alt) for p in gcs.messages("GLOBAL_POSITION_INT")] == [

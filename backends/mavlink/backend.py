@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 from backends.mavlink import signing
 from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
 from backends.mavlink.router import Router
-from backends.mavlink.translate import DEFAULT_RATES, AuroraVehicle
+from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
@@ -103,7 +103,6 @@ class MavlinkBackend(Backend):
         self._inbox: deque[Any] = deque()
         self._ticker: Timer | None = None
         self.dropped_inbox = 0
-        self.ignored_origins: set[str] = set()
 
     # -- CLI ---------------------------------------------------------------------------------
 
@@ -143,9 +142,7 @@ class MavlinkBackend(Backend):
 
     def init(self) -> None:
         key = self.signing_key
-        from backends.mavlink.source import MavlinkSource  # loop prevention: see send_position
 
-        self.ignored_origins = MavlinkSource.live_names
         loop = IoLoop(self.name)  # every endpoint's port engine runs on this one thread
         router = Router(self.vehicle, forward=self.route, signing_key=key)
         loop.start()
@@ -234,12 +231,12 @@ class MavlinkBackend(Backend):
         return self._post(msg)
 
     def send_position(self, msg: Position) -> Outcome:
-        if msg.origin in self.ignored_origins:
+        if msg.via.startswith(VIA_MAVLINK):
             return Outcome.ACCEPTED  # it came from a MAVLink vehicle: it speaks for itself
         return self._post(msg)
 
     def send_battery(self, msg: Battery) -> Outcome:
-        if msg.origin in self.ignored_origins:
+        if msg.via.startswith(VIA_MAVLINK):
             return Outcome.ACCEPTED
         return self._post(msg)
 
@@ -255,12 +252,18 @@ class MavlinkBackend(Backend):
         router = self.router
         with router.lock if router is not None else contextlib.nullcontext():
             eps = {ep.name: ep.stats() for ep in self.endpoints}  # sets change under routing
+            up = any(link.up for ep in self.endpoints for link in ep.links())
         sent = sum(s.get("tx_frames", 0) for s in eps.values())
         dropped = sum(s.get("tx_dropped", 0) for s in eps.values()) + self.dropped_inbox
-        d: dict[str, Any] = {"sent": sent, "dropped": dropped,
-                             "dropped_inbox": self.dropped_inbox, "endpoints": eps}
+        errors = sum(s.get(k, 0) for s in eps.values()
+                     for k in ("tx_errors", "crc_errors", "decode_errors"))
+        d: dict[str, Any] = {"sent": sent, "dropped": dropped, "errors": errors,
+                             "link": int(up), "dropped_inbox": self.dropped_inbox,
+                             "endpoints": eps}
         if self.router is not None:
-            d["router"] = self.router.stats.as_dict()
+            rs = self.router.stats
+            d["errors"] += rs.node_errors + rs.encode_errors
+            d["router"] = rs.as_dict()
             if self.router.verifier is not None:
                 d["signing"] = self.router.verifier.stats.as_dict()
         d["vehicle"] = dict(self.vehicle.stats.__dict__)

@@ -24,13 +24,18 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any
 
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
 from backends.mavlink.router import Router
-from backends.mavlink.translate import RateGate, sm_update_from_mavlink, status_from_mavlink
+from backends.mavlink.translate import (
+    VIA_MAVLINK,
+    RateGate,
+    sm_update_from_mavlink,
+    status_from_mavlink,
+)
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
@@ -135,6 +140,11 @@ class VehicleListener:
                 return False
         return sysid == self.target_system and compid == 1
 
+    @property
+    def via(self) -> str:
+        """``via`` of every message this listener emits: the vehicle's MAVLink system."""
+        return f"{VIA_MAVLINK}{self.target_system}"
+
     def handle(self, msg: Any, src_sysid: int, src_compid: int) -> list[Any]:
         if not self._from_vehicle(src_sysid, src_compid, msg):
             return []
@@ -192,7 +202,7 @@ class VehicleListener:
             return
         r, p, y = self.attitude if self.attitude is not None else (None, None, None)
         self.emit(VehicleState(self.armed, self.mode_name(), self.custom_mode, r, p, y,
-                               self.altitude_m, self.climb_mps, origin=self.origin))
+                               self.altitude_m, self.climb_mps, origin=self.origin, via=self.via))
 
     def _altitude(self, m: Any) -> list[Any]:
         if math.isfinite(m.altitude_relative):
@@ -218,7 +228,7 @@ class VehicleListener:
         g = self.gps
         self.emit(Position(m.lat / 1e7, m.lon / 1e7, m.alt / 1000.0, m.relative_alt / 1000.0, gs,
                            course, g.satellites_visible if g is not None else None,
-                           g.fix_type if g is not None else None, origin=self.origin))
+                           g.fix_type if g is not None else None, origin=self.origin, via=self.via))
         return []
 
     def _battery_status(self, m: Any) -> list[Any]:
@@ -230,7 +240,7 @@ class VehicleListener:
                           m.current_battery / 100.0 if m.current_battery != -1 else None,
                           float(m.current_consumed) if m.current_consumed != -1 else None,
                           m.battery_remaining if m.battery_remaining != -1 else None,
-                          m.id, origin=self.origin))
+                          m.id, origin=self.origin, via=self.via))
         return []
 
     def _sys_status(self, m: Any) -> list[Any]:
@@ -239,15 +249,15 @@ class VehicleListener:
         self.emit(Battery(m.voltage_battery / 1000.0,
                           m.current_battery / 100.0 if m.current_battery != -1 else None, None,
                           m.battery_remaining if m.battery_remaining != -1 else None, 0,
-                          origin=self.origin))
+                          origin=self.origin, via=self.via))
         return []
 
     def _aurora_sm_update(self, m: Any) -> list[Any]:
-        self.emit(sm_update_from_mavlink(m, self.origin))
+        self.emit(sm_update_from_mavlink(m, self.origin)._replace(via=self.via))
         return []
 
     def _aurora_status(self, m: Any) -> list[Any]:
-        self.emit(status_from_mavlink(m, self.origin))
+        self.emit(status_from_mavlink(m, self.origin)._replace(via=self.via))
         return []
 
 
@@ -288,9 +298,6 @@ class MavlinkSource(Source):
         signing_key_file=Key(str, "", "MAVLink 2 signing key file"),
         signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase"),
     )
-    #: Names of running MAVLink sources: the MAVLink backend does not echo their positions
-    #: and batteries back as the rocket's.
-    live_names: ClassVar[set[str]] = set()
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
@@ -373,12 +380,10 @@ class MavlinkSource(Source):
         self.router = router
         if self.heartbeat_hz > 0:
             self._heartbeats = loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat)
-        MavlinkSource.live_names.add(self.name)
         self.started.set()
 
     def stop(self, timeout: float = 1.0) -> None:
         self._stop.set()
-        MavlinkSource.live_names.discard(self.name)
         self._shut_down(timeout)
 
     def _shut_down(self, timeout: float = 1.0) -> None:

@@ -628,6 +628,10 @@ def aurora_status(m: Status) -> Any:
                                              m.sm_type & 0xFF, m.flags & 0xFF, m.reserved & 0xFF)
 
 
+#: ``via`` of a message that came in over MAVLink: ``mavlink:<system id>`` (gateway.model).
+VIA_MAVLINK = "mavlink:"
+
+
 def sm_update_from_mavlink(msg: Any, origin: str = "") -> SmUpdate:
     """The :class:`SmUpdate` an AURORA_SM_UPDATE carries (the inverse of
     :func:`aurora_sm_update`)."""
