@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import textwrap
 from pathlib import Path
+from typing import Any
 
 import pytest
 from mypy import api as mypy_api  # a test dependency: make lint runs it too
+from zenoh_peer import free_endpoint
+
+from gateway.backend import STATS_KEYS
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -64,3 +68,36 @@ def test_a_handler_of_another_message_type_fails_mypy(
     out, status = checked["wrong type"]
     assert status == 1
     assert "arg-type" in out and "Status" in out, out
+
+
+# -- the stats keys ---------------------------------------------------------------------------
+
+
+def _built_in(name: str, tmp_path: Path) -> Any:
+    """A running built-in backend on loopback, with no hardware."""
+    from gateway import config
+
+    options: dict[str, Any] = {
+        "console": {"stream": "stderr"},
+        "crsf": {"url": "pty"},
+        "mavlink": {"endpoints": ["udpin:127.0.0.1:0"]},
+        "zenoh": {"listen": [free_endpoint()]},
+        "hc12": {"url": "loop://", "control": "off"},
+    }[name]
+    (part,) = config.parse({"backends": {name: options}}).backends
+    return part.cls.from_config(dict(part.options), name=part.name)
+
+
+@pytest.mark.parametrize("name", ["console", "crsf", "mavlink", "zenoh", "hc12"])
+def test_every_built_in_backend_reports_the_common_stats_keys(name: str, tmp_path: Path) -> None:
+    backend = _built_in(name, tmp_path)
+    try:
+        missing = [k for k in STATS_KEYS if k not in backend.stats()]
+        assert missing == [], f"{name} before init lacks {missing}"
+        backend.init()
+        stats = backend.stats()
+        assert [k for k in STATS_KEYS if k not in stats] == [], stats
+        assert all(isinstance(stats[k], int) for k in STATS_KEYS), stats
+        assert stats["link"] in (0, 1)
+    finally:
+        backend.close()
