@@ -474,7 +474,7 @@ def echo_through(addr: Any, data: bytes, stack: contextlib.ExitStack) -> socket.
 def test_tcp_server_client_that_drops_and_reconnects_gets_a_fresh_engine(
         io_loop: IoLoop, engines: Any, stack: contextlib.ExitStack,
         caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="gateway.port")
+    caplog.set_level(logging.INFO, logger="gateway.port")
     clients = ClientEngines(io_loop, engines)
     srv = PortServer(lambda: open_tcp_listener("127.0.0.1", 0), clients, loop=io_loop,
                      name="tcpin", backoff=fast_backoff())
@@ -496,7 +496,9 @@ def test_tcp_server_client_that_drops_and_reconnects_gets_a_fresh_engine(
     assert ev1.kinds() == [True, "data", "flush", False]
     assert opener1.opened == 1
     assert [r.getMessage() for r in caplog.records if "reopening" in r.getMessage()] == []
-    assert any("not reopened" in r.getMessage() for r in caplog.records)
+    # a client hanging up is the normal end of its connection: said, not warned about
+    assert [r.levelno for r in caplog.records if "not reopened" in r.getMessage()] == [
+        logging.INFO]
     assert (eng1.stats.connects, eng1.stats.disconnects) == (1, 1)
     assert srv.accepted == 2 and srv.bind_failures == 0
     assert ev1.threads == ev2.threads == {f"io-{io_loop.name}"}  # one shared loop thread
