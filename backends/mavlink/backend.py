@@ -49,7 +49,7 @@ class MavlinkBackend(Backend):
         signing_key_file=Key(str, "", "MAVLink 2 signing key: 32 raw bytes or 64 hex digits"),
         signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase (key = SHA-256 of it, "
                                "as MAVProxy and QGroundControl derive it)"),
-        serial_queue_depth=Key(int, 256, "frames queued per serial/TCP-client endpoint",
+        serial_queue_depth=Key(int, 256, "frames queued per link (every endpoint kind)",
                                minimum=1),
         heartbeat_hz=_rate_key("heartbeat_hz", "HEARTBEAT"),
         sys_status_hz=_rate_key("sys_status_hz", "SYS_STATUS"),
