@@ -40,11 +40,12 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from gateway.backend import Outcome
 from gateway.backoff import Backoff
+from gateway.counters import Counters
 from gateway.ioloop import IoLoop, Timer
 
 log = logging.getLogger(__name__)
@@ -74,7 +75,7 @@ class PortNotReady(OSError):
 
 
 @dataclass
-class PortStats:
+class PortStats(Counters):
     """Counters of one port engine; :meth:`as_dict` adds the totals every backend reports."""
 
     submitted: int = 0
@@ -102,7 +103,7 @@ class PortStats:
         return self.write_errors + self.read_errors + self.protocol_errors
 
     def as_dict(self) -> dict[str, int]:
-        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d = super().as_dict()
         d["dropped"] = self.dropped
         d["errors"] = self.errors
         return d
@@ -240,8 +241,24 @@ class PortEngine:
 
     def start(self) -> None:
         """Open the port (in the engine's thread) and start serving it; safe twice."""
-        if self._started:
+        if self._begin():
+            self._loop.call_soon(self._open)
+
+    def start_with(self, port: Any) -> None:
+        """Start serving ``port``, already open (a client a :class:`PortServer` accepted):
+        no open attempt; on the loop's thread it is attached at once, so what is submitted
+        right after is not refused.  Reopening (if ``reopen``) goes through the opener."""
+        if not self._begin():
             return
+        if self._loop.in_loop_thread:
+            self._opened(port, None)
+        else:
+            self._loop.call_soon(lambda: self._opened(port, None))
+
+    def _begin(self) -> bool:
+        """Mark the engine started and run its loop; False when it already was."""
+        if self._started:
+            return False
         self._started = True
         self._closing = False
         self._shut.clear()
@@ -249,25 +266,7 @@ class PortEngine:
             if self._loop.closed:
                 self._loop = IoLoop(self.name)  # started again after close()
             self._loop.start()
-        self._loop.call_soon(self._open)
-
-    def start_with(self, port: Any) -> None:
-        """Start serving ``port``, already open (a client a :class:`PortServer` accepted):
-        no open attempt; on the loop's thread it is attached at once, so what is submitted
-        right after is not refused.  Reopening (if ``reopen``) goes through the opener."""
-        if self._started:
-            return
-        self._started = True
-        self._closing = False
-        self._shut.clear()
-        if self._own_loop:
-            if self._loop.closed:
-                self._loop = IoLoop(self.name)
-            self._loop.start()
-        if self._loop.in_loop_thread:
-            self._opened(port, None)
-        else:
-            self._loop.call_soon(lambda: self._opened(port, None))
+        return True
 
     def wait_connected(self, timeout: float) -> bool:
         """Block until the port is open (for start-up and tests)."""

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 from fastcrc import crc16
 
+from gateway.counters import Counters
 from gateway.model import (
     SM_UPDATE_F32_LEN,
     SM_UPDATE_F64_LEN,
@@ -54,7 +55,7 @@ def crc(data: bytes) -> int:
 
 
 @dataclass
-class DecoderStats:
+class DecoderStats(Counters):
     """What a decoder has seen.  ``bytes_skipped`` counts every byte not inside a valid frame."""
 
     bytes_in: int = 0
@@ -64,8 +65,6 @@ class DecoderStats:
     unknown_types: int = 0
     bad_lengths: int = 0
 
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
 
 
 class Decoder:

@@ -23,10 +23,11 @@ from backends.crsf.frames import (
     crc,
     decode_payload,
 )
+from gateway.counters import Counters
 
 
 @dataclass
-class DecoderStats:
+class DecoderStats(Counters):
     """What a decoder has seen; ``bytes_skipped`` counts every byte outside a valid frame."""
 
     bytes_in: int = 0
@@ -37,9 +38,6 @@ class DecoderStats:
     bytes_skipped: int = 0
     by_type: Counter[int] = field(default_factory=Counter)
 
-    def as_dict(self) -> dict[str, int]:
-        d = {k: v for k, v in self.__dict__.items() if k != "by_type"}
-        return d
 
 
 class Decoder:

@@ -28,6 +28,7 @@ from typing import NamedTuple
 from fastcrc.crc16 import mcrf4xx
 
 from backends.mavlink.dialect import MESSAGES
+from gateway.counters import Counters
 
 STX_V2 = 0xFD
 STX_V1 = 0xFE
@@ -63,7 +64,7 @@ class Frame(NamedTuple):
 
 
 @dataclass
-class FramerStats:
+class FramerStats(Counters):
     frames: int = 0
     bytes_in: int = 0
     crc_errors: int = 0
@@ -72,8 +73,6 @@ class FramerStats:
     unknown_ids: int = 0
     truncated: int = 0  # a datagram ended inside a frame
 
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
 
 
 def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],

@@ -32,6 +32,7 @@ from typing import Any, Protocol
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.frames import Frame, FramerStats, StreamFramer, split_datagram
+from gateway.counters import Counters
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +48,7 @@ class LocalNode(Protocol):
 
 
 @dataclass
-class LinkCounters:
+class LinkCounters(Counters):
     rx_frames: int = 0
     rx_bytes: int = 0
     tx_frames: int = 0
@@ -59,8 +60,6 @@ class LinkCounters:
     rejected_signing: int = 0  # consumed frames refused by signature checks
     decode_errors: int = 0
 
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
 
 
 class Link:
@@ -110,7 +109,7 @@ class Link:
 
 
 @dataclass
-class RouterStats:
+class RouterStats(Counters):
     forwarded: int = 0  # frames written to other links
     unroutable: int = 0  # targeted at a system no link has seen
     delivered: int = 0  # frames handed to the local node
@@ -123,7 +122,7 @@ class RouterStats:
     extra: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, int]:
-        d = {k: v for k, v in self.__dict__.items() if k != "extra"}
+        d = super().as_dict()
         d.update(self.extra)
         return d
 

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from backends.mavlink.frames import SIGNATURE_LEN, Frame
+from gateway.counters import Counters
 
 KEY_LEN = 32
 #: 1 January 2015 00:00:00 UTC, the signing epoch.
@@ -102,7 +103,7 @@ class Verdict(enum.Enum):
 
 
 @dataclass
-class VerifierStats:
+class VerifierStats(Counters):
     good: int = 0
     unsigned_allowed: int = 0
     rejected_unsigned: int = 0
@@ -110,8 +111,6 @@ class VerifierStats:
     rejected_replay: int = 0
     rejected_stale: int = 0
 
-    def as_dict(self) -> dict[str, int]:
-        return dict(self.__dict__)
 
 
 class SignatureVerifier:

@@ -354,10 +354,6 @@ class MavlinkSource(Source):
     # -- life cycle: the endpoints' engines and timers run on one loop; messages are emitted
     # -- from its thread (the sink never blocks) -------------------------------------------------
 
-    @property
-    def running(self) -> bool:
-        return self._sink is not None and not self.done.is_set()
-
     def start(self, sink: Sink) -> None:
         if self._sink is not None:
             return

@@ -63,6 +63,11 @@ class Source:
         tell this gateway's own publications from others' reads ``context.own_ids``."""
         self.context = context
 
+    @property
+    def running(self) -> bool:
+        """Started and not done (a source retrying its port is running)."""
+        return self._sink is not None and not self.done.is_set()
+
     def start(self, sink: Sink) -> None:
         """Begin delivering messages to ``sink``; returns at once; a second call does
         nothing."""

@@ -58,10 +58,6 @@ class SerialSource(Source):
         """The stream broke (or stopped): nothing completes a pending frame."""
         return self.decoder.flush()
 
-    @property
-    def running(self) -> bool:
-        return self._sink is not None and not self.done.is_set()
-
     def start(self, sink: Sink) -> None:
         if self._sink is not None:
             return
