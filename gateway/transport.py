@@ -170,16 +170,21 @@ class UdpPort:
             return data
 
     def write(self, data: bytes) -> int:
+        if self.connected:  # udpout (the router's per-frame path): one send, no lookups
+            try:
+                self.sock.send(data)
+            except BlockingIOError:
+                self.send_dropped += 1
+            except OSError:
+                self.send_errors += 1
+            return len(data)
         dests = self.destinations
         if not dests:
             self.not_sent += 1
             return len(data)
         for d in dests:
             try:
-                if self.connected:
-                    self.sock.send(data)
-                else:
-                    self.sock.sendto(data, d)
+                self.sock.sendto(data, d)
             except BlockingIOError:
                 self.send_dropped += 1
             except OSError:

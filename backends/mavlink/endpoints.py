@@ -51,6 +51,8 @@ from gateway.transport import (
 )
 
 log = logging.getLogger(__name__)
+ACCEPTED = Outcome.ACCEPTED  # bound once: the router calls send() per frame
+NOT_READY = Outcome.NOT_READY
 
 DEFAULT_SERIAL_BAUD = 57600
 DEFAULT_QUEUE_DEPTH = 256
@@ -202,11 +204,11 @@ class PortLink(Link):
     def send(self, data: bytes) -> bool:
         outcome = self.engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
         c = self.counters
-        if outcome is Outcome.ACCEPTED:
+        if outcome is ACCEPTED:
             c.tx_frames += 1
             c.tx_bytes += len(data)
             return True
-        if outcome is Outcome.NOT_READY:
+        if outcome is NOT_READY:
             c.tx_not_up += 1  # the port is down: frames are not kept for when it is back
         else:
             c.tx_dropped += 1  # the port does not keep up: its queue is full
@@ -307,11 +309,11 @@ class UdpEndpoint(Endpoint, PortLink):
                 c.tx_not_up += 1  # udpin: nobody has talked to us yet
                 return False
         outcome = self.engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
-        if outcome is Outcome.ACCEPTED:  # (PortLink.send, inline: the router's hot path)
+        if outcome is ACCEPTED:  # (PortLink.send, inline: the router's hot path)
             c.tx_frames += 1
             c.tx_bytes += len(data)
             return True
-        if outcome is Outcome.NOT_READY:
+        if outcome is NOT_READY:
             c.tx_not_up += 1
         else:
             c.tx_dropped += 1
