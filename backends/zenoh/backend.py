@@ -48,17 +48,7 @@ from backends.zenoh.session import SESSION_KEYS, SessionOptions, zerror_text
 from gateway.backend import Backend, GatewayContext, Outcome, Routes
 from gateway.backoff import Backoff
 from gateway.config import ConfigError, Key, Schema
-from gateway.model import (
-    Battery,
-    LinkEvent,
-    LinkStats,
-    Position,
-    RawFrame,
-    SmUpdate,
-    Status,
-    VehicleState,
-    kind,
-)
+from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
 
 log = logging.getLogger(__name__)
 
@@ -278,9 +268,11 @@ class ZenohBackend(Backend):
 
     def routes(self) -> Routes:
         submit = self.publish
-        return (Routes().on(SmUpdate, submit).on(Status, submit).on(LinkEvent, submit)
-                .on(LinkStats, submit).on(Position, submit).on(Battery, submit)
-                .on(VehicleState, submit).on(RawFrame, self.send_raw))
+        routes = Routes().on(RawFrame, self.send_raw)
+        for cls in MESSAGE_TYPES:  # every message of the model is published
+            if cls is not RawFrame:
+                routes.on(cls, submit)
+        return routes
 
     def send_raw(self, msg: RawFrame) -> Outcome:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
