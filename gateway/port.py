@@ -51,6 +51,10 @@ from gateway.ioloop import IoLoop, Timer
 log = logging.getLogger(__name__)
 
 DEFAULT_QUEUE_DEPTH = 16
+#: Reopening a port that failed or vanished: the first retry after 50 ms, then twice as long
+#: each time up to 2 s — so a port that comes back is in use again within 2 s, whoever uses it.
+REOPEN_FIRST_S = 0.05
+REOPEN_MAX_S = 2.0
 # Bound once: an enum attribute lookup per frame is measurable on the router's path.
 _ACCEPTED = Outcome.ACCEPTED
 _THROTTLED = Outcome.THROTTLED
@@ -148,7 +152,7 @@ class PortEngine:
         self.reopen = reopen
         self.poll_s = poll_s
         self._opener = opener
-        self._backoff = backoff or Backoff()
+        self._backoff = backoff or Backoff(REOPEN_FIRST_S, REOPEN_MAX_S)
         self._clock = clock
         self._own_loop = loop is None
         self._loop = loop if loop is not None else IoLoop(name)
@@ -770,7 +774,7 @@ class PortServer:
         self.sock: Any = None
         self._opener = opener
         self._on_client = on_client
-        self._backoff = backoff or Backoff()
+        self._backoff = backoff or Backoff(REOPEN_FIRST_S, REOPEN_MAX_S)
         self._bound = threading.Event()
         self._retry: Timer | None = None
         self._closing = False

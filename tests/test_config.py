@@ -88,7 +88,7 @@ def test_a_full_valid_file_parses_with_defaults_filled_in() -> None:
     assert sim.options["speed"] == 0.0
     assert sim.options["revision"] == 64  # default
     assert (radio.type, radio.name, radio.cls) == ("serial", "radio", SerialSource)
-    assert radio.options == {"url": "loop://", "baudrate": 9600, "reconnect_max_s": 5.0}
+    assert radio.options == {"url": "loop://", "baudrate": 9600, "reconnect_max_s": 2.0}
     assert [(b.type, b.name) for b in cfg.backends] == [("console", "console")]  # quiet is off
     assert cfg.backends[0].options == {"interval_s": 0.25, "stream": "stdout", "status": True}
 

@@ -37,7 +37,6 @@ from typing import Any, NamedTuple
 from backends.mavlink.frames import StreamFramer
 from backends.mavlink.router import Link, Router
 from gateway.backend import Outcome
-from gateway.backoff import Backoff
 from gateway.ioloop import IoLoop
 from gateway.port import PortEngine, PortServer
 from gateway.transport import (
@@ -173,8 +172,7 @@ class PortLink(Link):
                     reopen: bool = True, on_link: Callable[[bool], Any] | None = None,
                     ) -> PortEngine:
         self.engine = PortEngine(opener, name=self.name, protocol=self, loop=loop,
-                                 queue_depth=queue_depth, backoff=Backoff(0.1, 5.0),
-                                 reopen=reopen, on_link=on_link)
+                                 queue_depth=queue_depth, reopen=reopen, on_link=on_link)
         return self.engine
 
     # -- the engine's protocol (the loop thread) -------------------------------------------
@@ -378,8 +376,7 @@ class TcpServerEndpoint(Endpoint):
     def start(self, loop: IoLoop, router: Router) -> None:
         self._first = self._listen()  # raises (TransportError is an OSError) naming us
         self._loop, self._router = loop, router
-        self.server = PortServer(self._opener, self._on_client, loop=loop, name=self.name,
-                                 backoff=Backoff(0.1, 5.0))
+        self.server = PortServer(self._opener, self._on_client, loop=loop, name=self.name)
         self.server.start()
         self.server.wait_bound(START_WAIT_S)
 

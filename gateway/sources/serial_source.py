@@ -13,7 +13,7 @@ from typing import Any
 
 from gateway.backoff import Backoff
 from gateway.config import Key, Schema
-from gateway.port import PortEngine
+from gateway.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.sources import Sink, Source, check_serial_url
 from gateway.transport import open_serial
 from gateway.wire import Decoder
@@ -27,14 +27,15 @@ class SerialSource(Source):
         url=Key(str, help="pyserial port or URL: /dev/ttyUSB0, loop://, socket://host:port, "
                 "rfc2217://host:port", validator=check_serial_url),
         baudrate=Key(int, 115200, "host UART speed", minimum=50),
-        reconnect_max_s=Key(float, 5.0, "longest wait between reopen attempts", minimum=0.01),
+        reconnect_max_s=Key(float, REOPEN_MAX_S, "longest wait between reopen attempts",
+                            minimum=0.01),
     )
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return str(options["url"])
 
-    def __init__(self, url: str, baudrate: int = 115200, reconnect_max_s: float = 5.0,
+    def __init__(self, url: str, baudrate: int = 115200, reconnect_max_s: float = REOPEN_MAX_S,
                  name: str | None = None) -> None:
         super().__init__(name or url)
         self.url = url
@@ -42,7 +43,8 @@ class SerialSource(Source):
         self.decoder = Decoder(origin=self.name)
         self.engine = PortEngine(self._open, name=f"source {self.name}", protocol=self,
                                  on_event=self.emit,
-                                 backoff=Backoff(0.05, max(0.05, reconnect_max_s)))
+                                 backoff=Backoff(REOPEN_FIRST_S,
+                                                 max(REOPEN_FIRST_S, reconnect_max_s)))
 
     def _open(self) -> Any:
         port = open_serial(self.url, self.baudrate, timeout=0)
