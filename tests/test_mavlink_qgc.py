@@ -378,11 +378,12 @@ def test_dialect_messages_carry_both_revisions_losslessly() -> None:
 # -- configuration, flags and the default run ------------------------------------------------
 
 def test_bad_endpoints_and_keys_are_one_clear_line() -> None:
-    from gateway.app import Gateway
 
-    cfg = config.parse({"backends": {"mavlink": {"endpoints": ["udpot:127.0.0.1:14550"]}}})
-    with pytest.raises(ConfigError, match=r"backends\.mavlink: .*udpot:127\.0\.0\.1:14550"):
-        Gateway(cfg)
+    with pytest.raises(ConfigError,
+                       match=r"backends\.mavlink\.endpoints: .*udpot:127\.0\.0\.1:14550"):
+        config.parse({"backends": {"mavlink": {"endpoints": ["udpot:127.0.0.1:14550"]}}})
+    with pytest.raises(ConfigError, match=r"backends\.mavlink\.endpoints: .*at least one"):
+        config.parse({"backends": {"mavlink": {"endpoints": []}}})
     with pytest.raises(ConfigError, match=r"backends\.mavlink\.sysid"):
         config.parse({"backends": {"mavlink": {"sysid": 255}}})
     with pytest.raises(ConfigError, match=r"backends\.mavlink\.attitude_hz"):

@@ -59,13 +59,18 @@ log = logging.getLogger(__name__)
 MODES = ("relay", "generate")
 
 
+def _require_port(url: str) -> None:
+    if not url:
+        raise ValueError("the HC-12's port is required")
+
+
 class Hc12Backend(Backend):
     """Drives an HC-12 433 MHz UART radio (see the module docstring)."""
 
     NAME = "hc12"
     CONFIG = Schema(
         url=Key(str, help="the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
-                "rfc2217://host:port"),
+                "rfc2217://host:port", validator=_require_port),
         baudrate=Key(int, 9600, "host UART rate; must equal the module's (AT+B)",
                      choices=at.BAUD_RATES),
         mode=Key(str, "relay", "relay: pass frames on byte-identical; generate: encode "
@@ -104,12 +109,7 @@ class Hc12Backend(Backend):
                  control: str = "auto", name: str | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
-        if mode not in MODES:
-            raise ValueError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
-        if revision not in (SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN):
-            raise ValueError(f"revision: expected 36 or 64, got {revision!r}")
-        if not url:
-            raise ValueError("url: the HC-12's port is required")
+        # The options were validated by CONFIG (the configuration or the flags).
         self.url = url
         self.baudrate = baudrate
         self.mode = mode

@@ -10,7 +10,7 @@ from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
-from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
+from backends.mavlink.endpoints import Endpoint, EndpointSpec, make_endpoint, parse_endpoint
 from backends.mavlink.router import Router
 from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
@@ -26,6 +26,15 @@ INBOX_DEPTH = 256
 POLL_S = 0.02
 
 
+def check_endpoints(endpoints: Any) -> list[EndpointSpec]:
+    """The parsed endpoints; ValueError naming the first bad one."""
+    if not endpoints:
+        raise ValueError("give at least one MAVLink endpoint")
+    if not isinstance(endpoints, list | tuple) or not all(isinstance(e, str) for e in endpoints):
+        raise ValueError(f"expected a list of strings, got {endpoints!r}")
+    return [parse_endpoint(e) for e in endpoints]
+
+
 def _rate_key(key: str, help_text: str) -> Key:
     return Key(float, DEFAULT_RATES[key], help_text + " (Hz, 0 = off)", minimum=0, maximum=1000)
 
@@ -37,7 +46,7 @@ class MavlinkBackend(Backend):
     NAME = "mavlink"
     CONFIG = Schema(
         endpoints=Key(list, [QGC_UDP], "endpoints: udpout:/udpin:/tcpin:/tcp:HOST:PORT, "
-                      "serial:DEVICE[,BAUD]"),
+                      "serial:DEVICE[,BAUD]", validator=lambda v: check_endpoints(v)),
         sysid=Key(int, 1, "MAVLink system id of the rocket", minimum=1, maximum=254),
         compid=Key(int, 1, "component id (1 = autopilot: what QGroundControl needs)",
                    minimum=1, maximum=255),
@@ -77,12 +86,8 @@ class MavlinkBackend(Backend):
         unknown = set(rates) - set(DEFAULT_RATES)
         if unknown:
             raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
-        if not endpoints:
-            raise ValueError("endpoints: give at least one MAVLink endpoint")
-        if not isinstance(endpoints, list | tuple) or not all(
-                isinstance(e, str) for e in endpoints):
-            raise ValueError(f"endpoints: expected a list of strings, got {endpoints!r}")
-        self.specs = [parse_endpoint(e) for e in endpoints]  # ValueError names the endpoint
+        # CONFIG validated the options (check_endpoints); a direct caller gets ValueError here.
+        self.specs = check_endpoints(endpoints)
         if signing_key_file and signing_passphrase:
             raise ValueError("signing_key_file and signing_passphrase: give one, not both")
         self.sysid = sysid
