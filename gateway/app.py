@@ -79,9 +79,10 @@ class Gateway:
                                   f"{exc.strerror or exc}") from None
         for backend in self.dispatcher.backends():
             backend.attach(self.context)
+        for src in self.sources:  # every plugin knows the others' shared services first
+            src.attach(self.context)
         failures = self.dispatcher.start()
         for src in self.sources:
-            src.attach(self.context)
             src.start(self.ingest)
         return failures
 

@@ -123,12 +123,16 @@ class GatewayContext:
         this gateway's id (used in Zenoh attachments, liveliness tokens);
     ``own_ids``
         every id under which a backend of this gateway publishes; a source that hears one of
-        them is hearing this gateway, not another.
+        them is hearing this gateway, not another;
+    ``services``
+        objects the plugins of one gateway share, by name (e.g. ``"mavlink.hub"``: the one
+        MAVLink router that the MAVLink source and backend both use).
     """
 
     emit: Callable[[Any], Any] = lambda msg: None
     gateway_id: str = field(default_factory=new_gateway_id)
     own_ids: set[str] = field(default_factory=set)
+    services: dict[str, Any] = field(default_factory=dict)
 
 
 class Backend:

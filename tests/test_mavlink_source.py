@@ -194,7 +194,7 @@ def test_the_backend_does_not_echo_a_mavlink_sources_position() -> None:
 
 def test_config_and_mode_names() -> None:
     part = config.make_source("mavlink", {"url": "udpin:0.0.0.0:14551"}, None, "sources[0]")
-    assert part.cls is MavlinkSource and part.options["sysid"] == 255
+    assert part.cls is MavlinkSource and part.options["sysid"] == 0  # automatic
     assert part.name == "mavlink:udpin:0.0.0.0:14551"
     with pytest.raises(ValueError, match="not a MAVLink endpoint"):
         MavlinkSource(url="bogus")

@@ -6,11 +6,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import time
 from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
-from backends.mavlink.endpoints import Endpoint, EndpointSpec, make_endpoint, parse_endpoint
+from backends.mavlink.endpoints import Endpoint, EndpointSpec, parse_endpoint
+from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.router import Router
 from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
@@ -24,6 +26,9 @@ log = logging.getLogger(__name__)
 QGC_UDP = "udpout:127.0.0.1:14550"
 INBOX_DEPTH = 256
 POLL_S = 0.02
+#: Routing a vehicle, the rocket takes its system id once the vehicle has been heard, or
+#: after this long (a vehicle heartbeats at 1 Hz): never the vehicle's id, even briefly.
+CLAIM_GRACE_S = 1.5
 
 
 def check_endpoints(endpoints: Any) -> list[EndpointSpec]:
@@ -47,7 +52,8 @@ class MavlinkBackend(Backend):
     CONFIG = Schema(
         endpoints=Key(list, [QGC_UDP], "endpoints: udpout:/udpin:/tcpin:/tcp:HOST:PORT, "
                       "serial:DEVICE[,BAUD]", validator=lambda v: check_endpoints(v)),
-        sysid=Key(int, 1, "MAVLink system id of the rocket", minimum=1, maximum=254),
+        sysid=Key(int, 1, "MAVLink system id of the rocket; when another system on the links "
+                  "uses it, the next free one (logged)", minimum=1, maximum=254),
         compid=Key(int, 1, "component id (1 = autopilot: what QGroundControl needs)",
                    minimum=1, maximum=255),
         route=Key(bool, True, "forward traffic between endpoints (mavlink-router style)"),
@@ -102,12 +108,16 @@ class MavlinkBackend(Backend):
                                      stale_after_s=stale_after_s,
                                      pad_altitude_amsl_m=pad_altitude_amsl_m,
                                      version=__version__)
+        self.hub: MavlinkHub | None = None
         self.router: Router | None = None
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
         self._inbox: deque[Any] = deque()
         self._ticker: Timer | None = None
+        self._spoken = False
+        self._started_at = 0.0
         self.dropped_inbox = 0
+        self.not_repeated = 0
 
     # -- CLI ---------------------------------------------------------------------------------
 
@@ -146,43 +156,50 @@ class MavlinkBackend(Backend):
         return None
 
     def init(self) -> None:
-        key = self.signing_key
-
-        loop = IoLoop(self.name)  # every endpoint's port engine runs on this one thread
-        router = Router(self.vehicle, forward=self.route, signing_key=key)
-        loop.start()
-        started: list[Endpoint] = []
+        hub = MavlinkHub.of(self.context)  # shared with a MAVLink source of this gateway
         try:
-            for spec in self.specs:
-                ep = make_endpoint(spec, self.serial_queue_depth)
-                started.append(ep)
-                ep.start(loop, router)
-        except OSError as exc:
-            for ep in started:
-                ep.close()
-            if loop.stop(0.5):
-                loop.close()
+            hub.join(self.vehicle, GCS, forward=self.route, signing_key=self.signing_key)
+        except ValueError as exc:
             raise BackendError(str(exc)) from None
-        self.loop, self.router, self.endpoints = loop, router, started
-        self._ticker = loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
+        try:
+            endpoints = hub.open(self.specs, GCS, self.serial_queue_depth)
+        except OSError as exc:
+            hub.leave(self.vehicle)
+            raise BackendError(str(exc)) from None
+        self.hub, self.loop, self.router, self.endpoints = hub, hub.loop, hub.router, endpoints
+        self._started_at = time.monotonic()
+        self._ticker = hub.loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
         log.info("%s: MAVLink system %d on %s%s", self.name, self.sysid,
-                 ", ".join(s.text for s in self.specs), " (signed)" if key else "")
+                 ", ".join(s.text for s in self.specs), " (signed)" if self.signing_key else "")
 
     def close(self) -> None:
-        loop, self.loop = self.loop, None
-        if loop is None:
+        hub, self.hub = self.hub, None
+        if hub is None:
             return
+        self.loop = None
         if self._ticker is not None:
             self._ticker.cancel()
-        for ep in self.endpoints:  # through the running loop: queued frames are written
-            try:
-                ep.close()
-            except Exception:
-                log.debug("%s: closing %s failed", self.name, ep.name, exc_info=True)
-        if loop.stop(0.5):
-            loop.close()
+        hub.leave(self.vehicle, self.endpoints)  # queued frames are written first
 
     # -- the loop thread -----------------------------------------------------------------------
+
+    def _may_speak(self) -> bool:
+        """Routing a vehicle, the rocket shows itself only once it has something to say (its
+        first update) and its id is known not to be the vehicle's; otherwise at once."""
+        if self._spoken:
+            return True
+        hub = self.hub
+        if hub is not None:
+            routed, heard = hub.side(VEHICLE)
+            if routed and (self.vehicle.stats.updates == 0 or (
+                    not heard and time.monotonic() - self._started_at < CLAIM_GRACE_S)):
+                return False
+        self._spoken = True
+        if self.router is not None:
+            sysid = self.router.claim(self.vehicle)
+            if sysid != self.sysid:
+                self.sysid = sysid
+        return True
 
     def _tick(self) -> None:
         router = self.router
@@ -191,8 +208,8 @@ class MavlinkBackend(Backend):
         with router.lock:
             out = self._drain()
             out.extend(self.vehicle.poll())
-            if out:
-                router.broadcast(out)
+            if out and self._may_speak():
+                router.broadcast(out, self.vehicle)
 
     def _drain(self) -> list[Any]:
         out: list[Any] = []
@@ -208,8 +225,8 @@ class MavlinkBackend(Backend):
             return
         with router.lock:
             out = self._drain()
-            if out:
-                router.broadcast(out)
+            if out and self._may_speak():
+                router.broadcast(out, self.vehicle)
 
     # -- hooks (the dispatcher's thread: never block) ------------------------------------------
 
@@ -217,6 +234,11 @@ class MavlinkBackend(Backend):
         loop = self.loop
         if loop is None:
             return Outcome.NOT_READY
+        if self.route and msg.via.startswith(VIA_MAVLINK):
+            # It came from a MAVLink system on our router: its own frames are routed to the
+            # ground stations already; repeating them as the rocket's would show it twice.
+            self.not_repeated += 1
+            return Outcome.ACCEPTED
         if len(self._inbox) >= INBOX_DEPTH:
             self.dropped_inbox += 1
             return Outcome.QUEUE_FULL
@@ -264,6 +286,7 @@ class MavlinkBackend(Backend):
                      for k in ("tx_errors", "crc_errors", "decode_errors"))
         d: dict[str, Any] = {"sent": sent, "dropped": dropped, "errors": errors,
                              "link": int(up), "dropped_inbox": self.dropped_inbox,
+                             "sysid": self.vehicle.sysid, "not_repeated": self.not_repeated,
                              "endpoints": eps}
         if self.router is not None:
             rs = self.router.stats

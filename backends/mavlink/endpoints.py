@@ -135,9 +135,10 @@ def _add_ints(total: dict[str, Any], more: dict[str, Any]) -> None:
 class Endpoint:
     """A configured endpoint: starts its link(s) on a router and reports their counters."""
 
-    def __init__(self, spec: EndpointSpec) -> None:
+    def __init__(self, spec: EndpointSpec, group: str = "") -> None:
         self.spec = spec
         self.name = spec.text
+        self.group = group  # the side it is on: see Link.group
 
     def start(self, loop: IoLoop, router: Router) -> None:
         """Open (or start opening) on ``loop`` (running); raises OSError naming the endpoint
@@ -164,8 +165,8 @@ class PortLink(Link):
     """A :class:`~.router.Link` whose port is a :class:`~gateway.port.PortEngine`'s; the link is
     the engine's protocol object (it hands what the port yields to the router)."""
 
-    def __init__(self, name: str) -> None:
-        super().__init__(name)
+    def __init__(self, name: str, group: str = "") -> None:
+        super().__init__(name, group)
         self.engine: PortEngine | None = None
 
     def make_engine(self, opener: Callable[[], Any], loop: IoLoop, *, queue_depth: int,
@@ -238,9 +239,10 @@ class UdpEndpoint(Endpoint, PortLink):
 
     datagram = True
 
-    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
-        Endpoint.__init__(self, spec)
-        PortLink.__init__(self, spec.text)
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
+                 group: str = "") -> None:
+        Endpoint.__init__(self, spec, group)
+        PortLink.__init__(self, spec.text, group)
         self.queue_depth = queue_depth
         self.listen = spec.kind == "udpin"
         self.port: UdpPort | None = None
@@ -347,8 +349,9 @@ class TcpServerEndpoint(Endpoint):
     """``tcpin:HOST:PORT``: accepts any number of clients, each routed as a link of its own
     (a :class:`PortLink` on an engine that is not reopened: a client that leaves is gone)."""
 
-    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
-        super().__init__(spec)
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
+                 group: str = "") -> None:
+        super().__init__(spec, group)
         self.queue_depth = queue_depth
         self.clients: list[PortLink] = []
         self.server: PortServer | None = None
@@ -391,7 +394,7 @@ class TcpServerEndpoint(Endpoint):
         if self._closing:
             sock.close()
             return
-        link = PortLink(name)
+        link = PortLink(name, self.group)
 
         def on_link(up: bool) -> None:
             if not up:
@@ -472,9 +475,10 @@ class _SerialPort:
 class StreamEndpoint(Endpoint, PortLink):
     """``serial:`` and ``tcp:``: one engine, reopening the port with backoff when it fails."""
 
-    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> None:
-        Endpoint.__init__(self, spec)
-        PortLink.__init__(self, spec.text)
+    def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
+                 group: str = "") -> None:
+        Endpoint.__init__(self, spec, group)
+        PortLink.__init__(self, spec.text, group)
         self.queue_depth = queue_depth
 
     def _open(self) -> Any:
@@ -498,9 +502,11 @@ class StreamEndpoint(Endpoint, PortLink):
     stats = PortLink.stats
 
 
-def make_endpoint(spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH) -> Endpoint:
+def make_endpoint(spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
+                  group: str = "") -> Endpoint:
+    """The endpoint for ``spec``; its links are in ``group`` (see :attr:`.router.Link.group`)."""
     if spec.kind in ("udpout", "udpin"):
-        return UdpEndpoint(spec, queue_depth)
+        return UdpEndpoint(spec, queue_depth, group)
     if spec.kind == "tcpin":
-        return TcpServerEndpoint(spec, queue_depth)
-    return StreamEndpoint(spec, queue_depth)
+        return TcpServerEndpoint(spec, queue_depth, group)
+    return StreamEndpoint(spec, queue_depth, group)

@@ -1,4 +1,4 @@
-"""MAVLink routing between links, as mavlink-router does it, plus one local node.
+"""MAVLink routing between links, as mavlink-router does it, plus the gateway's own nodes.
 
 Every frame arriving on a link is framed (not decoded, see :mod:`.frames`), its source
 (system, component) is learned for that link, and it is forwarded as the exact bytes that
@@ -11,11 +11,28 @@ arrived:
   (that is where it came from by another path: forwarding it would loop);
 * unknown message ids are forwarded too (unvalidated, like mavlink-router).
 
-The local node (the rocket as a vehicle, or the gateway as a ground station for the MAVLink
-source) gets the frames it consumes — only those are decoded — when they are addressed to it
-or broadcast; with signing on, those frames are verified first (see :mod:`.signing`).  Its own
-messages are packed per link, so each link has its own sequence numbers (and signing
-stream).
+**Local nodes** are the gateway's own MAVLink components: the rocket as a vehicle (the
+backend's :class:`~.translate.AuroraVehicle`) and the listener that turns a vehicle's
+telemetry into gateway messages (the source's :class:`~.source.VehicleListener`).  One router
+may serve both: that is how ``run --source mavlink:… --mavlink …`` routes a vehicle to ground
+stations in the same process as the translation.  A node gets the frames it reads when they
+are addressed to it or broadcast — and only those are decoded:
+
+* ``consumed`` ids are decoded and handed to ``node.handle`` at once (requests, heartbeats);
+* ``latest`` ids are kept in a mailbox, one frame per (source, id), replaced by each newer
+  one, and decoded only when the node asks (:meth:`Router.collect`, at the rate it needs
+  them): the latest ATTITUDE, not all 50 Hz of them.
+
+With signing on, those frames are verified first (see :mod:`.signing`).  A node's own messages
+go to the links of its *groups* (the rocket to the ground-station side, the listener to the
+vehicle side), packed per link and per source component, so each has its own sequence numbers
+(and signing stream).
+
+**System ids.**  A node's messages never use a system id anybody routed through it uses:
+when a node first speaks (:meth:`Router.claim`) an id already seen on a link is skipped, and a
+system that later appears with the node's id (a different component, a message the node never
+sends, or a heartbeat of another vehicle type — not our own echo coming back round a loop)
+moves the node to a free id, logged.  A node answers only what is addressed to its own id.
 
 All state is guarded by :attr:`Router.lock`; links call :meth:`Router.receive` from whatever
 thread reads them, and every ``Link.send`` is non-blocking.
@@ -36,9 +53,14 @@ from gateway.counters import Counters
 
 log = logging.getLogger(__name__)
 
+MSG_HEARTBEAT = 0
+HEARTBEAT_TYPE_OFS = 4  # payload: custom_mode (u32), then type (u8)
+_NO_IDS: frozenset[int] = frozenset()
+
 
 class LocalNode(Protocol):
-    """What the router needs of the node it serves."""
+    """What the router needs of a node it serves (``latest``, ``heartbeat_type`` and
+    ``component_of`` are optional)."""
 
     sysid: int
     compid: int
@@ -61,17 +83,18 @@ class LinkCounters(Counters):
     decode_errors: int = 0
 
 
-
 class Link:
     """One MAVLink channel: a UDP endpoint, a TCP connection or a serial port.
 
     Subclasses implement :meth:`send` (non-blocking; True when the bytes were sent or queued)
-    and :attr:`up`."""
+    and :attr:`up`.  ``group`` names the side it is on ("gcs", "vehicle"): a node's own
+    messages go to the links of its groups."""
 
     datagram = False
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, group: str = "") -> None:
         self.name = name
+        self.group = group
         self.counters = LinkCounters()
         self.framer: StreamFramer | None = None if self.datagram else StreamFramer()
         self.framer_stats: FramerStats = (self.framer.stats if self.framer is not None
@@ -79,7 +102,7 @@ class Link:
         self.seen: set[int] = set()  # (sysid << 8) | compid of every source seen here
         self.seen_sys: set[int] = set()
         self.last_seq: dict[int, int] = {}
-        self.mav: Any = None  # per-link pymavlink encoder, set by Router.add_link
+        self.encoders: dict[int, Any] = {}  # (sysid << 8) | compid → pymavlink packer
         self.signing = False
         self.router: Router | None = None
 
@@ -89,15 +112,6 @@ class Link:
 
     def send(self, data: bytes) -> bool:
         raise NotImplementedError
-
-    def encode(self, msg: Any) -> bytes:
-        """Pack one of our own messages with this link's sequence number (and signature)."""
-        m = self.mav
-        if self.signing:
-            signing.refresh_timestamp(m)
-        buf = msg.pack(m)
-        m.seq = (m.seq + 1) & 0xFF
-        return buf
 
     def stats(self) -> dict[str, Any]:
         d: dict[str, Any] = self.counters.as_dict()
@@ -112,9 +126,11 @@ class Link:
 class RouterStats(Counters):
     forwarded: int = 0  # frames written to other links
     unroutable: int = 0  # targeted at a system no link has seen
-    delivered: int = 0  # frames handed to the local node
-    own_id_seen: int = 0  # frames claiming the local node's own (sysid, compid)
-    node_errors: int = 0  # the local node raised on a request (a bug; logged)
+    delivered: int = 0  # frames decoded for a local node
+    mailboxed: int = 0  # frames kept for a node (only the latest of each is decoded)
+    own_id_seen: int = 0  # our own frames coming back (a loop in the network)
+    id_changes: int = 0  # a node moved to another system id (someone else used its id)
+    node_errors: int = 0  # a local node raised on a request (a bug; logged)
     encode_errors: int = 0  # one of our messages could not be packed (a bug; logged)
     sent_own: int = 0  # local messages sent (counted once per link)
     links_added: int = 0
@@ -127,33 +143,105 @@ class RouterStats(Counters):
         return d
 
 
+class _Slot:
+    """A node as the router keeps it."""
+
+    def __init__(self, node: LocalNode, groups: frozenset[str] | None, step: int) -> None:
+        self.node = node
+        self.groups = groups
+        self.step = step  # the way to look for a free id: +1 (up from 1) or -1 (down)
+        self.consumed: frozenset[int] = node.consumed
+        self.latest: frozenset[int] = getattr(node, "latest", _NO_IDS)
+        self.heartbeat_type: int | None = getattr(node, "heartbeat_type", None)
+        self.component_of = getattr(node, "component_of", None)
+        self.compids: set[int] = {node.compid}
+        self.sent_ids: set[int] = set()
+        self.claimed = False
+        self.mailbox: dict[int, tuple[Frame, Link]] = {}
+
+    def wants(self, tsys: int, tcomp: int) -> bool:
+        node = self.node
+        return tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))
+
+
 class Router:
-    """Routes frames between links and serves one local node; see the module docstring."""
+    """Routes frames between links and serves local nodes; see the module docstring."""
 
     def __init__(self, node: LocalNode | None = None, *, forward: bool = True,
                  signing_key: bytes | None = None) -> None:
         self.lock = threading.RLock()
-        self.node = node
         self.forward = forward
         self.links: list[Link] = []
         self._others: dict[Link, tuple[Link, ...]] = {}
         self.stats = RouterStats()
-        self.signing_key = signing_key
-        self.verifier = signing.SignatureVerifier(signing_key) if signing_key else None
+        self.signing_key: bytes | None = None
+        self.verifier: signing.SignatureVerifier | None = None
         self._decoder = mav.MAVLink(None)  # decodes consumed frames; verification is ours
         self._next_link_id = 0
-        self._own_key = ((node.sysid << 8) | node.compid) if node is not None else -1
+        self._slots: list[_Slot] = []
+        self._by_node: dict[int, _Slot] = {}
+        self._wants: dict[int, tuple[_Slot, ...]] = {}  # msgid → nodes that read it
+        self._own: dict[int, _Slot] = {}  # system id → the claimed node using it
+        self.seen_systems: dict[int, str] = {}  # every system seen → the first link it was on
+        if signing_key is not None:
+            self.set_signing_key(signing_key)
+        if node is not None:
+            self.add_node(node)
 
-    # -- links -------------------------------------------------------------------------------
+    @property
+    def node(self) -> LocalNode | None:
+        """The first node (a router serving one)."""
+        return self._slots[0].node if self._slots else None
+
+    # -- configuration -----------------------------------------------------------------------
+
+    def set_signing_key(self, key: bytes) -> None:
+        """Sign what we send and verify what our nodes read; one key per router."""
+        with self.lock:
+            if self.signing_key is not None and self.signing_key != key:
+                raise ValueError("two different MAVLink signing keys for one router: the "
+                                 "source and the backend must use the same key")
+            if self.signing_key is None:
+                self.signing_key = key
+                self.verifier = signing.SignatureVerifier(key)
+
+    def add_node(self, node: LocalNode, groups: Iterable[str] | None = None, *,
+                 step: int = 1) -> None:
+        """Serve ``node``; its own messages go to links of ``groups`` (None: every link).
+        Its system id is its preferred one until :meth:`claim`."""
+        with self.lock:
+            slot = _Slot(node, frozenset(groups) if groups is not None else None, step)
+            self._slots.append(slot)
+            self._by_node[id(node)] = slot
+            self._index()
+
+    def remove_node(self, node: LocalNode) -> None:
+        """Stop serving ``node`` (its id is free again)."""
+        with self.lock:
+            slot = self._by_node.pop(id(node), None)
+            if slot is None:
+                return
+            self._slots.remove(slot)
+            if self._own.get(node.sysid) is slot:
+                del self._own[node.sysid]
+            self._index()
+
+    def node_groups(self) -> set[str]:
+        """The groups the nodes' own messages go to."""
+        with self.lock:
+            return {g for s in self._slots for g in (s.groups or ())}
+
+    def _index(self) -> None:
+        wants: dict[int, list[_Slot]] = {}
+        for s in self._slots:
+            for msgid in s.consumed | s.latest:
+                wants.setdefault(msgid, []).append(s)
+        self._wants = {k: tuple(v) for k, v in wants.items()}
 
     def add_link(self, link: Link) -> None:
         with self.lock:
-            node = self.node
-            link.mav = mav.MAVLink(None, node.sysid if node else 255, node.compid if node else 0)
             if self.signing_key is not None:
-                signing.setup_outgoing(link.mav, self.signing_key, self._next_link_id)
                 link.signing = True
-            self._next_link_id = (self._next_link_id + 1) & 0xFF
             link.router = self
             self.links.append(link)
             self.stats.links_added += 1
@@ -168,6 +256,54 @@ class Router:
 
     def _rebuild(self) -> None:
         self._others = {lk: tuple(o for o in self.links if o is not lk) for lk in self.links}
+
+    # -- system ids ----------------------------------------------------------------------------
+
+    def claim(self, node: LocalNode) -> int:
+        """Settle ``node``'s system id before it first speaks: its own unless a system seen on
+        a link (or another node) uses it; returns the id."""
+        with self.lock:
+            slot = self._by_node[id(node)]
+            if not slot.claimed:
+                taken = node.sysid in self.seen_systems or node.sysid in self._own
+                if taken:
+                    old = node.sysid
+                    self._move(slot, f"system {old} is already used on "
+                               f"{self.seen_systems.get(old, 'another node')}")
+                slot.claimed = True
+                self._own[node.sysid] = slot
+            return node.sysid
+
+    def _free_id(self, slot: _Slot) -> int:
+        start = slot.node.sysid
+        for i in range(1, 255):
+            cand = (start - 1 + slot.step * i) % 254 + 1  # 1..254, round from where we are
+            if cand != start and cand not in self.seen_systems and cand not in self._own:
+                return cand
+        raise RuntimeError("no free MAVLink system id")  # 254 systems seen: cannot happen
+
+    def _move(self, slot: _Slot, why: str) -> None:
+        node = slot.node
+        old = node.sysid
+        if self._own.get(old) is slot:
+            del self._own[old]
+        node.sysid = self._free_id(slot)
+        if slot.claimed:
+            self._own[node.sysid] = slot
+        self.stats.id_changes += 1
+        log.warning("MAVLink: %s; the gateway's %s is now system %d", why,
+                    type(node).__name__, node.sysid)
+
+    def _is_echo(self, slot: _Slot, f: Frame) -> bool:
+        """A frame from a claimed node's system id: ours coming back, or an impostor?"""
+        if f.compid not in slot.compids or f.msgid not in slot.sent_ids:
+            return False
+        if f.msgid == MSG_HEARTBEAT and slot.heartbeat_type is not None:
+            head = 10 if f.version == 2 else 6
+            raw = f.raw
+            return len(raw) > head + HEARTBEAT_TYPE_OFS and \
+                raw[head + HEARTBEAT_TYPE_OFS] == slot.heartbeat_type
+        return True
 
     # -- receiving ---------------------------------------------------------------------------
 
@@ -194,9 +330,14 @@ class Router:
         c.rx_frames += 1
         c.rx_bytes += len(raw)
         key = (sysid << 8) | compid
-        if key == self._own_key:
-            self.stats.own_id_seen += 1  # our own echo, or a system using our id: drop
-            return
+        own = self._own
+        if sysid in own:
+            slot = own[sysid]
+            if self._is_echo(slot, f):
+                self.stats.own_id_seen += 1  # our own frame, back round a loop: drop
+                return
+            self._move(slot, f"system {sysid} component {compid} on {link.name} uses "
+                       f"the id of the gateway's {type(slot.node).__name__}")
         last_seq = link.last_seq
         last = last_seq.get(key)
         if last is not None:
@@ -207,11 +348,17 @@ class Router:
         if key not in link.seen:
             link.seen.add(key)
             link.seen_sys.add(sysid)
+            self.seen_systems.setdefault(sysid, link.name)
             log.info("%s: system %d component %d seen", link.name, sysid, compid)
-        node = self.node
-        if node is not None and msgid in node.consumed and (
-                tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))):
-            self._deliver(link, f)
+        readers = self._wants.get(msgid)
+        if readers is not None:
+            for slot in readers:
+                if slot.wants(tsys, tcomp):
+                    if msgid in slot.consumed:
+                        self._deliver(slot, link, f)
+                    elif self.verifier is None or self._verified(link, f):
+                        slot.mailbox[(key << 24) | msgid] = (f, link)
+                        self.stats.mailboxed += 1
         if not self.forward:
             return
         others = self._others.get(link, ())
@@ -223,7 +370,7 @@ class Router:
             tkey = (tsys << 8) | tcomp
             targets = [o for o in others if tkey in o.seen]
         if not targets:
-            if tsys > 0 and tsys != (node.sysid if node is not None else -1):
+            if tsys > 0 and tsys not in own:
                 self.stats.unroutable += 1
             return
         n = 0
@@ -234,9 +381,14 @@ class Router:
                 n += 1
         self.stats.forwarded += n
 
-    def _deliver(self, link: Link, f: Frame) -> None:
+    def _verified(self, link: Link, f: Frame) -> bool:
         if self.verifier is not None and not self.verifier.check(f).accepted:
             link.counters.rejected_signing += 1
+            return False
+        return True
+
+    def _deliver(self, slot: _Slot, link: Link, f: Frame, verify: bool = True) -> None:
+        if verify and not self._verified(link, f):
             return
         try:
             msg = self._decoder.decode(bytearray(f.raw))
@@ -245,45 +397,102 @@ class Router:
             return
         self.stats.delivered += 1
         try:
-            replies = self.node.handle(msg, f.sysid, f.compid)  # type: ignore[union-attr]
+            replies = slot.node.handle(msg, f.sysid, f.compid)
         except Exception:
             self.stats.node_errors += 1
             if self.stats.node_errors <= 3:
                 log.exception("%s: handling %s failed", link.name, msg.get_type())
             return
         for r in replies:
-            self.send_on(link, r)
+            self._send(slot, link, r)
+
+    def collect(self, node: LocalNode) -> int:
+        """Decode the frames kept for ``node`` (the latest of each source and id) and hand
+        them to it, oldest first; returns how many."""
+        with self.lock:
+            slot = self._by_node[id(node)]
+            box = slot.mailbox
+            if not box:
+                return 0
+            slot.mailbox = {}
+            for f, link in box.values():
+                self._deliver(slot, link, f, verify=False)  # verified when kept
+            return len(box)
 
     # -- sending our own messages ------------------------------------------------------------
 
-    def send_on(self, link: Link, msg: Any) -> bool:
-        with self.lock:
-            if not link.up:
-                link.counters.tx_not_up += 1
-                return False
-            try:
-                buf = link.encode(msg)
-            except Exception:
-                self._encode_failed(msg)
-                return False
-            ok = link.send(buf)
-            if ok:
-                self.stats.sent_own += 1
-            return ok
+    def _encoder(self, link: Link, sysid: int, compid: int) -> Any:
+        key = (sysid << 8) | compid
+        m = link.encoders.get(key)
+        if m is None:
+            m = mav.MAVLink(None, sysid, compid)
+            if self.signing_key is not None:
+                signing.setup_outgoing(m, self.signing_key, self._next_link_id)
+                self._next_link_id = (self._next_link_id + 1) & 0xFF
+            link.encoders[key] = m
+        return m
 
-    def broadcast(self, msgs: Iterable[Any]) -> None:
-        """Send our own messages on every link that is up."""
+    def _pack(self, slot: _Slot, link: Link, msg: Any) -> bytes:
+        node = slot.node
+        compid = slot.component_of(msg) if slot.component_of is not None else node.compid
+        if compid not in slot.compids:
+            slot.compids.add(compid)
+        m = self._encoder(link, node.sysid, compid)
+        if link.signing:
+            signing.refresh_timestamp(m)
+        buf: bytes = msg.pack(m)
+        m.seq = (m.seq + 1) & 0xFF
+        return buf
+
+    def _send(self, slot: _Slot, link: Link, msg: Any) -> bool:
+        if not link.up:
+            link.counters.tx_not_up += 1
+            return False
+        try:
+            buf = self._pack(slot, link, msg)
+        except Exception:
+            self._encode_failed(msg)
+            return False
+        slot.sent_ids.add(msg.get_msgId())
+        ok = link.send(buf)
+        if ok:
+            self.stats.sent_own += 1
+        return ok
+
+    def _slot(self, node: LocalNode | None) -> _Slot:
+        if node is None:
+            return self._slots[0]
+        return self._by_node[id(node)]
+
+    def send_on(self, link: Link, msg: Any, node: LocalNode | None = None) -> bool:
+        """Send one of ``node``'s messages (default: the first node's) on ``link``."""
         with self.lock:
+            slot = self._slot(node)
+            if not slot.claimed:
+                self.claim(slot.node)
+            return self._send(slot, link, msg)
+
+    def broadcast(self, msgs: Iterable[Any], node: LocalNode | None = None) -> None:
+        """Send ``node``'s messages (default: the first node's) on every link of its groups
+        that is up."""
+        with self.lock:
+            slot = self._slot(node)
+            if not slot.claimed:
+                self.claim(slot.node)
+            groups = slot.groups
+            links = [lk for lk in self.links if groups is None or lk.group in groups]
             for msg in msgs:
-                for link in self.links:
+                mid = msg.get_msgId()
+                for link in links:
                     if not link.up:
                         link.counters.tx_not_up += 1
                         continue
                     try:
-                        buf = link.encode(msg)
+                        buf = self._pack(slot, link, msg)
                     except Exception:  # a value that does not fit its field: skip, counted
                         self._encode_failed(msg)
                         break
+                    slot.sent_ids.add(mid)
                     if link.send(buf):
                         self.stats.sent_own += 1
 

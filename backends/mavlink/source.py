@@ -28,7 +28,8 @@ from typing import Any
 
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
-from backends.mavlink.endpoints import Endpoint, make_endpoint, parse_endpoint
+from backends.mavlink.endpoints import Endpoint, parse_endpoint
+from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.router import Router
 from backends.mavlink.translate import (
     VIA_MAVLINK,
@@ -36,6 +37,7 @@ from backends.mavlink.translate import (
     sm_update_from_mavlink,
     status_from_mavlink,
 )
+from gateway.backend import GatewayContext
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
@@ -44,6 +46,10 @@ from gateway.sources import Sink, Source
 log = logging.getLogger(__name__)
 
 MAV_COMP_ID_ONBOARD_COMPUTER = 191
+#: The listener's preferred system id: not 255, the ground stations' (ArduPilot's GCS
+#: failsafe counts any heartbeat from SYSID_MYGCS, so ours must not keep it quiet when the
+#: real ground station is gone); downwards from here to the first one nobody uses.
+AUTO_SYSID = 250
 _GCS_TYPES = frozenset({mav.MAV_TYPE_GCS, mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_TYPE_GIMBAL,
                         mav.MAV_TYPE_ADSB, mav.MAV_TYPE_CAMERA, mav.MAV_TYPE_ANTENNA_TRACKER})
 
@@ -91,17 +97,28 @@ def classic_mode_name(autopilot: int, vehicle_type: int, base_mode: int, custom_
 
 class VehicleListener:
     """The source's local MAVLink node: decodes one vehicle's telemetry into gateway messages
-    (sans-I/O: messages go to ``emit``; requests to the vehicle are returned as replies)."""
+    (sans-I/O: messages go to ``emit``; requests to the vehicle are returned as replies).
+
+    What must not be missed is decoded as it arrives (``CONSUMED``: heartbeats, mode names,
+    batteries, the Aurora messages); the telemetry that is only ever shown at ``rate_hz`` is
+    read from the router's mailbox (``LATEST``): the latest of each, a few times a second."""
 
     CONSUMED: frozenset[int] = frozenset({
-        mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_SYS_STATUS, mav.MAVLINK_MSG_ID_ATTITUDE,
-        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mav.MAVLINK_MSG_ID_VFR_HUD,
-        mav.MAVLINK_MSG_ID_ALTITUDE, mav.MAVLINK_MSG_ID_BATTERY_STATUS,
-        mav.MAVLINK_MSG_ID_GPS_RAW_INT, mav.MAVLINK_MSG_ID_AVAILABLE_MODES,
+        mav.MAVLINK_MSG_ID_HEARTBEAT, mav.MAVLINK_MSG_ID_AVAILABLE_MODES,
+        mav.MAVLINK_MSG_ID_BATTERY_STATUS,
         mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE, mav.MAVLINK_MSG_ID_AURORA_STATUS,
     })
+    LATEST: frozenset[int] = frozenset({
+        mav.MAVLINK_MSG_ID_SYS_STATUS, mav.MAVLINK_MSG_ID_ATTITUDE,
+        mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, mav.MAVLINK_MSG_ID_VFR_HUD,
+        mav.MAVLINK_MSG_ID_ALTITUDE, mav.MAVLINK_MSG_ID_GPS_RAW_INT,
+    })
+    _ANY_COMPONENT = frozenset({mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE,
+                                mav.MAVLINK_MSG_ID_AURORA_STATUS})
+    #: Our HEARTBEAT's type (the router tells our own frames coming back by it).
+    heartbeat_type = mav.MAV_TYPE_ONBOARD_CONTROLLER
 
-    def __init__(self, emit: Callable[[Any], None], origin: str, *, sysid: int = 255,
+    def __init__(self, emit: Callable[[Any], None], origin: str, *, sysid: int = AUTO_SYSID,
                  compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
                  rate_hz: float = 10.0, request_streams: bool = True,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -110,6 +127,7 @@ class VehicleListener:
         self.sysid = sysid
         self.compid = compid
         self.consumed = self.CONSUMED
+        self.latest = self.LATEST
         self.target_system = target_system  # 0 until locked on the first autopilot
         self.request_streams = request_streams
         self.clock = clock
@@ -138,7 +156,8 @@ class VehicleListener:
                 log.info("%s: following vehicle %d", self.origin, sysid)
             else:
                 return False
-        return sysid == self.target_system and compid == 1
+        return sysid == self.target_system and (
+            compid == 1 or msg.get_msgId() in self._ANY_COMPONENT)  # a gateway's Aurora part
 
     @property
     def via(self) -> str:
@@ -277,7 +296,11 @@ _HANDLERS = {
 
 
 class MavlinkSource(Source):
-    """A MAVLink vehicle as a gateway source (``[[sources]] type = "mavlink"``)."""
+    """A MAVLink vehicle as a gateway source (``[[sources]] type = "mavlink"``).
+
+    The vehicle's endpoint (``url``) and any extra ``endpoints`` share the gateway's MAVLink
+    router with the MAVLink backend's endpoints (see :mod:`.hub`): the vehicle's traffic is
+    routed to every ground station and theirs back, by mavlink-router's rules."""
 
     NAME = "mavlink"
     CONFIG = Schema(
@@ -285,7 +308,8 @@ class MavlinkSource(Source):
                 "serial:/dev/ttyACM0,115200, tcp:HOST:5760 …"),
         endpoints=Key(list, [], "more endpoints routed to and from the vehicle (a ground "
                       "station sharing the link)"),
-        sysid=Key(int, 255, "our system id towards the vehicle", minimum=1, maximum=255),
+        sysid=Key(int, 0, "our system id towards the vehicle; 0 = automatic: 250, or the "
+                  "next lower one nobody on the links uses", minimum=0, maximum=254),
         compid=Key(int, MAV_COMP_ID_ONBOARD_COMPUTER, "our component id", minimum=1,
                    maximum=255),
         target_system=Key(int, 0, "the vehicle's system id; 0 = the first autopilot heard",
@@ -297,22 +321,26 @@ class MavlinkSource(Source):
         request_streams=Key(bool, True, "ask the vehicle for its telemetry and mode names"),
         signing_key_file=Key(str, "", "MAVLink 2 signing key file"),
         signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase"),
+        queue_depth=Key(int, 256, "frames queued per link", minimum=1),
     )
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return f"mavlink:{options['url']}"
 
-    def __init__(self, url: str, endpoints: list[str] | None = None, sysid: int = 255,
+    def __init__(self, url: str, endpoints: list[str] | None = None, sysid: int = 0,
                  compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
                  rate_hz: float = 10.0, heartbeat_hz: float = 1.0, request_streams: bool = True,
                  signing_key_file: str = "", signing_passphrase: str = "",
-                 name: str | None = None) -> None:
+                 queue_depth: int = 256, name: str | None = None) -> None:
         super().__init__(name)
-        self.specs = [parse_endpoint(url)] + [parse_endpoint(e) for e in endpoints or []]
+        self.vehicle_spec = parse_endpoint(url)
+        self.extra_specs = [parse_endpoint(e) for e in endpoints or []]
         if signing_key_file and signing_passphrase:
             raise ValueError("signing_key_file and signing_passphrase: give one, not both")
         self.heartbeat_hz = heartbeat_hz
+        self.rate_hz = rate_hz
+        self.queue_depth = queue_depth
         self.signing_key: bytes | None = None
         if signing_key_file:
             self.signing_key = signing.key_from_file(signing_key_file)
@@ -320,16 +348,21 @@ class MavlinkSource(Source):
             self.signing_key = signing.key_from_passphrase(signing_passphrase)
         self._pending: deque[Any] = deque()
         self._emit_scheduled = False
-        self.listener = VehicleListener(self._queue, self.name, sysid=sysid, compid=compid,
-                                        target_system=target_system, rate_hz=rate_hz,
-                                        request_streams=request_streams)
+        self.listener = VehicleListener(self._queue, self.name, sysid=sysid or AUTO_SYSID,
+                                        compid=compid, target_system=target_system,
+                                        rate_hz=rate_hz, request_streams=request_streams)
+        self.hub: MavlinkHub | None = None
         self.router: Router | None = None
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
         self.emitted = 0
         self.started = threading.Event()
         self.start_error: str | None = None
-        self._heartbeats: Timer | None = None
+        self._timers: list[Timer] = []
+
+    def attach(self, context: GatewayContext) -> None:
+        super().attach(context)
+        MavlinkHub.of(context).expect(VEHICLE)  # before the backend's first tick
 
     def _queue(self, msg: Any) -> None:  # the loop thread, under the router lock
         self._pending.append(msg)
@@ -349,33 +382,46 @@ class MavlinkSource(Source):
         if router is not None:
             router.broadcast([mav.MAVLink_heartbeat_message(
                 mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID, 0, 0,
-                mav.MAV_STATE_ACTIVE, 3)])
+                mav.MAV_STATE_ACTIVE, 3)], self.listener)
 
-    # -- life cycle: the endpoints' engines and timers run on one loop; messages are emitted
-    # -- from its thread (the sink never blocks) -------------------------------------------------
+    def _collect(self) -> None:
+        router = self.router
+        if router is not None:
+            router.collect(self.listener)
+
+    # -- life cycle: the endpoints' engines and timers run on the hub's loop; messages are
+    # -- emitted from its thread (the sink never blocks) ------------------------------------------
 
     def start(self, sink: Sink) -> None:
         if self._sink is not None:
             return
         self._sink = sink
-        loop = IoLoop(self.name)
-        router = Router(self.listener, signing_key=self.signing_key)
-        loop.start()
-        self.loop = loop
+        hub = MavlinkHub.of(self.context)
+        listener = self.listener
         try:
-            for spec in self.specs:
-                ep = make_endpoint(spec)
-                self.endpoints.append(ep)
-                ep.start(loop, router)
-        except OSError as exc:
-            self.start_error = str(exc)
-            log.error("source %s: %s", self.name, exc)
-            self._shut_down()
-            self.started.set()
+            hub.join(listener, VEHICLE, step=-1, signing_key=self.signing_key)
+        except ValueError as exc:
+            self._fail(str(exc))
             return
-        self.router = router
+        self.hub, self.loop, self.router = hub, hub.loop, hub.router
+        try:
+            self.endpoints = hub.open([self.vehicle_spec], VEHICLE, self.queue_depth)
+            self.endpoints += hub.open(self.extra_specs, GCS, self.queue_depth)
+        except OSError as exc:
+            self._fail(str(exc))
+            return
+        loop = hub.loop
+        self._timers.append(loop.call_every(1.0 / self.rate_hz, self._collect))
         if self.heartbeat_hz > 0:
-            self._heartbeats = loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat)
+            self._timers.append(loop.call_every(1.0 / self.heartbeat_hz, self._heartbeat))
+        log.info("source %s: following the vehicle on %s as system %d", self.name,
+                 self.vehicle_spec.text, hub.router.claim(listener))
+        self.started.set()
+
+    def _fail(self, why: str) -> None:
+        self.start_error = why
+        log.error("source %s: %s", self.name, why)
+        self._shut_down()
         self.started.set()
 
     def stop(self, timeout: float = 1.0) -> None:
@@ -383,18 +429,12 @@ class MavlinkSource(Source):
         self._shut_down(timeout)
 
     def _shut_down(self, timeout: float = 1.0) -> None:
-        loop, self.loop = self.loop, None
-        if loop is not None:
-            if self._heartbeats is not None:
-                self._heartbeats.cancel()
-            each = max(0.05, timeout / (2 * max(1, len(self.endpoints))))
-            for ep in self.endpoints:
-                try:
-                    ep.close(each)
-                except Exception:
-                    log.debug("source %s: closing %s failed", self.name, ep.name, exc_info=True)
-            if loop.stop(max(0.05, timeout / 2)):
-                loop.close()
+        hub, self.hub = self.hub, None
+        self.loop = None
+        if hub is not None:
+            for t in self._timers:
+                t.cancel()
+            hub.leave(self.listener, self.endpoints, timeout)
         self.done.set()
 
     def stats(self) -> dict[str, Any]:
@@ -402,4 +442,4 @@ class MavlinkSource(Source):
         with router.lock if router is not None else contextlib.nullcontext():
             eps = {ep.name: ep.stats() for ep in self.endpoints}
         return {"emitted": self.emitted, "target_system": self.listener.target_system,
-                "endpoints": eps}
+                "sysid": self.listener.sysid, "endpoints": eps}

@@ -29,6 +29,11 @@ from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_n
 from gateway.model import Battery, LinkStats, Position, SmUpdate, Status
 
 MAV_COMP_ID_AUTOPILOT1 = 1
+#: The component the AURORA_* dialect messages come from, with its own sequence numbers: a
+#: ground station without the dialect skips them, and would count each one as a lost packet
+#: of the autopilot component if they shared its sequence (MAV_COMP_ID_USER1).
+AURORA_COMPID = 25
+_AURORA_IDS = frozenset({mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE, mav.MAVLINK_MSG_ID_AURORA_STATUS})
 UINT8_MAX = 0xFF
 UINT16_MAX = 0xFFFF
 
@@ -38,6 +43,15 @@ SENSORS_BARO = mav.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
 SENSORS_LOG = mav.MAV_SYS_STATUS_LOGGING
 SENSORS_PREARM = mav.MAV_SYS_STATUS_PREARM_CHECK
 SENSORS_ALL = SENSORS_IMU | SENSORS_BARO | SENSORS_LOG | SENSORS_PREARM
+# ... and those the rocket has once the gateway hears its position / its battery.
+SENSORS_GPS = mav.MAV_SYS_STATUS_SENSOR_GPS
+SENSORS_BATTERY = mav.MAV_SYS_STATUS_SENSOR_BATTERY
+#: Every subsystem bit of MAV_SYS_STATUS_SENSOR (not EXTENSION_USED, a flag): health carries
+#: each one that has not failed, as ArduPilot sets it, so a subsystem the rocket does not have
+#: (a geofence: MAVProxy says "fence breach" when its health bit is clear) never reads failed.
+SENSORS_NOT_FAILED = sum(
+    bit for bit in mav.enums["MAV_SYS_STATUS_SENSOR"]
+    if bit < mav.MAV_SYS_STATUS_EXTENSION_USED and bit & (bit - 1) == 0)
 
 #: Messages whose rate ``MAV_CMD_SET_MESSAGE_INTERVAL`` may change (id → config key).
 STREAMS: dict[int, str] = {
@@ -219,6 +233,14 @@ class AuroraVehicle:
         mav.MAVLINK_MSG_ID_MISSION_CLEAR_ALL, mav.MAVLINK_MSG_ID_MISSION_ACK,
     })
 
+    #: Our HEARTBEAT's type: how the router tells our own frames coming back from another
+    #: vehicle that uses our system id.
+    heartbeat_type = mav.MAV_TYPE_ROCKET
+
+    def component_of(self, msg: Any) -> int:
+        """The component a message of ours is sent from."""
+        return AURORA_COMPID if msg.get_msgId() in _AURORA_IDS else self.compid
+
     def __init__(
         self,
         sysid: int = 1,
@@ -287,25 +309,36 @@ class AuroraVehicle:
             system_status(self.sm_type, self.state, self.armed, self.stale), 3)
 
     def sys_status(self) -> Any:
+        """SYS_STATUS true to the rocket: present = what it has (the STATUS flags' sensors,
+        GPS and battery once heard of), enabled = what it uses (the flags' sensors once a
+        STATUS told their state: before that nothing is enabled, so nothing shows failed),
+        health = every subsystem bit but those that failed."""
+        present, enabled, failed = SENSORS_ALL, 0, 0
         st = self.status
-        if st is None:
-            enabled = health = 0
-        else:
+        if st is not None:
             enabled = SENSORS_ALL
-            health = ((SENSORS_IMU if st.imu_ok else 0) | (SENSORS_BARO if st.baro_ok else 0)
-                      | (SENSORS_LOG if st.log_ready else 0)
-                      | (SENSORS_PREARM if (st.calibrated and st.imu_ok and st.baro_ok) else 0))
+            failed = ((0 if st.imu_ok else SENSORS_IMU) | (0 if st.baro_ok else SENSORS_BARO)
+                      | (0 if st.log_ready else SENSORS_LOG)
+                      | (0 if (st.calibrated and st.imu_ok and st.baro_ok) else SENSORS_PREARM))
+        if self.position is not None:
+            present |= SENSORS_GPS
+            enabled |= SENSORS_GPS
+            fix = self.position.fix_type
+            if fix is not None and fix < mav.GPS_FIX_TYPE_2D_FIX:
+                failed |= SENSORS_GPS
         voltage_mv, current_ca, remaining = UINT16_MAX, -1, -1
         bat = self.batteries.get(0)
         if bat is not None:
+            present |= SENSORS_BATTERY
+            enabled |= SENSORS_BATTERY
             voltage_mv = min(round(bat.voltage_v * 1000), UINT16_MAX - 1)
             if bat.current_a is not None:
                 current_ca = max(-1, min(round(bat.current_a * 100), 32767))
             if bat.remaining_pct is not None:
                 remaining = max(-1, min(int(bat.remaining_pct), 100))
         return mav.MAVLink_sys_status_message(
-            SENSORS_ALL, enabled, health, 0, voltage_mv, current_ca, remaining, 0, 0, 0, 0, 0, 0,
-            0, 0, 0)
+            present, enabled, SENSORS_NOT_FAILED & ~failed, 0, voltage_mv, current_ca,
+            remaining, 0, 0, 0, 0, 0, 0, 0, 0, 0)
 
     def extended_sys_state(self) -> Any:
         landed = (mav.MAV_LANDED_STATE_UNDEFINED if self._state_key is None
