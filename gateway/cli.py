@@ -98,12 +98,14 @@ def _checked(args: argparse.Namespace, dest: str, flag: str, key: Key,
 _warned: set[str] = set()
 
 
-def _backend_classes() -> dict[str, Any]:
-    """Every backend class that imports; a broken plug-in is reported once and left out."""
+def _backend_flags() -> dict[str, Any]:
+    """Backend name → what adds its flags and reads them back (:func:`registry.load_flags`:
+    a light module, so no backend is imported; else the class).  A broken plug-in is
+    reported once and left out."""
     out = {}
     for name in registry.backend_names():
         try:
-            out[name] = registry.load(registry.BACKEND_GROUP, name)
+            out[name] = registry.load_flags(name)
         except registry.RegistryError as exc:
             if name not in _warned:
                 _warned.add(name)
@@ -122,14 +124,17 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
               metavar="FILE")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
                    help="leave this backend out (repeatable)")
+    p.add_argument("--only", action="append", default=[], metavar="BACKEND",
+                   help="run only this backend (repeatable; with the configured or flag-set "
+                        "options); the others are not even imported")
     _add_common_options(p)
     _key_flag(p, "--link-timeout", _gateway_key("link_timeout_s"),
               "silence after which a source's link is reported down (default 3)",
               metavar="S")
     if not backend_flags:
         return
-    for cls in _backend_classes().values():
-        add = getattr(cls, "add_cli_arguments", None)
+    for flags in _backend_flags().values():
+        add = getattr(flags, "add_cli_arguments", None)
         if add is not None:
             add(p)
     p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
@@ -184,9 +189,9 @@ def _add_plugin_commands(sub: Any, only: str | None) -> None:
 def build_parser(backend_flags: bool = True,
                  plugin_command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line.  ``backend_flags`` False leaves the backends' own flags out of
-    ``run`` and ``replay``, which spares importing every backend (pymavlink's dialect alone
-    takes a third of a second) for commands that have no backends.  ``plugin_command``: see
-    :func:`_add_plugin_commands` ("" adds none)."""
+    ``run`` and ``replay`` (they come from light modules, :func:`registry.load_flags`: no
+    backend is imported either way).  ``plugin_command``: see :func:`_add_plugin_commands`
+    ("" adds none)."""
     parser = _Parser(
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
@@ -254,9 +259,26 @@ def _sources_from_urls(urls: Sequence[str]) -> list[config.Part]:
     return parts
 
 
-def config_from_args(args: argparse.Namespace) -> GatewayConfig:
+def _backend_filter(args: argparse.Namespace, backends: bool) -> tuple[Any, set[str]]:
+    """``keep(name)`` for :func:`config.parse` from ``--only``/``--disable`` (``backends``
+    False: none, as ``record`` runs), and the set it fills with every name it was asked
+    about (the file's backends, to check the flags' names against)."""
+    only = set(getattr(args, "only", None) or ())
+    disabled = set(getattr(args, "disable", None) or ())
+    asked: set[str] = set()
+
+    def keep(name: str) -> bool:
+        asked.add(name)
+        return backends and (not only or name in only) and name not in disabled
+
+    return keep, asked
+
+
+def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> GatewayConfig:
     """The configuration ``run``/``replay``/``record`` use: file or embedded default, then
-    flags on top.  Every flag is checked first, by the key it sets, used or not."""
+    flags on top.  Every flag is checked first, by the key it sets, used or not.  A backend
+    that ``--only``/``--disable`` leave out (all of them when ``backends`` is False) is
+    dropped before its table is validated: its class is never imported."""
     gateway_opts = {}
     for dest, flag, key in GATEWAY_FLAGS:
         value = _checked(args, dest, flag, _gateway_key(key), f"gateway.{key}")
@@ -270,9 +292,10 @@ def config_from_args(args: argparse.Namespace) -> GatewayConfig:
             source_opts.append((type_name, key, value))
     if hasattr(args, "duration"):
         args.duration = _checked(args, "duration", "--duration", CLI_KEYS.keys["duration"])
-    cfg = config.load(args.config) if getattr(args, "config", None) else None
+    keep, asked = _backend_filter(args, backends)
+    cfg = config.load(args.config, keep) if getattr(args, "config", None) else None
     if cfg is None:
-        cfg = config.embedded_default()
+        cfg = config.embedded_default(keep)
     if getattr(args, "source", None):
         cfg.sources = _sources_from_urls(args.source)
     for type_name, key, value in source_opts:
@@ -284,10 +307,10 @@ def config_from_args(args: argparse.Namespace) -> GatewayConfig:
     # Backend flags: each backend turns its own flags into options (and is enabled by them).
     # Only commands built with _add_gateway_options have them (`record` has no backends).
     by_name = {p.name: p for p in cfg.backends}
-    with_flags = _backend_classes() if getattr(args, "backend_flags", False) else {}
-    for name, cls in with_flags.items():
-        opts_fn = getattr(cls, "cli_options", None)
-        opts = opts_fn(args) if opts_fn is not None else None
+    with_flags = _backend_flags() if getattr(args, "backend_flags", False) else {}
+    for name, flags in with_flags.items():
+        opts_fn = getattr(flags, "cli_options", None)
+        opts = opts_fn(args) if opts_fn is not None and keep(name) else None
         if opts is None:
             continue
         current = by_name.get(name)
@@ -302,12 +325,16 @@ def config_from_args(args: argparse.Namespace) -> GatewayConfig:
         else:
             cfg.backends[cfg.backends.index(current)] = part
         by_name[name] = part
-    known = set(registry.backend_names()) | set(by_name)
-    for name in getattr(args, "disable", []) or []:
-        if name not in known:
-            raise ConfigError(f"--disable {name}: no such backend; "
-                              f"available: {', '.join(sorted(known))}")
-        cfg.backends = [p for p in cfg.backends if p.name != name]
+    known = set(registry.backend_names()) | asked | set(by_name)
+    for flag in ("disable", "only"):
+        for name in getattr(args, flag, None) or ():
+            if name not in known:
+                raise ConfigError(f"--{flag} {name}: no such backend; "
+                                  f"available: {', '.join(sorted(known))}")
+    for name in getattr(args, "only", None) or ():
+        if name not in by_name and keep(name):
+            raise ConfigError(f"--only {name}: not configured (no [backends.{name}] table, "
+                              "no embedded default, none of its flags given)")
     return cfg
 
 
@@ -410,8 +437,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_record(args: argparse.Namespace) -> int:
     args.config = None
-    cfg = config_from_args(args)
-    cfg.backends = []
+    cfg = config_from_args(args, backends=False)
     cfg.gateway["record"] = args.file
     _setup_logging(cfg.gateway["log_level"])
     return run_gateway(cfg, args.duration)

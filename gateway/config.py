@@ -199,8 +199,10 @@ def make_backend(type_name: str, options: dict[str, Any], name: str, where: str)
     return Part(type_name, name, opts, cls)
 
 
-def parse(data: dict[str, Any]) -> GatewayConfig:
-    """Validate a configuration mapping (what a TOML file loads to)."""
+def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> GatewayConfig:
+    """Validate a configuration mapping (what a TOML file loads to).  ``keep(name)`` False
+    leaves backend ``name`` out before its options are validated, so its class is never
+    imported (the command line's ``--disable``/``--only``)."""
     allowed = {"gateway", "sources", "backends"}
     for key in data:
         if key not in allowed:
@@ -239,14 +241,16 @@ def parse(data: dict[str, Any]) -> GatewayConfig:
         type_name = table.get("type", name)
         if not isinstance(type_name, str):
             raise ConfigError(f"{where}.type: expected a string, got {type_name!r}")
+        if keep is not None and not keep(name):
+            continue
         part = make_backend(type_name, table, name, where)
         if enabled:
             cfg.backends.append(part)
     return cfg
 
 
-def load(path: str | Path) -> GatewayConfig:
-    """Read and validate a TOML configuration file."""
+def load(path: str | Path, keep: Callable[[str], bool] | None = None) -> GatewayConfig:
+    """Read and validate a TOML configuration file (``keep``: see :func:`parse`)."""
     p = Path(path)
     try:
         text = p.read_text(encoding="utf-8")
@@ -258,14 +262,16 @@ def load(path: str | Path) -> GatewayConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    return parse(data)
+    return parse(data, keep)
 
 
-def embedded_default() -> GatewayConfig:
+def embedded_default(keep: Callable[[str], bool] | None = None) -> GatewayConfig:
     """The configuration used with no file: the simulated flight through every backend
-    that can run on loopback with its defaults."""
+    that can run on loopback with its defaults (``keep``: see :func:`parse`)."""
     backends: dict[str, Any] = {}
     for name in registry.backend_names():
+        if keep is not None and not keep(name):
+            continue
         try:
             cls = registry.load(registry.BACKEND_GROUP, name)
         except registry.RegistryError:

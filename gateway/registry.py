@@ -5,6 +5,12 @@ The entry-point groups below are the one list: the built-ins are declared in thi
 ``pyproject.toml`` exactly as a third-party package declares its own, so the package must be
 installed (``pip install -e .`` for a checkout; ``make`` does it) for its metadata to exist.
 Adding a backend touches neither the dispatcher nor the CLI.
+
+A backend's command-line flags are found apart from its class, in ``BACKEND_FLAGS_GROUP``
+(same name, a light module or object with ``add_cli_arguments(parser)`` and
+``cli_options(args)``), so building ``run``'s parser imports no backend: the class (and
+pymavlink, Zenoh…) is imported only for a backend the configuration runs.  A backend with no
+entry there has its class's classmethods of the same names used instead (:func:`load_flags`).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from typing import Any
 BACKEND_GROUP = "aurora_gateway.backends"
 SOURCE_GROUP = "aurora_gateway.sources"
 COMMAND_GROUP = "aurora_gateway.commands"
+BACKEND_FLAGS_GROUP = "aurora_gateway.backend_flags"
 
 _cache: dict[tuple[str, str], Any] = {}
 
@@ -37,15 +44,15 @@ def load(group: str, name: str) -> Any:
     targets = names(group)
     target = targets.get(name)
     if target is None:
-        kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source",
-                COMMAND_GROUP: "command"}.get(group, group)
+        kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source", COMMAND_GROUP: "command",
+                BACKEND_FLAGS_GROUP: "backend's flags"}.get(group, group)
         available = ", ".join(targets) or (
             "none (no aurora_gateway entry points: install the package, pip install -e .)")
         raise RegistryError(f"unknown {kind} {name!r}; available: {available}")
     module_name, _, attr = target.partition(":")
     try:
         obj = importlib.import_module(module_name)
-        for part in attr.split("."):
+        for part in attr.split(".") if attr else ():  # "module" alone names the module
             obj = getattr(obj, part)
     except Exception as exc:  # ImportError, AttributeError, or whatever a plug-in raises
         raise RegistryError(f"{name!r} ({target}) failed to import: "
@@ -60,3 +67,12 @@ def backend_names() -> list[str]:
 
 def source_names() -> list[str]:
     return list(names(SOURCE_GROUP))
+
+
+def load_flags(name: str) -> Any:
+    """What adds backend ``name``'s flags and reads them back: its ``BACKEND_FLAGS_GROUP``
+    entry (imports nothing heavy), else its class (which has the two classmethods, as every
+    :class:`gateway.backend.Backend` does).  RegistryError if neither imports."""
+    if name in names(BACKEND_FLAGS_GROUP):
+        return load(BACKEND_FLAGS_GROUP, name)
+    return load(BACKEND_GROUP, name)

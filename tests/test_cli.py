@@ -85,6 +85,8 @@ BAD_FLAGS = [
     (["run", "--status-interval", "nan"], "--status-interval"),
     (["run", "--link-timeout", "0"], "--link-timeout"),
     (["run", "--disable", "no-such-backend"], "--disable"),
+    (["run", "--only", "no-such-backend"], "--only"),
+    (["run", "--only", "hc12"], "--only hc12: not configured"),  # no default, no --hc12
     (["run", "--source", "replay:"], "--source"),
     (["run", "--no-such-flag"], "--no-such-flag"),
     (["simulate", "--out", "loop://", "--revision", "48"], "--revision"),
@@ -625,3 +627,100 @@ def test_config_from_args_overrides_the_embedded_default() -> None:
     assert cfg.sources[1].options["baudrate"] == 9600
     assert cfg.gateway["status_interval_s"] == 0.5
     assert isinstance(cfg, config.GatewayConfig)
+
+
+# -- run imports only the backends it runs ------------------------------------------------------
+
+HEAVY = ("pymavlink", "dialects.aurora_mavlink", "zenoh", "backends.mavlink.backend",
+         "backends.zenoh.backend")
+# Ends as the console script does (os._exit): Zenoh's native threads can abort a normal
+# interpreter teardown (see gateway.cli.console_main).
+IMPORT_CHECK = f"""
+import json, os, sys
+from gateway import cli
+try:
+    code = cli.main(sys.argv[1:])
+except SystemExit as exc:
+    code = exc.code
+loaded = [m for m in {HEAVY!r} if m in sys.modules]
+sys.stdout.flush()
+print("IMPORTS " + json.dumps({{"code": code, "loaded": loaded}}), file=sys.stderr, flush=True)
+os._exit(0)
+"""
+
+
+def _imports_of(*argv: str) -> tuple[int, list[str], str]:
+    """Exit status, which of HEAVY a ``gateway.cli.main(argv)`` left imported, its stdout."""
+    r = subprocess.run([sys.executable, "-c", IMPORT_CHECK, *argv], cwd=ROOT,
+                       capture_output=True, text=True, timeout=TIMEOUT_S)
+    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("IMPORTS "))
+    last = json.loads(line.removeprefix("IMPORTS "))
+    return last["code"], last["loaded"], r.stdout
+
+
+MAVLINK = {"dialects.aurora_mavlink", "backends.mavlink.backend"}
+ZENOH = {"zenoh", "backends.zenoh.backend"}
+
+
+@pytest.mark.parametrize(("argv", "loaded"), [
+    (["run", "--disable", "mavlink", "--duration", "0"], ZENOH),
+    (["run", "--only", "console", "--duration", "0"], set()),
+    (["run", "--only", "mavlink", "--mavlink", "udpout:127.0.0.1:9", "--duration", "0"],
+     MAVLINK),
+    (["run", "--disable", "mavlink", "--disable", "zenoh", "--mavlink", "udpout:127.0.0.1:9",
+      "--zenoh-mode", "client", "--duration", "0"], set()),
+], ids=["disable-mavlink", "only-console", "only-mavlink", "flags-of-left-out-backends"])
+def test_run_imports_only_the_backends_it_runs(argv: list[str], loaded: set[str]) -> None:
+    code, got, _ = _imports_of(*argv)
+    assert code == 0
+    assert set(got) - {"pymavlink"} == loaded  # the dialect itself needs no pymavlink
+    if "dialects.aurora_mavlink" not in loaded:
+        assert "pymavlink" not in got
+
+
+def test_run_help_lists_every_backends_flags_and_imports_none() -> None:
+    code, got, out = _imports_of("run", "--help")
+    assert code == 0
+    assert got == []
+    for flag in ("--mavlink", "--mavlink-sysid", "--crsf", "--crsf-baud", "--hc12-mode",
+                 "--zenoh-connect", "--console-interval", "--only", "--disable"):
+        assert f"{flag} " in out, flag
+
+
+def test_only_runs_just_the_named_backends_with_their_flags() -> None:
+    args = cli.build_parser().parse_args(["run", "--only", "console", "--only", "mavlink",
+                                          "--mavlink", "udpout:127.0.0.1:9",
+                                          "--crsf", "pty"])
+    cfg = cli.config_from_args(args)
+    assert sorted(p.name for p in cfg.backends) == ["console", "mavlink"]
+    assert cfg.backends[[p.name for p in cfg.backends].index("mavlink")].options[
+        "endpoints"] == ["udpout:127.0.0.1:9"]
+
+
+def test_only_and_disable_leave_a_files_backend_unvalidated(tmp_path: Path) -> None:
+    """A backend left out is dropped before its table is read (its class is not imported
+    to validate it): like a table that is not there."""
+    path = tmp_path / "g.toml"
+    path.write_text("[backends.console]\n[backends.zenoh]\nmode = 'warp'\n")
+    for extra in (["--only", "console"], ["--disable", "zenoh"]):
+        args = cli.build_parser().parse_args(["run", "-c", str(path), *extra])
+        assert [p.name for p in cli.config_from_args(args).backends] == ["console"]
+    args = cli.build_parser().parse_args(["run", "-c", str(path)])
+    with pytest.raises(config.ConfigError, match=r"^backends\.zenoh\.mode"):
+        cli.config_from_args(args)
+
+
+def test_the_light_flag_modules_name_the_backends_own_defaults() -> None:
+    from backends.crsf import backend as crsf
+    from backends.crsf import flags as crsf_flags
+    from backends.hc12 import backend as hc12
+    from backends.hc12 import flags as hc12_flags
+    from backends.mavlink import backend as mavlink
+    from backends.mavlink import flags as mavlink_flags
+    from backends.zenoh import flags as zenoh_flags
+    from backends.zenoh import session as zenoh_session
+
+    assert mavlink_flags.QGC_UDP == mavlink.QGC_UDP
+    assert crsf_flags.DEFAULT_BAUD == crsf.DEFAULT_BAUD
+    assert hc12_flags.MODES == hc12.MODES
+    assert zenoh_flags.MODES == zenoh_session.MODES

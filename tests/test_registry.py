@@ -21,7 +21,8 @@ from gateway.config import ConfigError, embedded_default, parse
 REPO = Path(__file__).resolve().parents[1]
 
 
-GROUPS = (registry.BACKEND_GROUP, registry.SOURCE_GROUP, registry.COMMAND_GROUP)
+GROUPS = (registry.BACKEND_GROUP, registry.SOURCE_GROUP, registry.COMMAND_GROUP,
+          registry.BACKEND_FLAGS_GROUP)
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -99,6 +100,48 @@ def test_importing_the_registry_imports_no_backend() -> None:
     assert out[:2] == ["before False", "after True"]
 
 
+def test_every_builtin_backends_flags_load_without_importing_a_backend() -> None:
+    code = textwrap.dedent("""
+        import sys
+        from gateway import registry as r
+        flags = {n: r.load_flags(n) for n in r.backend_names()}
+        print(sorted(n for n, f in flags.items() if isinstance(f, type)))
+        print(sorted(m for m in sys.modules if m.split(".")[0] in ("pymavlink", "zenoh")
+                     or m == "dialects.aurora_mavlink"
+                     or m.startswith("backends.") and m.endswith(".backend")))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                         text=True, timeout=60, check=True).stdout.splitlines()
+    assert out[0] == "['console']"  # no flags entry: its class (light) is the fallback
+    assert out[1] == "[]"
+
+
+def test_load_flags_prefers_the_flags_entry_and_falls_back_to_the_class() -> None:
+    from backends.console import ConsoleBackend
+    from backends.mavlink import flags
+
+    assert registry.load_flags("mavlink") is flags
+    assert registry.load_flags("console") is ConsoleBackend
+    with pytest.raises(registry.RegistryError, match="unknown backend 'teleporter'"):
+        registry.load_flags("teleporter")
+
+
+def test_parse_keep_drops_a_backend_before_importing_or_validating_it(
+    plugin: tuple[str, str, str],
+) -> None:
+    _, broken, _ = plugin
+    asked: list[str] = []
+
+    def keep(name: str) -> bool:
+        asked.append(name)
+        return name == "console"
+
+    cfg = parse({"backends": {broken: {}, "console": {}}}, keep)
+    assert [p.name for p in cfg.backends] == ["console"]
+    assert asked == [broken, "console"]
+    assert [p.name for p in embedded_default(lambda n: n == "console").backends] == ["console"]
+
+
 # -- third-party plug-ins, installed for real on a temporary sys.path entry -------------------
 
 
@@ -109,9 +152,20 @@ def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     good, broken, missing = f"fancy{tag}", f"broken{tag}", f"missing{tag}"
     (tmp_path / f"{good}_mod.py").write_text(textwrap.dedent(f"""
         from gateway.backend import Backend
+        from gateway.config import Key, Schema
         class FancyBackend(Backend):
             NAME = "{good}"
+            CONFIG = Schema(level=Key(int, 0, "how fancy"))
             EMBEDDED_DEFAULT = None
+            def __init__(self, name=None, level=0):
+                super().__init__(name)
+                self.level = level
+            @classmethod
+            def add_cli_arguments(cls, parser):
+                parser.add_argument("--{good}-level", type=int, dest="fancy_level")
+            @classmethod
+            def cli_options(cls, args):
+                return None if args.fancy_level is None else {{"level": args.fancy_level}}
     """))
     (tmp_path / f"{broken}_mod.py").write_text("raise RuntimeError('plug-in is broken')\n")
     dist = tmp_path / f"aurora_plugin_{tag}-1.0.dist-info"
@@ -160,3 +214,16 @@ def test_a_broken_plugin_does_not_stop_the_embedded_default(
     assert "console" in types
     assert broken not in types
     assert good not in types  # EMBEDDED_DEFAULT = None keeps it out of the default run
+
+
+def test_a_plugin_with_no_flags_entry_has_its_classmethods_used(
+    plugin: tuple[str, str, str],
+) -> None:
+    """The flags entry point is optional: a third-party backend's classmethods still add
+    its flags to ``run`` and turn them into its options."""
+    from gateway import cli
+
+    good, _, _ = plugin
+    args = cli.build_parser().parse_args(["run", f"--{good}-level", "3", "--only", good])
+    cfg = cli.config_from_args(args)
+    assert [(p.name, p.options) for p in cfg.backends] == [(good, {"level": 3})]

@@ -225,24 +225,15 @@ class CrsfBackend(Backend):
 
     @classmethod
     def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        parser.add_argument("--crsf", metavar="URL",
-                            help="CRSF backend: the ExpressLRS receiver's UART (serial port "
-                                 "or pyserial URL), or 'pty' for a pseudo-terminal")
-        parser.add_argument("--crsf-baud", type=int, metavar="N",
-                            help=f"CRSF backend: UART speed (default {DEFAULT_BAUD})")
+        from backends.crsf import flags  # the flags live apart, light (gateway.registry)
+
+        flags.add_cli_arguments(parser)
 
     @classmethod
     def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        url = getattr(args, "crsf", None)
-        baud = getattr(args, "crsf_baud", None)
-        if url is None and baud is None:
-            return None
-        opts: dict[str, Any] = {}
-        if url is not None:
-            opts["url"] = url
-        if baud is not None:
-            opts["baudrate"] = baud
-        return opts
+        from backends.crsf import flags
+
+        return flags.cli_options(args)
 
     def attach(self, context: GatewayContext) -> None:
         """Where decoded link statistics go (the gateway's ingest; or set ``sink=``)."""

@@ -138,23 +138,15 @@ class Hc12Backend(Backend):
 
     @classmethod
     def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        parser.add_argument("--hc12", metavar="URL",
-                            help="HC-12 backend: relay frames to the HC-12 on this port or URL")
-        parser.add_argument("--hc12-baud", type=int, metavar="N",
-                            help="HC-12 backend: host UART rate (the module's AT+B rate)")
-        parser.add_argument("--hc12-mode", choices=MODES,
-                            help="HC-12 backend: relay frames byte-identical or generate them")
+        from backends.hc12 import flags  # the flags live apart, light (gateway.registry)
+
+        flags.add_cli_arguments(parser)
 
     @classmethod
     def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        opts: dict[str, Any] = {}
-        if getattr(args, "hc12", None):
-            opts["url"] = args.hc12
-        if getattr(args, "hc12_baud", None) is not None:
-            opts["baudrate"] = args.hc12_baud
-        if getattr(args, "hc12_mode", None):
-            opts["mode"] = args.hc12_mode
-        return opts or None
+        from backends.hc12 import flags
+
+        return flags.cli_options(args)
 
     # -- life cycle ----------------------------------------------------------------------------
 

@@ -149,34 +149,15 @@ class ZenohBackend(Backend):
 
     @classmethod
     def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        g = parser.add_argument_group("zenoh backend")
-        g.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT",
-                       help="connect to this Zenoh router or peer, e.g. tcp/10.0.0.5:7447 "
-                            "(repeatable; then nothing listens unless --zenoh-listen)")
-        g.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
-                       help="listen on this endpoint (repeatable; default "
-                            "tcp/127.0.0.1:7450)")
-        g.add_argument("--zenoh-mode", choices=("peer", "client", "router"),
-                       help="Zenoh mode (default peer)")
-        g.add_argument("--zenoh-vehicle", metavar="ID",
-                       help=f"vehicle key chunk (default {DEFAULT_VEHICLE})")
-        g.add_argument("--zenoh-prefix", metavar="PREFIX",
-                       help=f"key prefix (default {DEFAULT_PREFIX})")
-        g.add_argument("--zenoh-config", metavar="FILE",
-                       help="a full Zenoh JSON5 configuration for the session")
+        from backends.zenoh import flags  # the flags live apart, light (gateway.registry)
+
+        flags.add_cli_arguments(parser)
 
     @classmethod
     def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        flags = {
-            "connect": getattr(args, "zenoh_connect", None),
-            "listen": getattr(args, "zenoh_listen", None),
-            "mode": getattr(args, "zenoh_mode", None),
-            "vehicle": getattr(args, "zenoh_vehicle", None),
-            "prefix": getattr(args, "zenoh_prefix", None),
-            "config_file": getattr(args, "zenoh_config", None),
-        }
-        opts = {k: v for k, v in flags.items() if v is not None}
-        return opts or None
+        from backends.zenoh import flags
+
+        return flags.cli_options(args)
 
     # -- life cycle ------------------------------------------------------------------------------
 
