@@ -32,7 +32,9 @@ vehicle side), packed per link and per source component, so each has its own seq
 when a node first speaks (:meth:`Router.claim`) an id already seen on a link is skipped, and a
 system that later appears with the node's id (a different component, a message the node never
 sends, or a heartbeat of another vehicle type — not our own echo coming back round a loop)
-moves the node to a free id, logged.  A node answers only what is addressed to its own id.
+moves the node to a free id, logged.  A node answers only what is addressed to its own id,
+and nothing before it has claimed one (the rocket routing a vehicle stays off the air until it
+has something to say).
 
 All state is guarded by :attr:`Router.lock`; links call :meth:`Router.receive` from whatever
 thread reads them, and every ``Link.send`` is non-blocking.
@@ -160,6 +162,7 @@ class _Slot:
         self.mailbox: dict[int, tuple[Frame, Link]] = {}
 
     def wants(self, tsys: int, tcomp: int) -> bool:
+        """Whether a frame with these targets is for the node (broadcast, or its id)."""
         node = self.node
         return tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))
 
@@ -265,11 +268,12 @@ class Router:
         with self.lock:
             slot = self._by_node[id(node)]
             if not slot.claimed:
-                taken = node.sysid in self.seen_systems or node.sysid in self._own
-                if taken:
-                    old = node.sysid
-                    self._move(slot, f"system {old} is already used on "
-                               f"{self.seen_systems.get(old, 'another node')}")
+                old = node.sysid
+                if old in self.seen_systems or old in self._own:
+                    node.sysid = self._free_id(slot)
+                    log.info("MAVLink: system %d is in use (on %s): the gateway's %s takes "
+                             "system %d", old, self.seen_systems.get(old, "this gateway"),
+                             type(node).__name__, node.sysid)
                 slot.claimed = True
                 self._own[node.sysid] = slot
             return node.sysid
@@ -282,16 +286,17 @@ class Router:
                 return cand
         raise RuntimeError("no free MAVLink system id")  # 254 systems seen: cannot happen
 
-    def _move(self, slot: _Slot, why: str) -> None:
+    def _move(self, slot: _Slot, link: Link, f: Frame) -> None:
+        """Another system uses a claimed node's id: the node moves to a free one."""
         node = slot.node
         old = node.sysid
-        if self._own.get(old) is slot:
-            del self._own[old]
+        del self._own[old]
+        self.seen_systems.setdefault(old, link.name)
         node.sysid = self._free_id(slot)
-        if slot.claimed:
-            self._own[node.sysid] = slot
+        self._own[node.sysid] = slot
         self.stats.id_changes += 1
-        log.warning("MAVLink: %s; the gateway's %s is now system %d", why,
+        log.warning("MAVLink: system %d component %d on %s uses the id of the gateway's %s: "
+                    "it moves to system %d", f.sysid, f.compid, link.name,
                     type(node).__name__, node.sysid)
 
     def _is_echo(self, slot: _Slot, f: Frame) -> bool:
@@ -336,8 +341,7 @@ class Router:
             if self._is_echo(slot, f):
                 self.stats.own_id_seen += 1  # our own frame, back round a loop: drop
                 return
-            self._move(slot, f"system {sysid} component {compid} on {link.name} uses "
-                       f"the id of the gateway's {type(slot.node).__name__}")
+            self._move(slot, link, f)
         last_seq = link.last_seq
         last = last_seq.get(key)
         if last is not None:
@@ -353,7 +357,7 @@ class Router:
         readers = self._wants.get(msgid)
         if readers is not None:
             for slot in readers:
-                if slot.wants(tsys, tcomp):
+                if slot.claimed and slot.wants(tsys, tcomp):  # not yet on the air: not ours
                     if msgid in slot.consumed:
                         self._deliver(slot, link, f)
                     elif self.verifier is None or self._verified(link, f):
