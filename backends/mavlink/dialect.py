@@ -1,26 +1,27 @@
 """The Aurora MAVLink dialect (generated module) and the per-message facts the router needs.
 
-``mav`` is the module generated from ``dialects/aurora_mavlink.xml`` (common + development +
-the Aurora messages).  It is used as a value: ``mav.MAVLink(...)`` objects are created per
-link, never through ``mavutil`` (which rewrites the process environment).
+``mav`` is the module generated from ``dialects/aurora_mavlink.xml``: the AURORA_* messages
+plus only the upstream (common + development) messages and enums the gateway encodes or
+decodes, listed in ``dialects/aurora_mavlink_keep.txt``.  It is used as a value:
+``mav.MAVLink(...)`` objects are created per link, never through ``mavutil`` (which rewrites
+the process environment).
 
-For routing without decoding, :data:`CRC_EXTRA` maps every known message id to its CRC_EXTRA
-byte (to validate frames) and :data:`TARGETS` maps ids of messages that carry
-``target_system``/``target_component`` to their byte offsets in the payload (mavgen's rule:
-the fields named exactly so), the same facts mavlink-router reads from the C library's
-``mavlink_msg_entry_t`` table.
+Every other message is routed without decoding, from the wire facts in
+``dialects/mavlink_routing.py`` (generated from pymavlink's ``all.xml`` plus ours):
+:data:`MESSAGES` maps every known id to its CRC_EXTRA byte (to validate frames), its largest
+payload and the byte offsets of ``target_system``/``target_component`` (mavgen's rule: the
+fields named exactly so) — the facts mavlink-router reads from the C library's
+``mavlink_msg_entry_t`` table.  :data:`CRC_EXTRA` and :data:`TARGETS` are views of it.
 """
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 from dialects import aurora_mavlink as mav
+from dialects.mavlink_routing import MESSAGES as _ROWS
 
-_TYPE_SIZE = {
-    "char": 1, "uint8_t": 1, "int8_t": 1, "uint16_t": 2, "int16_t": 2, "uint32_t": 4,
-    "int32_t": 4, "float": 4, "uint64_t": 8, "int64_t": 8, "double": 8,
-}
+__all__ = ["CRC_EXTRA", "MESSAGES", "NAMES", "TARGETS", "MessageInfo", "mav"]
 
 
 class MessageInfo(NamedTuple):
@@ -32,28 +33,10 @@ class MessageInfo(NamedTuple):
     target_component_ofs: int
 
 
-def _offsets(cls: Any) -> dict[str, int]:
-    types = dict(zip(cls.fieldnames, cls.fieldtypes, strict=True))
-    out: dict[str, int] = {}
-    ofs = 0
-    for name, n in zip(cls.ordered_fieldnames, cls.array_lengths, strict=True):
-        out[name] = ofs
-        ofs += _TYPE_SIZE[types[name]] * max(1, n)
-    return out
-
-
-def _build() -> dict[int, MessageInfo]:
-    table: dict[int, MessageInfo] = {}
-    for msgid, cls in mav.mavlink_map.items():
-        ofs = _offsets(cls)
-        table[msgid] = MessageInfo(cls.crc_extra, cls.unpacker.size,
-                                   ofs.get("target_system", -1),
-                                   ofs.get("target_component", -1))
-    return table
-
-
-#: Every message id the dialect knows → its wire facts.
-MESSAGES: dict[int, MessageInfo] = _build()
+#: Every message id of pymavlink's all.xml and ours → its wire facts.
+MESSAGES: dict[int, MessageInfo] = {i: MessageInfo(*row[1:]) for i, row in _ROWS.items()}
+#: id → message name (for logs and counters; decoding needs ``mav``).
+NAMES: dict[int, str] = {i: row[0] for i, row in _ROWS.items()}
 #: id → CRC_EXTRA byte.
 CRC_EXTRA: dict[int, int] = {i: m.crc_extra for i, m in MESSAGES.items()}
 #: id → (target_system offset, target_component offset or -1), for targeted messages only.
