@@ -297,7 +297,11 @@ def test_a_simulated_flight_streams_everything_qgc_shows(gcs: MavPeer) -> None:
     nvf = {m.name for m in gcs.messages("NAMED_VALUE_FLOAT")}
     assert nvf == {"accel", "accel_vert"}
     sys_status = gcs.messages("SYS_STATUS")
-    assert sys_status and sys_status[-1].onboard_control_sensors_health != 0
+    assert sys_status
+    last = sys_status[-1]  # the simulated rocket's sensors are all healthy: none failed
+    assert last.onboard_control_sensors_enabled != 0
+    assert last.onboard_control_sensors_health & last.onboard_control_sensors_enabled == (
+        last.onboard_control_sensors_enabled)
 
 
 @pytest.mark.parametrize(("flags", "healthy"), [
@@ -323,8 +327,11 @@ def test_sys_status_reports_the_status_flags(gcs: MavPeer, flags: int, healthy: 
     s = after[0]
     assert s.onboard_control_sensors_present == every
     assert s.onboard_control_sensors_enabled == every
-    want = {"all": every, "no-imu": baro | log_bit, "no-baro-no-log": imu}[healthy]
-    assert s.onboard_control_sensors_health == want
+    # health: every subsystem bit (as ArduPilot: the geofence's too) but those that failed
+    not_failed = dev.MAV_SYS_STATUS_EXTENSION_USED - 1
+    assert before.onboard_control_sensors_health == not_failed
+    failed = {"all": 0, "no-imu": imu | prearm, "no-baro-no-log": baro | log_bit | prearm}[healthy]
+    assert s.onboard_control_sensors_health == not_failed & ~failed
 
 
 def test_error_state_and_stale_updates_have_defined_statuses(gcs: MavPeer) -> None:
