@@ -229,6 +229,27 @@ class PortEngine:
             self._loop.call_soon(self._flush)
         return _ACCEPTED
 
+    def send_datagram(self, data: bytes) -> bool:
+        """Write one datagram at once, on the engine's thread: a router's per-frame path
+        (what :meth:`submit` does there when nothing is queued, without its bookkeeping).
+        False when it cannot be written directly now (not up, another thread, something
+        queued): then use :meth:`submit`."""
+        if not self._up or self._writing or self._flush_scheduled or \
+                _get_ident() != self._loop_ident:
+            return False
+        st = self.stats
+        st.submitted += 1
+        st.accepted += 1
+        try:
+            self._port.write(data)
+        except Exception as exc:
+            st.write_errors += 1
+            self._fail(exc, "write failed")
+            return True  # taken (and lost with the port, counted)
+        st.sent_frames += 1
+        st.sent_bytes += len(data)
+        return True
+
     def queued(self) -> int:
         return len(self._queue)
 

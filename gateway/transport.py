@@ -134,6 +134,8 @@ class UdpPort:
         self.send_dropped = 0
         self.not_sent = 0  # writes with nobody to send to (udpin before any peer)
         self.connected = False  # udpout from open_udp: connected, so refusals are reported
+        self._buf = bytearray(65536)  # the largest datagram
+        self._view = memoryview(self._buf)
         if dest is not None:
             with contextlib.suppress(OSError):
                 self.connected = sock.getpeername() is not None
@@ -149,14 +151,16 @@ class UdpPort:
         return self.sock.getsockname()
 
     def read(self, size: int = 65536) -> bytes:
+        buf = self._buf
         while True:
-            try:
-                data, addr = self.sock.recvfrom(65536)
+            try:  # into one buffer, then a copy of what came: no 64 KiB object per datagram
+                n, addr = self.sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
                 return b""
             except ConnectionRefusedError:  # ICMP for an earlier send: nobody listens there
                 self.send_errors += 1
                 continue
+            data = bytes(self._view[:n])
             if self.dest is None:
                 peers = self.peers
                 if addr in peers:
