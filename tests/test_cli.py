@@ -282,8 +282,10 @@ console_main()
 
 
 @pytest.mark.parametrize(("module", "args"), [
-    # while the backends import, building the parser (pymavlink's dialect is slow)
+    # while the backends' flag modules import, building the parser
     ("backends.mavlink", ["run", "--duration", "5"]),
+    # while the backends the configuration runs import (the MAVLink dialect is the slowest)
+    ("dialects.aurora_mavlink", ["run", "--duration", "5"]),
     # while a command imports what it needs, before it handles signals itself
     ("gateway.flight", ["simulate", "--out", "loop://", "--cycles", "1"]),
 ])
