@@ -73,6 +73,7 @@ class Output:
         assert proc.stdout is not None
         self._fd = proc.stdout.fileno()
         self._text = ""
+        self._eof = False
         self._cond = threading.Condition()
         self._thread = threading.Thread(target=self._read, name="mavproxy-out", daemon=True)
         self._thread.start()
@@ -82,6 +83,9 @@ class Output:
             with self._cond:
                 self._text += chunk.decode("utf-8", "replace")
                 self._cond.notify_all()
+        with self._cond:
+            self._eof = True
+            self._cond.notify_all()
 
     @property
     def text(self) -> str:
@@ -90,13 +94,13 @@ class Output:
 
     def wait_for(self, pattern: str, deadline: float, start: int = 0) -> re.Match[str] | None:
         """The first match of ``pattern`` at or after offset ``start``, or None at the
-        deadline (a ``time.monotonic()`` value)."""
+        deadline (a ``time.monotonic()`` value) or when the process closed its output."""
         rx = re.compile(pattern)
         with self._cond:
             while True:
                 m = rx.search(self._text, start)
                 left = deadline - time.monotonic()
-                if m or left <= 0:
+                if m or left <= 0 or self._eof:
                     return m
                 self._cond.wait(left)
 
