@@ -3,7 +3,6 @@ mavlink-router-style routing between them and optional MAVLink 2 signing."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import logging
 import time
@@ -118,32 +117,6 @@ class MavlinkBackend(Backend):
         self._started_at = 0.0
         self.dropped_inbox = 0
         self.not_repeated = 0
-
-    # -- CLI ---------------------------------------------------------------------------------
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        parser.add_argument("--mavlink", action="append", metavar="ENDPOINT",
-                            help="MAVLink endpoint (repeatable; replaces the configured ones): "
-                                 "udpout:HOST:PORT, udpin:HOST:PORT, tcpin:HOST:PORT, "
-                                 "tcp:HOST:PORT, serial:DEVICE[,BAUD] "
-                                 f"(default {QGC_UDP}, QGroundControl on this machine)")
-        parser.add_argument("--mavlink-sysid", type=int, metavar="N",
-                            help="MAVLink system id of the rocket (default 1)")
-        parser.add_argument("--mavlink-signing-key", metavar="FILE",
-                            help="sign MAVLink 2 traffic with this key file and require "
-                                 "signed commands")
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        opts: dict[str, Any] = {}
-        if getattr(args, "mavlink", None):
-            opts["endpoints"] = list(args.mavlink)
-        if getattr(args, "mavlink_sysid", None) is not None:
-            opts["sysid"] = args.mavlink_sysid
-        if getattr(args, "mavlink_signing_key", None):
-            opts["signing_key_file"] = args.mavlink_signing_key
-        return opts or None
 
     # -- life cycle ----------------------------------------------------------------------------
 
