@@ -18,9 +18,14 @@ PACKAGES := gateway backends dialects
 
 .PHONY: run test lint bench clean bytecode
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --disable-pip-version-check -e '.[test]'
+	# Stock MAVProxy, the real ground station of tests/test_mavlink_mavproxy.py.  Without its
+	# dependencies: those are for its GUI and map modules (vtk, OpenCV, matplotlib: ~240 MB),
+	# unused by --daemon --non-interactive; pymavlink and pyserial come with the project.
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps \
+		mavproxy==1.8.75 defusedxml==0.7.1 pynmeagps==1.1.8
 	touch $(STAMP)
 
 # Bytecode of what changed since the last compile (an edit, a git pull).

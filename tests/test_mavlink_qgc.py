@@ -251,6 +251,11 @@ def test_a_simulated_flight_streams_everything_qgc_shows(gcs: MavPeer) -> None:
         src.start(tap)
         try:
             landed = gcs.wait_for("STATUSTEXT", lambda m: m.text == "#LANDED", timeout=WAIT * 2)
+            # The EXTENDED_SYS_STATE of the landing is sent right after that text: wait for it
+            # to be parsed (the peer's thread), not just sent.
+            on_ground = gcs.dialect.MAV_LANDED_STATE_ON_GROUND
+            assert gcs.wait_until(lambda: [m.landed_state for m in gcs.messages(
+                "EXTENDED_SYS_STATE")][-1:] == [on_ground], WAIT)
         finally:
             src.stop()
         assert landed, [m.text for m in gcs.messages("STATUSTEXT")]

@@ -16,9 +16,12 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
                         help="MAVLink endpoint (repeatable; replaces the configured ones): "
                              "udpout:HOST:PORT, udpin:HOST:PORT, tcpin:HOST:PORT, "
                              "tcp:HOST:PORT, serial:DEVICE[,BAUD] "
-                             f"(default {QGC_UDP}, QGroundControl on this machine)")
+                             f"(default {QGC_UDP}, QGroundControl on this machine); "
+                             "with --source mavlink:ENDPOINT, the vehicle is routed to and "
+                             "from them, as by mavlink-router")
     parser.add_argument("--mavlink-sysid", type=int, metavar="N",
-                        help="MAVLink system id of the rocket (default 1)")
+                        help="MAVLink system id of the rocket (default 1; if a system on the "
+                             "links uses it, the next free one is taken, and logged)")
     parser.add_argument("--mavlink-signing-key", metavar="FILE",
                         help="sign MAVLink 2 traffic with this key file and require "
                              "signed commands")
