@@ -55,6 +55,12 @@ def open_serial(
 
 TCP_OUT_CAP = 256 * 1024
 SOCKET_BUFFER = 4 * 1024 * 1024
+#: A UDP socket's receive buffer: what may wait for the reader.  The kernel counts a few
+#: hundred bytes per datagram whatever its size, so this holds ~600 small MAVLink frames,
+#: ~60 ms at 10k msg/s: enough for a scheduling hiccup, and a reader that falls behind for
+#: longer drops early instead of forwarding seconds-old frames (4 MiB held ~1 s of them).
+#: mavlink-router keeps the system's default (208 KiB), the same order.
+UDP_RCVBUF = 256 * 1024
 MAX_UDP_PEERS = 16
 
 
@@ -220,9 +226,9 @@ def _udp_socket(family: int, how: str, addr: Any, host: str, port: int) -> socke
     sock = socket.socket(family, socket.SOCK_DGRAM)
     try:
         sock.setblocking(False)
-        for opt in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+        for opt, size in ((socket.SO_RCVBUF, UDP_RCVBUF), (socket.SO_SNDBUF, SOCKET_BUFFER)):
             with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, opt, SOCKET_BUFFER)
+                sock.setsockopt(socket.SOL_SOCKET, opt, size)
         if how == "connect":
             sock.connect(addr)
         else:
