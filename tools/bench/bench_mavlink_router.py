@@ -15,8 +15,8 @@ the rocket's own node nor ``--mavlink``).  ``mavlink-router`` = ``mavlink-router
 <a conf of only TcpServerPort = 0> -e 127.0.0.1:B 127.0.0.1:A`` when ``mavlink-routerd`` is on
 PATH or given with ``--mavlink-routerd``.  ``mavproxy`` = ``mavproxy.py --master=udpin:…
 --out=udpout:… --daemon --non-interactive --default-modules=output --no-state --nowait
---streamrate=-1`` when ``mavproxy.py`` is on PATH or given with ``--mavproxy``.  A router that
-is missing is skipped with a one-line note.
+--streamrate=-1`` when ``mavproxy.py`` is next to the bench's Python, on PATH or given with
+``--mavproxy``.  A router that is missing is skipped with a one-line note.
 
 Traffic: an ArduPilot-like vehicle, system 1 component 1, MAVLink 2 frames packed once by
 pymavlink's upstream ``ardupilotmega`` dialect (not the project's), per 60-frame cycle (what an
@@ -63,8 +63,8 @@ the receiving socket dropped anything (``/proc/net/udp``) is "harness-limited", 
 result at or above the harness's own lossless limit is printed as "≥".  On the shared 2-core
 development VM (2026-11-24, CPython 3.11.7, AMD EPYC) the harness alone was lossless and on
 schedule up to 100k msg/s (the default top step; 120k fell behind), kernel-timestamped
-latency p50 3 µs, p99 6–8 µs at 10k; the sender takes ~0.2 core at 10k and ~0.45 at 100k
-msg/s, the receiver about as much.  With a router busy on one of the two cores, figures above
+latency p50 2–3 µs, p99 4–24 µs at 10k; at 100k msg/s the sender takes ~0.55 core and the
+receiver ~0.35.  With a router busy on one of the two cores, figures above
 ~60k msg/s bound the machine as much as the router.
 """
 
@@ -1063,7 +1063,8 @@ def main(argv: list[str] | None = None) -> int:
                    default=str(Path(sys.executable).parent / "aurora-gateway"),
                    help="the gateway's console script (default: next to this Python)")
     p.add_argument("--mavlink-routerd", metavar="PATH", help="mavlink-routerd (default: PATH)")
-    p.add_argument("--mavproxy", metavar="PATH", help="mavproxy.py (default: PATH)")
+    p.add_argument("--mavproxy", metavar="PATH",
+                   help="mavproxy.py (default: next to this Python, else PATH)")
     p.add_argument("--no-harness-check", action="store_true",
                    help="skip measuring the harness alone first")
     p.add_argument("--start-timeout", type=float, default=10.0,
@@ -1092,7 +1093,8 @@ def main(argv: list[str] | None = None) -> int:
     gw = _gateway_router(args.aurora_gateway, args.ours_form)
     routers.append(gw)
     if not args.no_peer:
-        exe = args.mavproxy or shutil.which("mavproxy.py")
+        exe = (args.mavproxy or shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))
+               or shutil.which("mavproxy.py"))
         if exe and Path(exe).exists():
             routers.append(_mavproxy(exe))
         else:
