@@ -39,7 +39,7 @@ component, message id, counter and sequence all match; anything else at B is "fo
 gateway's own node) or "stale" (an earlier phase).  Frames are built before a phase starts.
 
 Per router and repetition: two starts (each spawned while the sender already sends 1 frame/ms:
-the time from spawn to the first frame out; the second is "warm": for aurora-gateway the
+the time from spawn to the first frame out; the second is "warm": for the Python routers the
 bytecode cache written by the first, since routers run without ``PYTHONDONTWRITEBYTECODE``),
 1 s warm-up at 2k msg/s, then a steady ``--steady-rate`` (10k msg/s) phase of
 ``--long-phase-s`` (5 s): CPU (the router's utime+stime from ``/proc`` over the phase and its
@@ -473,10 +473,15 @@ class Router:
     env: dict[str, str] | None = None
 
 
+def _cacheable_env() -> dict[str, str]:
+    """This environment without PYTHONDONTWRITEBYTECODE: a Python router's first start
+    writes the bytecode cache its second ("warm") start reads."""
+    return {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+
+
 def _gateway_router(exe: str, form: str) -> Router:
     help_text = subprocess.run([exe, "run", "--help"], capture_output=True, text=True,
                                timeout=60).stdout
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
 
     def argv(a: int, b: int, tmp: str) -> list[str]:
         if form == "config":
@@ -494,7 +499,7 @@ def _gateway_router(exe: str, form: str) -> Router:
             cmd += ["--disable", other]
         return cmd
 
-    return Router("aurora-gateway", argv, env)
+    return Router("aurora-gateway", argv, _cacheable_env())
 
 
 def _mavlink_router(exe: str) -> Router:
@@ -512,7 +517,7 @@ def _mavproxy(exe: str) -> Router:
                 "--daemon", "--non-interactive", "--default-modules=output", "--no-state",
                 "--nowait", "--streamrate=-1"]
 
-    return Router("mavproxy", argv)
+    return Router("mavproxy", argv, _cacheable_env())
 
 
 # -- the harness ------------------------------------------------------------------------------
