@@ -12,6 +12,7 @@ import contextlib
 import heapq
 import itertools
 import logging
+import select
 import selectors
 import socket
 import threading
@@ -40,12 +41,89 @@ class Timer:
         self.cancelled = True
 
 
+def _fd(fileobj: Any) -> int:
+    return fileobj if isinstance(fileobj, int) else int(fileobj.fileno())
+
+
+class _EpollPoller:
+    """Callbacks on ``select.epoll``: what :meth:`select` returns is (callback, mask) pairs,
+    masks in :mod:`selectors` terms, as ``selectors.EpollSelector`` reports them — without
+    its key object per event (the loop's per-wake-up cost, and a router wakes per datagram)."""
+
+    def __init__(self) -> None:
+        self._ep = select.epoll()
+        self._entries: dict[int, tuple[Callable[[int], Any], int]] = {}
+
+    @staticmethod
+    def _flags(events: int) -> int:
+        return ((select.EPOLLIN if events & selectors.EVENT_READ else 0)
+                | (select.EPOLLOUT if events & selectors.EVENT_WRITE else 0))
+
+    def register(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        fd = _fd(fileobj)
+        if fd in self._entries:
+            raise KeyError(f"{fileobj!r} (fd {fd}) is already registered")
+        self._ep.register(fd, self._flags(events))
+        self._entries[fd] = (callback, events)
+
+    def modify(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        fd = _fd(fileobj)
+        if fd not in self._entries:
+            raise KeyError(f"{fileobj!r} (fd {fd}) is not registered")
+        self._ep.modify(fd, self._flags(events))
+        self._entries[fd] = (callback, events)
+
+    def unregister(self, fileobj: Any) -> None:
+        fd = _fd(fileobj)
+        del self._entries[fd]
+        with contextlib.suppress(OSError):  # already closed: the kernel dropped it
+            self._ep.unregister(fd)
+
+    def select(self, timeout: float) -> list[tuple[Callable[[int], Any], int]]:
+        entries = self._entries
+        out = []
+        for fd, ev in self._ep.poll(timeout, max(1, len(entries))):
+            entry = entries.get(fd)
+            if entry is None:
+                continue
+            mask = ((selectors.EVENT_WRITE if ev & ~select.EPOLLIN else 0)
+                    | (selectors.EVENT_READ if ev & ~select.EPOLLOUT else 0))
+            out.append((entry[0], mask & entry[1]))
+        return out
+
+    def close(self) -> None:
+        self._ep.close()
+
+
+class _SelectorPoller:
+    """The same over :class:`selectors.DefaultSelector`, where there is no epoll."""
+
+    def __init__(self) -> None:
+        self._selector = selectors.DefaultSelector()
+
+    def register(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        self._selector.register(fileobj, events, callback)
+
+    def modify(self, fileobj: Any, events: int, callback: Callable[[int], Any]) -> None:
+        self._selector.modify(fileobj, events, callback)
+
+    def unregister(self, fileobj: Any) -> None:
+        self._selector.unregister(fileobj)
+
+    def select(self, timeout: float) -> list[tuple[Callable[[int], Any], int]]:
+        return [(key.data, mask) for key, mask in self._selector.select(timeout)]
+
+    def close(self) -> None:
+        self._selector.close()
+
+
 class IoLoop:
     """A selector loop on a thread of its own (see the module docstring)."""
 
     def __init__(self, name: str = "io") -> None:
         self.name = name
-        self._sel = selectors.DefaultSelector()
+        self._sel: _EpollPoller | _SelectorPoller = (
+            _EpollPoller() if hasattr(select, "epoll") else _SelectorPoller())
         self._rsock, self._wsock = socket.socketpair()
         self._rsock.setblocking(False)
         self._wsock.setblocking(False)
@@ -188,8 +266,8 @@ class IoLoop:
                 events = sel.select(wait)
             except (OSError, ValueError):  # a file closed under us: its owner unregisters it
                 events = []
-            for key, mask in events:
-                self._guard(key.data, mask)
+            for callback, mask in events:
+                self._guard(callback, mask)
             self._woken = False
             while calls:
                 self._guard(calls.popleft())
