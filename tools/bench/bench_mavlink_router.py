@@ -102,7 +102,8 @@ repository with meson, submodule included:
   git clone --recurse-submodules https://github.com/mavlink-router/mavlink-router
   cd mavlink-router            # (or: git submodule update --init for modules/mavlink_c_library_v2)
   python3 -m venv ~/meson-venv && ~/meson-venv/bin/pip install meson  # and ninja-build (apt)
-  PATH=~/meson-venv/bin:$PATH meson setup build . -Dsystemdsystemunitdir=/tmp/unused
+  PATH=~/meson-venv/bin:$PATH meson setup build .
+  #   (add -Dsystemdsystemunitdir=/tmp/unused where systemd's pkg-config file is missing)
   ninja -C build               # the project's default buildtype, debugoptimized
   # then put build/src/mavlink-routerd on PATH, or pass --mavlink-routerd build/src/mavlink-routerd
 
