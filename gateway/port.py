@@ -64,11 +64,12 @@ _get_ident = threading.get_ident
 DEFAULT_POLL_S = 0.01
 READ_SIZE = 65536
 DATAGRAM_BATCH = 64
-#: Datagrams a feed_many protocol (a router) reads per wake-up.  One, as mavlink-router
-#: does: a read that finds nothing (a system call and an exception) would cost ~10 % of the
-#: router's work per frame whenever datagrams arrive one at a time, which they mostly do; the
-#: poller is level-triggered, so what is left wakes the loop again at once.
-DATAGRAMS_PER_WAKE = 1
+#: A feed_many protocol (a router) reads one datagram per wake-up, as mavlink-router does,
+#: unless the loop came back to the port within this long of the last batch (a backlog: the
+#: poller, level-triggered, did not wait): then up to DATAGRAM_BATCH.  Datagrams mostly
+#: arrive one at a time, and a read that finds nothing (a system call and an exception)
+#: would cost ~10 % of the router's work per frame; under a backlog, batches are cheaper.
+BACKLOG_GAP_S = 20e-6
 
 
 class Port(Protocol):
@@ -151,6 +152,7 @@ class PortEngine:
         self.queue_depth = queue_depth
         self.min_interval_s = min_interval_s
         self.protocol = protocol
+        self._datagrams_done = 0.0  # when _read_datagrams last finished (monotonic)
         self.on_event = on_event
         self.on_link = on_link
         self.stats = PortStats()
@@ -548,12 +550,14 @@ class PortEngine:
                 return  # a handler closed or reopened the port
 
     def _read_datagrams(self, port: Any, feed_many: Callable[[list[bytes]], Any]) -> None:
-        """A datagram port whose protocol has ``feed_many(datagrams)``: up to DATAGRAMS_PER_WAKE
-        datagrams are handed over in one call (a router's per-frame path)."""
+        """A datagram port whose protocol has ``feed_many(datagrams)``: one datagram, or up
+        to DATAGRAM_BATCH under a backlog (see BACKLOG_GAP_S), handed over in one call (a
+        router's per-frame path)."""
         batch: list[bytes] = []
         read, keep = port.read, batch.append
         error: Exception | None = None
-        for _ in range(DATAGRAMS_PER_WAKE):
+        backlog = time.monotonic() - self._datagrams_done < BACKLOG_GAP_S
+        for _ in range(DATAGRAM_BATCH if backlog else 1):
             try:
                 data = read(READ_SIZE)
             except Exception as exc:
@@ -575,6 +579,7 @@ class PortEngine:
             if handler is not None:
                 for ev in events:
                     handler(ev)
+        self._datagrams_done = time.monotonic()
         if error is not None and self._port is port:
             self.stats.read_errors += 1
             self._fail(error, "read failed")
