@@ -1,0 +1,1 @@
+"""UAVTalk (LibrePilot 16.09): object definitions, packet codec and telemetry sessions."""
