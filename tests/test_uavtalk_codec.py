@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from backends.uavtalk import objects
 from backends.uavtalk.codec import (
     MAX_DATA_LENGTH,
     MAX_SIZE,
@@ -24,12 +25,18 @@ GCS_STATS = 0xCAD1DC0A
 ATTITUDE = 0xD7E0D964
 FIRMWARE_IAP = 0x8328F252
 
-# Data lengths of the objects the vectors use (37-byte telemetry stats, 28-byte AttitudeState).
-LENGTHS = {FLIGHT_STATS: 37, GCS_STATS: 37, ATTITUDE: 28}
+# The decoder checks lengths against the real 16.09 object set (objects.py), metaobjects included.
+OBJECTS = objects.ObjectSet.load()
+data_length = OBJECTS.data_length
+LENGTHS = {o.id: o.size for o in OBJECTS} | {o.id + 1: objects.META_SIZE for o in OBJECTS}
+# Ids the tests use as unknown objects.
+UNKNOWN_IDS = (0x10, 0x999, 0x11111110, 0x55555554, 0x77777776, 0x12345678)
 
 
-def data_length(object_id: int) -> int | None:
-    return LENGTHS.get(object_id)
+def test_the_ids_the_tests_use_are_what_they_claim() -> None:
+    assert (LENGTHS[FLIGHT_STATS], LENGTHS[GCS_STATS], LENGTHS[ATTITUDE]) == (37, 37, 28)
+    assert FIRMWARE_IAP in LENGTHS and LENGTHS[ATTITUDE + 1] == objects.META_SIZE
+    assert not any(i in LENGTHS for i in UNKNOWN_IDS)
 
 
 def ref_crc8(data: bytes) -> int:
@@ -90,7 +97,7 @@ def test_spec_vector_decodes_whole_and_byte_by_byte(wire: str, packet: Packet) -
         out += dec.feed(bytes((b,)))
     assert out == [packet]
     assert dec.stats.as_dict() == {"packets": 1, "bad_crc": 0, "bad_size": 0,
-                                   "unknown_object": 1 if packet.object_id == FIRMWARE_IAP else 0,
+                                   "unknown_object": 0,
                                    "bad_length": 0, "bytes_skipped": 0, "timestamped": 0}
 
 
@@ -263,6 +270,7 @@ def test_buffer_stays_bounded() -> None:
 # --- properties ------------------------------------------------------------------------------
 
 KNOWN_IDS = sorted(LENGTHS)
+assert all(n <= MAX_DATA_LENGTH for n in LENGTHS.values())
 
 
 @st.composite
@@ -327,3 +335,18 @@ def test_garbage_never_raises_and_only_crc_valid_packets_come_out(
     whole = Decoder(data_length)
     assert whole.feed(raw) == out
     assert whole.stats == dec.stats
+
+
+# --- with the real 16.09 object set ------------------------------------------------------------
+
+def test_vectors_decode_against_the_16_09_object_set() -> None:
+    """The decoder fed by objects.py: every object of the spec's vectors is known, with the sizes
+    the vectors carry; a metaobject's id checks against META_SIZE."""
+    dec = Decoder(OBJECTS.data_length)
+    raw = b"".join(bytes.fromhex(str(v.values[0])) for v in VECTORS)
+    assert dec.feed(raw) == [v.values[1] for v in VECTORS]
+    assert dec.stats.unknown_object == 0 and dec.stats.bad_length == 0
+    meta = Packet(PacketType.OBJ, ATTITUDE + 1, 0, bytes(objects.META_SIZE))
+    short = Packet(PacketType.OBJ, ATTITUDE + 1, 0, bytes(objects.META_SIZE - 1))
+    assert dec.feed(encode(short) + encode(meta)) == [meta]
+    assert dec.stats.bad_length == 1 and dec.stats.unknown_object == 0
