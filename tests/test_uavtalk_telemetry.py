@@ -133,9 +133,29 @@ def test_flight_handshake_from_disconnected() -> None:
     assert FTS.unpack(conn.data)["Status"] == Status.CONNECTED
 
 
+def test_handshake_packets_are_the_spec_vectors() -> None:
+    s = FlightSession(OBJECTS, _store())
+    s.receive(Packet(PacketType.OBJ, GTS.id, 0, GTS.pack({"Status": 1})), 0.0)
+    assert s.outgoing() == [bytes.fromhex("3c202f005abb37670000") + bytes(36)
+                            + bytes.fromhex("0268")]
+    g = GcsSession(OBJECTS)
+    g.tick(0.0)
+    assert g.outgoing() == [bytes.fromhex("3c202f000adcd1ca0000") + bytes(36)
+                            + bytes.fromhex("0196")]
+    s.receive(Packet(PacketType.OBJ_REQ, UNKNOWN_ID), 0.1)
+    g.receive(Packet(PacketType.OBJ_ACK, GTS.id, 0, GTS.pack({})), 0.1)
+    assert s.outgoing() == [encode(Packet(PacketType.NACK, UNKNOWN_ID))]
+    assert g.outgoing() == [bytes.fromhex("3c230a000adcd1ca000050")]
+
+
 def test_flight_handshake_ack_then_gcs_disconnected() -> None:
     s = FlightSession(OBJECTS, _store())
+    s.receive(_stats(Status.CONNECTED), 0.0)  # only a HandshakeReq leaves Disconnected
+    s.receive(_stats(Status.HANDSHAKE_ACK), 0.0)
+    assert s.state == Status.DISCONNECTED and s.stats.state_changes == 0
     s.receive(_stats(Status.HANDSHAKE_REQ), 0.0)
+    s.receive(_stats(Status.HANDSHAKE_REQ), 0.05)  # stays HandshakeAck
+    assert s.state == Status.HANDSHAKE_ACK
     s.receive(_stats(Status.DISCONNECTED), 0.1)
     assert s.state == Status.DISCONNECTED and s.stats.state_changes == 2
 
@@ -269,6 +289,20 @@ def test_one_outstanding_transaction() -> None:
     assert s.transaction_pending
     s.receive(Packet(PacketType.ACK, FIRMWARE.id), 0.1)
     assert not s.transaction_pending and s.stats.transactions == 1
+    # two acked objects: the second waits for the first's ACK, plain packets pass it
+    s.store.set("ActuatorSettings", {})
+    s.updated("FirmwareIAPObj", 0.2)
+    s.updated("ActuatorSettings", 0.2)
+    s.updated("FlightStatus", 0.2)  # not in the store: nothing sent
+    s.store.set("FlightStatus", {})
+    s.updated("FlightStatus", 0.2)
+    first = [(p.type, p.object_id) for p in _decode_all(s.outgoing())]
+    assert first == [(PacketType.OBJ_ACK, FIRMWARE.id), (PacketType.OBJ, FLIGHT_STATUS.id)]
+    assert s.outgoing() == []
+    s.receive(Packet(PacketType.ACK, FIRMWARE.id), 0.3)
+    (second,) = _decode_all(s.outgoing())
+    assert second.type == PacketType.OBJ_ACK
+    assert second.object_id == OBJECTS.by_name("ActuatorSettings").id
 
 
 def test_nine_seconds_of_gcs_silence_then_reconnect() -> None:

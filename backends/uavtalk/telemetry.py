@@ -18,8 +18,12 @@ No sockets, threads or clocks: the caller passes received :class:`~.codec.Packet
   their XML ``telemetryflight`` mode once Connected.  Timestamped packets are never sent.
 - **GCS side** (:class:`GcsSession`): GCSTelemetryStats(HandshakeReq) every 2 s while not
   connected; FlightTelemetryStats(HandshakeAck) → Connected (GCSTelemetryStats(Connected) at
-  once, then every 5 s); Disconnected when the flight side says so or after 8 s of silence;
-  after connecting, the OBJ_REQ walk one object at a time (a NACK or a failure moves on).
+  once, then every 4 s as the 16.09 GCS does); Disconnected when the flight side says so or
+  after 8 s of silence; after connecting, the OBJ_REQ walk one object at a time (a NACK or a
+  failure moves on).
+- Stats objects carry their counters only while Connected (zeros otherwise, as in 16.09).
+- Retries: 16.09's GCS sends a transaction 1 + 2 times; its firmware's loop sends 2 times in
+  all.  Both sessions here follow the spec (1 + 2).
 """
 
 from __future__ import annotations
@@ -50,7 +54,9 @@ MAX_RETRIES = 2
 CONNECTION_TIMEOUT = 8.0
 """Seconds without any received packet before a connected link drops."""
 STATS_PERIOD = 5.0
-"""FlightTelemetryStats (flight) / GCSTelemetryStats once connected (GCS), seconds."""
+"""FlightTelemetryStats, seconds (its XML ``telemetryflight`` period)."""
+GCS_STATS_PERIOD = 4.0
+"""GCSTelemetryStats once connected, seconds (the 16.09 GCS's ``STATS_UPDATE_PERIOD_MS``)."""
 HANDSHAKE_PERIOD = 2.0
 """GCSTelemetryStats(HandshakeReq) while the GCS is not connected, seconds."""
 PRIORITY_QUEUE_SIZE = 32
@@ -297,6 +303,10 @@ class _Session:
         """Hook: ``self.state`` changed."""
 
     def _stats_values(self, status: Status) -> dict[str, Any]:
+        """Flight/GCSTelemetryStats values: the counters only while connected, zeros otherwise
+        (as 16.09's ``updateTelemetryStats`` and the GCS's monitor do)."""
+        if self.state != Status.CONNECTED:
+            return {"Status": int(status)}
         st = self.stats
         return {"TxBytes": st.tx_bytes & 0xFFFFFFFF, "RxBytes": st.rx_bytes & 0xFFFFFFFF,
                 "TxFailures": st.failures & 0xFFFFFFFF, "TxRetries": st.retries & 0xFFFFFFFF,
@@ -342,7 +352,8 @@ class FlightSession(_Session):
             return None
         if obj.name == FLIGHT_STATS:
             values = self._stats_values(self.state)
-            values["TxDataRate"], values["RxDataRate"] = self._rates
+            if self.state == Status.CONNECTED:
+                values["TxDataRate"], values["RxDataRate"] = self._rates
             return values
         stored = self.store.get(obj.name)
         if obj.name == FIRMWARE:
@@ -517,12 +528,12 @@ class GcsSession(_Session):
             self._handshake_started = now
             self._set_state(Status.HANDSHAKE_REQ, now)
         elif self._next_stats is None or now >= self._next_stats:
-            period = STATS_PERIOD if self.state == Status.CONNECTED else HANDSHAKE_PERIOD
+            period = GCS_STATS_PERIOD if self.state == Status.CONNECTED else HANDSHAKE_PERIOD
             self._send_stats(now, period)
 
     def _state_changed(self, now: float) -> None:
         if self.state == Status.CONNECTED:
-            self._send_stats(now, STATS_PERIOD)
+            self._send_stats(now, GCS_STATS_PERIOD)
             self._walk = deque(self._walk_names)
             self.walk_done = False
             self.walk_nacked = []
