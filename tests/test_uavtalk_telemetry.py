@@ -8,6 +8,7 @@ the real codec.
 from __future__ import annotations
 
 import itertools
+from collections import deque
 from typing import Any
 
 import pytest
@@ -447,6 +448,17 @@ def test_gcs_disconnects_when_flight_says_so_or_on_silence() -> None:
     fc.silent = True
     now = run_gcs(g, fc, now, now + CONNECTION_TIMEOUT + 0.5)
     assert g.state == Status.HANDSHAKE_REQ and g.stats.disconnects == 2
+    # a request open when the flight side drops the link does not outlive it
+    fc.silent = False
+    fc.status = Status.DISCONNECTED
+    now = run_gcs(g, fc, now, now + 2.5)
+    assert g.state == Status.CONNECTED
+    g._walk = deque(["SystemAlarms"])
+    g._walk_next()
+    g.outgoing()
+    assert g.transaction_pending
+    g.receive(Packet(PacketType.OBJ, FTS.id, 0, FTS.pack({"Status": 0})), now)
+    assert not g.transaction_pending and g.stats.failures == 0
 
 
 def test_gcs_acks_obj_ack_and_nacks_requests() -> None:

@@ -296,6 +296,8 @@ class _Session:
             self._handshake_started = None
         elif self.state == Status.CONNECTED:
             self.stats.disconnects += 1
+            self._pending = None  # the link is gone: a late reply must not block the next one
+            self._retry = []
         self.state = new
         self._state_changed(now)
 
