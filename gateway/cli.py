@@ -143,7 +143,9 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
 def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", "-s", action="append", metavar="URL",
                    help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
-                        "e.g. mavlink:udpin:0.0.0.0:14551), 'zenoh:[VEHICLE@]ENDPOINT' "
+                        "e.g. mavlink:udpin:0.0.0.0:14551), 'uavtalk:tcp:HOST:PORT' or "
+                        "'uavtalk:DEVICE[,BAUD]' (a LibrePilot flight controller, the "
+                        "gateway as its ground station), 'zenoh:[VEHICLE@]ENDPOINT' "
                         "(another gateway's frames over Zenoh) or a pyserial URL "
                         "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
                         "repeatable; replaces the configured sources")

@@ -170,7 +170,8 @@ def check_serial_url(url: str) -> None:
 
 
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
-    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
+    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``uavtalk:TARGET``,
+    ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
     pyserial URL → (source type, options); ValueError for a malformed one.  The options go
     through the source's ``CONFIG`` like a file's (a serial URL's scheme is checked there)."""
     if url in ("sim", "sim:"):
@@ -185,6 +186,12 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
         if not endpoint:
             raise ValueError("mavlink: needs an endpoint, e.g. mavlink:udpin:0.0.0.0:14551")
         return "mavlink", {"url": endpoint}
+    if url.startswith("uavtalk:"):
+        target = url[len("uavtalk:"):]
+        if not target:
+            raise ValueError("uavtalk: needs a flight controller, e.g. uavtalk:tcp:HOST:PORT "
+                             "or uavtalk:/dev/ttyACM0,57600")
+        return "uavtalk", {"url": target}
     if url == "zenoh" or url.startswith("zenoh:"):
         return "zenoh", {"url": url}  # zenoh:[VEHICLE@][ENDPOINT,…], parsed by the source
     if not url:

@@ -1,0 +1,340 @@
+"""UAVTalk in: a LibrePilot (16.09) flight controller as a gateway source.
+
+The gateway plays the ground station: a :class:`~.telemetry.GcsSession` (handshake every 2 s,
+the OBJ_REQ walk after connecting, 8 s silence timeout) runs on a
+:class:`gateway.port.PortEngine` around a TCP connection (``tcp:HOST:PORT``) or a serial
+port / pyserial URL (``DEVICE[,BAUD]``), reopened with backoff.  The source is the engine's
+protocol object: received bytes go through the :class:`~.codec.Decoder` into the session, and a
+timer on the engine ticks the session and writes its ``outgoing()``.
+
+The objects received become gateway messages (``origin`` = the source's name, ``via`` =
+``"uavtalk"``):
+
+* :class:`~gateway.model.VehicleState`: armed (FlightStatus.Armed = Armed), mode (the name of
+  FlightStatus.FlightMode's option; ``custom_mode`` its index), attitude (AttitudeState's
+  Roll/Pitch/Yaw, degrees → radians), altitude (BaroSensor.Altitude, else −PositionState.Down).
+  Sent once FlightStatus is known, at most ``rate_hz`` per second, and at once when armed or
+  the mode changes;
+* :class:`~gateway.model.Position` from GPSPositionSensor (Latitude/Longitude deg×1e7,
+  Altitude m above sea level, Groundspeed m/s, Heading deg, Satellites, Status → fix type
+  0 no GPS, 1 no fix, 2 2D, 3 3D — MAVLink's numbering), at most ``rate_hz``; none without a fix;
+* :class:`~gateway.model.Battery` from FlightBatteryState (Voltage V, Current A,
+  ConsumedEnergy mAh).
+
+Link up/down is nothing special: the gateway's monitor sees the messages; the session's state
+changes are counted.  An object that fails to convert is counted, never raised.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from gateway.backend import Outcome
+from gateway.backoff import Backoff
+from gateway.config import Key, Schema
+from gateway.model import Battery, Position, VehicleState
+from gateway.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.sources import Sink, Source, check_serial_url
+from gateway.transport import open_serial, open_tcp_client
+
+from .codec import Decoder
+from .objects import ObjectSet
+from .telemetry import GcsSession, Status, TelemetryStats
+
+log = logging.getLogger(__name__)
+
+VIA_UAVTALK = "uavtalk"
+TICK_S = 0.05
+"""How often the session is ticked (its timeouts are 250 ms and up)."""
+DEFAULT_BAUD = 57600
+ARMED = 2  # FlightStatus.Armed: Disarmed, Arming, Armed
+MIN_FIX = 2  # GPSPositionSensor.Status: NoGPS, NoFix, Fix2D, Fix3D
+
+
+def parse_url(url: str) -> tuple[str, int, str]:
+    """``tcp:HOST:PORT`` → ("tcp", PORT, HOST); ``DEVICE[,BAUD]`` → ("serial", BAUD or 0,
+    DEVICE).  ValueError naming what is wrong."""
+    if url.startswith("tcp:"):
+        host, sep, port = url[len("tcp:"):].rpartition(":")
+        host = host.strip("[]")
+        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"expected tcp:HOST:PORT, got {url!r}")
+        return "tcp", int(port), host
+    device, sep, baud = url.rpartition(",") if "," in url else (url, "", "")
+    if not device:
+        raise ValueError("expected tcp:HOST:PORT or a serial device/URL[,BAUD], got an empty one")
+    if sep and (not baud.isdigit() or int(baud) < 50):
+        raise ValueError(f"bad baud rate {baud!r} in {url!r}")
+    check_serial_url(device)
+    return "serial", int(baud) if sep else 0, device
+
+
+def _check_url(url: str) -> None:
+    parse_url(url)
+
+
+class _Gate:
+    """At most ``hz`` events a second (a minimum interval; ``hz`` ≤ 0: every event)."""
+
+    __slots__ = ("_last", "interval")
+
+    def __init__(self, hz: float) -> None:
+        self.interval = 1.0 / hz if hz > 0 else 0.0
+        self._last: float | None = None
+
+    def ready(self, now: float) -> bool:
+        if self._last is not None and now - self._last < self.interval:
+            return False
+        self._last = now
+        return True
+
+
+class UavtalkSource(Source):
+    """A LibrePilot flight controller as a gateway source (``[[sources]] type = "uavtalk"``)."""
+
+    NAME = "uavtalk"
+    CONFIG = Schema(
+        url=Key(str, help="the flight controller: tcp:HOST:PORT, or a serial device / pyserial "
+                "URL with an optional ,BAUD (/dev/ttyACM0,57600)", validator=_check_url),
+        baudrate=Key(int, DEFAULT_BAUD, "serial speed when the url gives none", minimum=50),
+        rate_hz=Key(float, 10.0, "most vehicle-state and position messages per second",
+                    minimum=0.1, maximum=1000),
+        reconnect_max_s=Key(float, REOPEN_MAX_S, "longest wait between reopen attempts",
+                            minimum=0.01),
+    )
+
+    @staticmethod
+    def default_name(options: dict[str, Any]) -> str:
+        return f"uavtalk:{options['url']}"
+
+    def __init__(self, url: str, baudrate: int = DEFAULT_BAUD, rate_hz: float = 10.0,
+                 reconnect_max_s: float = REOPEN_MAX_S, name: str | None = None, *,
+                 objects: ObjectSet | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(name or f"uavtalk:{url}")
+        self.url = url
+        self.kind, port_or_baud, self.device = parse_url(url)
+        self.port_number = port_or_baud if self.kind == "tcp" else 0
+        self.baudrate = (port_or_baud or baudrate) if self.kind == "serial" else baudrate
+        self.rate_hz = rate_hz
+        self.objects = objects or ObjectSet.load()
+        self.clock = clock
+        self.decoder = Decoder(self.objects.data_length)
+        self.session = self._new_session()
+        self._retired = TelemetryStats()  # the counters of sessions of earlier connections
+        self._lock = threading.Lock()  # the session swap against stats()
+        self._mode_options = self.objects.by_name("FlightStatus").field("FlightMode").options
+        self._state_gate = _Gate(rate_hz)
+        self._position_gate = _Gate(rate_hz)
+        self._out: list[Any] = []
+        self._timer: Any = None
+        self._last_state = self.session.state
+        # what VehicleState is built from
+        self.armed: bool | None = None
+        self.flight_mode: int | None = None
+        self.attitude: tuple[float, float, float] | None = None
+        self.baro_alt_m: float | None = None
+        self.position_alt_m: float | None = None
+        self.counts = {"objects": 0, "bad_objects": 0, "vehicle_states": 0, "positions": 0,
+                       "batteries": 0, "no_fix": 0, "link_changes": 0, "write_drops": 0}
+        self.engine = PortEngine(self._open, name=f"source {self.name}", protocol=self,
+                                 on_event=self.emit, on_link=self._on_link, queue_depth=64,
+                                 backoff=Backoff(REOPEN_FIRST_S,
+                                                 max(REOPEN_FIRST_S, reconnect_max_s)))
+
+    def _new_session(self) -> GcsSession:
+        return GcsSession(self.objects, on_object=self._on_object)
+
+    def _open(self) -> Any:
+        if self.kind == "tcp":
+            return open_tcp_client(self.device, self.port_number)
+        return open_serial(self.device, self.baudrate, timeout=0)
+
+    # -- the engine's protocol (its thread) -----------------------------------------------------
+
+    def feed(self, data: bytes) -> list[Any]:
+        """Bytes from the flight controller: into the session; returns the messages made."""
+        now = self.clock()
+        session = self.session
+        for packet in self.decoder.feed(data):
+            session.receive(packet, now)
+        self._note_state()
+        self._write()
+        out, self._out = self._out, []
+        return out
+
+    def flush(self) -> list[Any]:
+        """The stream broke: a partial packet never completes."""
+        self.decoder = Decoder(self.objects.data_length)
+        return []
+
+    def _on_link(self, up: bool) -> None:
+        self.counts["link_changes"] += 1
+        if up:
+            log.info("source %s: %s open, handshaking", self.name, self.url)
+            self._tick()
+            return
+        # A new connection starts a new handshake: a fresh session (its counters kept).
+        with self._lock:
+            old = self.session
+            for key, value in old.stats.as_dict().items():
+                if key != "handshake_ms":
+                    setattr(self._retired, key, getattr(self._retired, key) + value)
+            self._retired.handshake_ms = old.stats.handshake_ms or self._retired.handshake_ms
+            if old.state == Status.CONNECTED:
+                log.info("source %s: link lost", self.name)
+            self.session = self._new_session()
+            self._last_state = self.session.state
+
+    def _tick(self) -> None:
+        if not self.engine.connected:
+            return
+        self.session.tick(self.clock())
+        self._note_state()
+        self._write()
+
+    def _write(self) -> None:
+        for data in self.session.outgoing():
+            if self.engine.submit(data, rate_limited=False) is not Outcome.ACCEPTED:
+                self.counts["write_drops"] += 1
+
+    def _note_state(self) -> None:
+        state = self.session.state
+        if state != self._last_state:
+            self._last_state = state
+            if state == Status.CONNECTED:
+                log.info("source %s: connected (handshake %d ms)", self.name,
+                         self.session.stats.handshake_ms)
+            elif state == Status.DISCONNECTED or (state == Status.HANDSHAKE_REQ
+                                                  and self.session.stats.disconnects):
+                log.info("source %s: disconnected", self.name)
+
+    # -- objects → messages -----------------------------------------------------------------------
+
+    def _on_object(self, name: str, values: dict[str, Any]) -> None:
+        self.counts["objects"] += 1
+        handler = _HANDLERS.get(name)
+        if handler is None:
+            return
+        try:
+            handler(self, values)
+        except Exception:
+            self.counts["bad_objects"] += 1
+            log.debug("source %s: cannot convert %s %r", self.name, name, values, exc_info=True)
+
+    def _flight_status(self, v: dict[str, Any]) -> None:
+        armed = int(v["Armed"]) == ARMED
+        mode = int(v["FlightMode"])
+        changed = armed != self.armed or mode != self.flight_mode
+        self.armed, self.flight_mode = armed, mode
+        self._emit_state(force=changed)
+
+    def _attitude(self, v: dict[str, Any]) -> None:
+        r, p, y = (float(v[k]) for k in ("Roll", "Pitch", "Yaw"))
+        if not all(math.isfinite(a) for a in (r, p, y)):
+            raise ValueError("attitude not finite")
+        self.attitude = (math.radians(r), math.radians(p), math.radians(y))
+        self._emit_state()
+
+    def _baro(self, v: dict[str, Any]) -> None:
+        alt = float(v["Altitude"])
+        if math.isfinite(alt):
+            self.baro_alt_m = alt
+
+    def _position_state(self, v: dict[str, Any]) -> None:
+        down = float(v["Down"])
+        if math.isfinite(down):
+            self.position_alt_m = -down
+
+    def _emit_state(self, force: bool = False) -> None:
+        if self.armed is None or self.flight_mode is None:
+            return  # no FlightStatus yet: armed and mode unknown
+        if not self._state_gate.ready(self.clock()) and not force:
+            return
+        mode = self.flight_mode
+        name = self._mode_options[mode] if 0 <= mode < len(self._mode_options) \
+            else f"MODE_{mode}"
+        r, p, y = self.attitude if self.attitude is not None else (None, None, None)
+        alt = self.baro_alt_m if self.baro_alt_m is not None else self.position_alt_m
+        self._out.append(VehicleState(self.armed, name, mode, r, p, y, alt, None,
+                                      origin=self.name, via=VIA_UAVTALK))
+        self.counts["vehicle_states"] += 1
+
+    def _gps(self, v: dict[str, Any]) -> None:
+        fix = int(v["Status"])
+        if fix < MIN_FIX:
+            self.counts["no_fix"] += 1
+            return
+        if not self._position_gate.ready(self.clock()):
+            return
+        sats = int(v["Satellites"])
+        heading = float(v["Heading"])
+        self._out.append(Position(
+            int(v["Latitude"]) / 1e7, int(v["Longitude"]) / 1e7, _finite(v["Altitude"]), None,
+            _finite(v["Groundspeed"]), heading % 360.0 if math.isfinite(heading) else None,
+            sats if sats >= 0 else None, fix, origin=self.name, via=VIA_UAVTALK))
+        self.counts["positions"] += 1
+
+    def _battery(self, v: dict[str, Any]) -> None:
+        volts = float(v["Voltage"])
+        if not math.isfinite(volts):
+            raise ValueError("voltage not finite")
+        self._out.append(Battery(volts, _finite(v["Current"]), _finite(v["ConsumedEnergy"]),
+                                 None, 0, origin=self.name, via=VIA_UAVTALK))
+        self.counts["batteries"] += 1
+
+    # -- life cycle -------------------------------------------------------------------------------
+
+    def start(self, sink: Sink) -> None:
+        if self._sink is not None:
+            return
+        self._sink = sink
+        self.engine.start()
+        self._timer = self.engine.call_every(TICK_S, self._tick, first=TICK_S)
+
+    def stop(self, timeout: float = 1.0) -> None:
+        self._stop.set()
+        timer, self._timer = self._timer, None
+        if timer is not None:
+            timer.cancel()
+        self.engine.close(timeout)
+        self.done.set()
+
+    @property
+    def state(self) -> Status:
+        """The session's handshake state."""
+        return self.session.state
+
+    def stats(self) -> dict[str, Any]:
+        with self._lock:
+            session = self.session
+            totals = self._retired.as_dict()
+        for key, value in session.stats.as_dict().items():
+            totals[key] = value if key == "handshake_ms" and value else \
+                totals.get(key, 0) + (0 if key == "handshake_ms" else value)
+        es = self.engine.stats
+        return {**totals, **{f"decoder_{k}": v for k, v in self.decoder.stats.as_dict().items()},
+                **self.counts, "state": session.state.name.lower(),
+                "walk_done": int(session.walk_done), "opens": es.connects,
+                "open_failures": es.connect_failures, "disconnects_port": es.disconnects,
+                "link": int(self.engine.connected)}
+
+
+def _finite(value: Any) -> float | None:
+    f = float(value)
+    return f if math.isfinite(f) else None
+
+
+_HANDLERS: dict[str, Callable[[UavtalkSource, dict[str, Any]], None]] = {
+    "FlightStatus": UavtalkSource._flight_status,
+    "AttitudeState": UavtalkSource._attitude,
+    "BaroSensor": UavtalkSource._baro,
+    "PositionState": UavtalkSource._position_state,
+    "GPSPositionSensor": UavtalkSource._gps,
+    "FlightBatteryState": UavtalkSource._battery,
+}
