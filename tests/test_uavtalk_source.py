@@ -245,14 +245,11 @@ def test_vehicle_state_is_rate_limited(sim: FlightSim) -> None:
     src.start(got)
     try:
         got.wait_for(lambda m: isinstance(m, VehicleState) and m.roll_rad is not None)
-        attitudes = src.stats()["rx_obj"]
         # ~20 AttitudeState a second arrive; 2 Hz lets one through every 500 ms
-        assert wait_until(lambda: src.stats()["rx_obj"] >= attitudes + 30, 5.0)
-        t0 = time.monotonic()
-        n0 = src.counts["vehicle_states"]
-        assert wait_until(lambda: time.monotonic() - t0 >= 1.5, 3.0)
+        rx0, n0, t0 = src.stats()["rx_obj"], src.counts["vehicle_states"], time.monotonic()
+        assert wait_until(lambda: src.stats()["rx_obj"] >= rx0 + 40, 10.0)
         emitted = src.counts["vehicle_states"] - n0
-        assert 1 <= emitted <= 4, emitted
+        assert 1 <= emitted <= 2.0 * (time.monotonic() - t0) + 2, emitted
     finally:
         src.stop()
 
@@ -350,6 +347,7 @@ def test_url_parsing_and_config() -> None:
     assert parse_url("tcp:127.0.0.1:5760") == ("tcp", 5760, "127.0.0.1")
     assert parse_url("/dev/ttyACM0,115200") == ("serial", 115200, "/dev/ttyACM0")
     assert parse_url("loop://") == ("serial", 0, "loop://")
+    assert parse_url("serial:/dev/ttyUSB1,57600") == ("serial", 57600, "/dev/ttyUSB1")
     for bad in ("tcp:host", "tcp::5760", "tcp:h:99999", "/dev/x,fast", "nosuch://x", ""):
         with pytest.raises(ValueError):
             parse_url(bad)
@@ -374,6 +372,7 @@ def _free_port() -> int:
 
 
 def test_a_simulated_flight_served_over_uavtalk_arrives_as_vehicle_states() -> None:
+    pytest.importorskip("backends.uavtalk.backend")
     from helpers import Running
 
     port = _free_port()
@@ -401,6 +400,7 @@ def test_a_simulated_flight_served_over_uavtalk_arrives_as_vehicle_states() -> N
 def test_uavtalk_in_mavlink_out_two_gateways() -> None:
     """``run --source sim --uavtalk tcpin:…`` and ``run --source uavtalk:tcp:… --only mavlink
     --mavlink udpout:…``, a pymavlink ground station on the second's output."""
+    pytest.importorskip("backends.uavtalk.backend")
     from helpers import Running
     from mavlink_peer import MavPeer
 

@@ -57,15 +57,16 @@ MIN_FIX = 2  # GPSPositionSensor.Status: NoGPS, NoFix, Fix2D, Fix3D
 
 
 def parse_url(url: str) -> tuple[str, int, str]:
-    """``tcp:HOST:PORT`` → ("tcp", PORT, HOST); ``DEVICE[,BAUD]`` → ("serial", BAUD or 0,
-    DEVICE).  ValueError naming what is wrong."""
+    """``tcp:HOST:PORT`` → ("tcp", PORT, HOST); ``[serial:]DEVICE[,BAUD]`` → ("serial",
+    BAUD or 0, DEVICE).  ValueError naming what is wrong."""
     if url.startswith("tcp:"):
         host, sep, port = url[len("tcp:"):].rpartition(":")
         host = host.strip("[]")
         if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
             raise ValueError(f"expected tcp:HOST:PORT, got {url!r}")
         return "tcp", int(port), host
-    device, sep, baud = url.rpartition(",") if "," in url else (url, "", "")
+    target = url[len("serial:"):] if url.startswith("serial:") else url
+    device, sep, baud = target.rpartition(",") if "," in target else (target, "", "")
     if not device:
         raise ValueError("expected tcp:HOST:PORT or a serial device/URL[,BAUD], got an empty one")
     if sep and (not baud.isdigit() or int(baud) < 50):
@@ -186,7 +187,7 @@ class UavtalkSource(Source):
                 if key != "handshake_ms":
                     setattr(self._retired, key, getattr(self._retired, key) + value)
             self._retired.handshake_ms = old.stats.handshake_ms or self._retired.handshake_ms
-            if old.state == Status.CONNECTED:
+            if old.state == Status.CONNECTED and not self._stop.is_set():
                 log.info("source %s: link lost", self.name)
             self.session = self._new_session()
             self._last_state = self.session.state
@@ -315,8 +316,10 @@ class UavtalkSource(Source):
             session = self.session
             totals = self._retired.as_dict()
         for key, value in session.stats.as_dict().items():
-            totals[key] = value if key == "handshake_ms" and value else \
-                totals.get(key, 0) + (0 if key == "handshake_ms" else value)
+            if key != "handshake_ms":
+                totals[key] += value
+            elif value:  # the latest handshake's
+                totals[key] = value
         es = self.engine.stats
         return {**totals, **{f"decoder_{k}": v for k, v in self.decoder.stats.as_dict().items()},
                 **self.counts, "state": session.state.name.lower(),
