@@ -1,0 +1,500 @@
+"""The UAVTalk backend: the gateway plays a LibrePilot 16.09 flight controller to ground stations.
+
+Endpoints (``endpoints``, ``--uavtalk``, repeatable):
+
+==========================  ==============================================================
+``tcpin:HOST:PORT``         a TCP server (the LibrePilot GCS connects as a client); every
+                            accepted client has its own engine and :class:`FlightSession`
+``tcp:HOST:PORT``           a TCP client, reconnected with backoff
+``serial:DEVICE[,BAUD]``    a serial port or radio (default 57600 baud); also a bare
+                            ``/dev/…`` / ``COMn`` or a pyserial URL (``socket://…``)
+==========================  ==============================================================
+
+Every port is a :class:`gateway.port.PortEngine` and all of them share one
+:class:`gateway.ioloop.IoLoop` (one thread).  A link is its engine's protocol object: bytes go
+through its :class:`~.codec.Decoder` into its session's ``receive``; its replies are written at
+once, and a timer (``tick_s``) calls every session's ``tick(now)`` then writes its
+``outgoing()`` with ``engine.submit`` — never blocking: a client that does not read fills its
+own queue and loses packets (``dropped``), nobody else waits.  A stream link (``tcp:``,
+serial) starts a fresh session each time its port comes up.
+
+One :class:`~.telemetry.ObjectStore` (the vehicle) serves every session; it is filled from
+the gateway's messages by :class:`~.translate.Vehicle` on the loop's thread: the dispatcher's
+hooks only post the message to a bounded inbox (full: ``QUEUE_FULL``, counted).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import re
+import select
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Any, ClassVar, NamedTuple
+
+from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.config import Key, Schema
+from gateway.ioloop import IoLoop, Timer
+from gateway.model import Battery, Position, SmUpdate, Status
+from gateway.port import PortEngine, PortServer
+from gateway.transport import SocketPort, open_serial, open_tcp_client, open_tcp_listener
+
+from .codec import Decoder, DecoderStats
+from .objects import ObjectSet
+from .telemetry import DEFAULT_BOARD_TYPE, FlightSession, ObjectStore
+from .translate import Vehicle
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SERIAL_BAUD = 57600
+CLOSE_TIMEOUT_S = 0.5
+#: Received packets handled between two writes of a link's replies (well under the session's
+#: priority queue of 32).
+FLUSH_EVERY = 16
+USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
+_COM = re.compile(r"^COM\d+$", re.IGNORECASE)
+_ACCEPTED = Outcome.ACCEPTED
+_NOT_READY = Outcome.NOT_READY
+
+
+class EndpointSpec(NamedTuple):
+    kind: str  # tcpin | tcp | serial
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baudrate: int = 0
+    text: str = ""
+
+
+def parse_endpoint(text: str) -> EndpointSpec:
+    """Parse one endpoint; raises ValueError naming it and the accepted forms."""
+    t = text.strip()
+    scheme, sep, rest = t.partition(":")
+    kind = scheme.lower()
+    if sep and kind in ("tcpin", "tcp") and not rest.startswith("//"):
+        host, sep2, port_s = rest.rpartition(":")
+        if not sep2:
+            raise ValueError(f"{text!r}: expected {kind}:HOST:PORT")
+        host = host.strip("[]") or ("0.0.0.0" if kind == "tcpin" else "127.0.0.1")
+        try:
+            port = int(port_s)
+        except ValueError:
+            raise ValueError(f"{text!r}: port {port_s!r} is not a number") from None
+        lowest = 0 if kind == "tcpin" else 1  # 0: the system picks (tests)
+        if not lowest <= port <= 65535:
+            raise ValueError(f"{text!r}: port must be {lowest}..65535")
+        return EndpointSpec(kind, host, port, text=t)
+    if sep and kind == "serial":
+        t_dev = rest
+    elif t.startswith("/dev/") or _COM.match(t.partition(",")[0]) or "://" in t:
+        t_dev = t
+    else:
+        raise ValueError(f"{text!r}: not a UAVTalk endpoint; {USAGE}")
+    device, sep3, baud_s = t_dev.rpartition(",")
+    if not sep3:
+        device, baud_s = t_dev, str(DEFAULT_SERIAL_BAUD)
+    try:
+        baud = int(baud_s)
+    except ValueError:
+        raise ValueError(f"{text!r}: baud rate {baud_s!r} is not a number") from None
+    if not device or baud < 50:
+        raise ValueError(f"{text!r}: a device and a baud rate ≥ 50 are needed; {USAGE}")
+    return EndpointSpec("serial", device=device, baudrate=baud, text=t)
+
+
+def _check_endpoints(value: list[Any]) -> None:
+    if not value:
+        raise ValueError(f"at least one endpoint is needed; {USAGE}")
+    for item in value:
+        if not isinstance(item, str):
+            raise ValueError(f"{item!r} is not a string; {USAGE}")
+        parse_endpoint(item)
+
+
+class _SerialPort:
+    """A pyserial port on a shared loop: a write never waits for room (0 written instead)."""
+
+    def __init__(self, port: Any) -> None:
+        self.serial = port
+        try:
+            self._fd: int | None = port.fileno()
+        except Exception:  # loop://, socket://: polled, written directly
+            self._fd = None
+
+    def fileno(self) -> int:
+        if self._fd is None:
+            raise OSError("no file descriptor")
+        return self._fd
+
+    def read(self, size: int = 1) -> bytes:
+        return bytes(self.serial.read(size))
+
+    def write(self, data: bytes) -> int | None:
+        if self._fd is not None and not select.select((), (self._fd,), (), 0)[1]:
+            return 0
+        n = self.serial.write(data)
+        return n if isinstance(n, int) else None
+
+    def close(self) -> None:
+        self.serial.close()
+
+
+class Link:
+    """One UAVTalk peer: its engine's protocol object, its decoder and its session."""
+
+    def __init__(self, name: str, backend: UavtalkBackend) -> None:
+        self.name = name
+        self.backend = backend
+        self.engine: PortEngine | None = None
+        self.decoder = Decoder(backend.objects.data_length)
+        self.session = backend.new_session()
+        self.sent = 0
+        self.dropped = 0
+        self.sessions = 1
+        self.old_drops = 0
+
+    # -- the engine's protocol (loop thread) -----------------------------------------------
+
+    def feed(self, data: bytes) -> tuple[()]:
+        now = self.backend.clock()
+        session = self.session
+        for i, packet in enumerate(self.decoder.feed(data), 1):
+            session.receive(packet, now)
+            if i % FLUSH_EVERY == 0:  # a flood of requests: answers overflow the engine's
+                self.flush_out(now)   # queue (counted), not the session's
+        self.flush_out(now)
+        return ()
+
+    def flush(self) -> tuple[()]:
+        """The stream broke: a packet it was in the middle of will not complete."""
+        old = self.decoder
+        self.decoder = Decoder(self.backend.objects.data_length)
+        self.decoder.stats = old.stats
+        old.stats.bytes_skipped += old.pending
+        return ()
+
+    def on_link(self, up: bool) -> None:
+        if up and self.session.stats.rx_bytes:
+            self.old_drops += self._session_drops()
+            self.session = self.backend.new_session()  # a new peer: a new handshake
+            self.sessions += 1
+
+    def _session_drops(self) -> int:
+        st = self.session.stats
+        return st.priority_drops + st.regular_drops
+
+    @property
+    def total_dropped(self) -> int:
+        """Packets refused by the engine (queue full, port down) or by the session's queues."""
+        return self.dropped + self.old_drops + self._session_drops()
+
+    # -- the timer (loop thread) ----------------------------------------------------------------
+
+    def flush_out(self, now: float) -> None:
+        engine = self.engine
+        session = self.session
+        session.tick(now)
+        for data in session.outgoing():
+            if engine is None:
+                self.dropped += 1
+                continue
+            outcome = engine.submit(data, rate_limited=False)
+            if outcome is _ACCEPTED:
+                self.sent += 1
+            else:
+                self.dropped += 1
+
+    def updated(self, name: str, now: float) -> None:
+        self.session.updated(name, now)
+
+    def stats(self) -> dict[str, Any]:
+        s = self.session
+        st = s.stats
+        d: dict[str, Any] = {
+            "state": s.state.name.lower(), "handshake_ms": st.handshake_ms,
+            "packets": self.decoder.stats.packets, "nacks": st.tx_nack,
+            "sent": self.sent, "dropped": self.total_dropped, "sessions": self.sessions,
+            "rx_garbage_bytes": self.decoder.stats.bytes_skipped,
+            "bad_crc": self.decoder.stats.bad_crc, "unknown_object": st.rx_unknown,
+            "retries": st.retries, "failures": st.failures, "connects": st.connects,
+            "disconnects": st.disconnects,
+        }
+        if self.engine is not None:
+            d["link"] = int(self.engine.connected)
+            d["queue_full"] = self.engine.stats.dropped_queue_full
+        return d
+
+
+def _decoder_errors(ds: DecoderStats) -> int:
+    return ds.bad_crc + ds.bad_size + ds.bad_length
+
+
+def _errors(link: Link) -> int:
+    """Corrupt packets and read/write failures of one link."""
+    engine = link.engine
+    return _decoder_errors(link.decoder.stats) + (engine.stats.errors if engine else 0)
+
+
+class UavtalkBackend(Backend):
+    """Serves the rocket as a LibrePilot 16.09 flight controller (see the module docstring)."""
+
+    NAME = "uavtalk"
+    CONFIG = Schema(
+        endpoints=Key(list, [], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "
+                      "serial:DEVICE[,BAUD] or a pyserial URL", validator=_check_endpoints),
+        board_type=Key(int, DEFAULT_BOARD_TYPE, "FirmwareIAPObj.BoardType shown to the GCS "
+                       "(9: Revolution); must be nonzero", minimum=1, maximum=255),
+        tick_s=Key(float, 0.02, "seconds between telemetry ticks (periodic sends, retries)",
+                   minimum=0.001, maximum=1.0),
+        queue_depth=Key(int, 64, "packets waiting per link before drops", minimum=1,
+                        maximum=4096),
+        inbox_depth=Key(int, 256, "gateway messages waiting for the loop before drops",
+                        minimum=1, maximum=65536),
+    )
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
+
+    def __init__(self, endpoints: list[str] | None = None, board_type: int = DEFAULT_BOARD_TYPE,
+                 tick_s: float = 0.02, queue_depth: int = 64, inbox_depth: int = 256,
+                 name: str | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(name)
+        self.specs = [parse_endpoint(e) for e in (endpoints or [])]
+        if not self.specs:
+            raise ValueError(f"at least one endpoint is needed; {USAGE}")
+        self.board_type = board_type
+        self.tick_s = tick_s
+        self.queue_depth = queue_depth
+        self.inbox_depth = inbox_depth
+        self.clock = clock
+        self.objects = ObjectSet.load()
+        self.vehicle = Vehicle(self.objects, board_type)
+        self.store = ObjectStore(self.vehicle.defaults())
+        self.loop = IoLoop(self.name)
+        self.links: list[Link] = []  # mutated on the loop thread only
+        self.servers: list[tuple[EndpointSpec, PortServer]] = []
+        self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
+        self._stream_links: list[Link] = []
+        self._inbox: deque[Any] = deque()
+        self._inbox_lock = threading.Lock()
+        self._drain_scheduled = False
+        self._timer: Timer | None = None
+        self._running = False
+        self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
+                              "garbage_bytes": 0}
+        self.dropped_inbox = 0
+        self.messages = 0
+
+    # -- run flags -------------------------------------------------------------------------------
+
+    @classmethod
+    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
+        from backends.uavtalk import flags
+
+        flags.add_cli_arguments(parser)
+
+    @classmethod
+    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
+        from backends.uavtalk import flags
+
+        return flags.cli_options(args)
+
+    # -- sessions --------------------------------------------------------------------------------
+
+    def new_session(self) -> FlightSession:
+        return FlightSession(self.objects, self.store, board_type=self.board_type)
+
+    # -- life cycle ------------------------------------------------------------------------------
+
+    def init(self) -> None:
+        listeners = []
+        try:
+            for spec in self.specs:
+                if spec.kind == "tcpin":
+                    sock = open_tcp_listener(spec.host, spec.port)
+                    listeners.append((spec, sock))
+        except OSError as exc:
+            for _, sock in listeners:
+                sock.close()
+            raise BackendError(f"{self.name}: {exc}") from exc
+        self.loop.start()
+        self._running = True
+        for spec, sock in listeners:
+            self.addresses[spec.text] = sock.getsockname()[:2]
+            self._serve(spec, sock)
+        for spec in self.specs:
+            if spec.kind != "tcpin":
+                self._stream(spec)
+        self._timer = self.loop.call_every(self.tick_s, self._tick)
+
+    def _serve(self, spec: EndpointSpec, first: Any) -> None:
+        pending = [first]
+        address = self.addresses[spec.text]
+
+        def opener() -> Any:  # bound again on the same port after a failure
+            return pending.pop() if pending else open_tcp_listener(spec.host, address[1])
+
+        server = PortServer(opener, lambda sock, addr: self._on_client(spec, sock, addr),
+                            loop=self.loop, name=f"{self.name} {spec.text}")
+        self.servers.append((spec, server))
+        server.start()
+
+    def _on_client(self, spec: EndpointSpec, sock: Any, addr: Any) -> None:  # loop thread
+        name = f"{spec.text}<{addr[0]}:{addr[1]}>"
+        if not self._running:
+            sock.close()
+            return
+        link = Link(name, self)
+
+        def on_link(up: bool) -> None:
+            if not up:
+                self.loop.call_soon(lambda: self._client_closed(link))
+
+        def no_reopen() -> Any:
+            raise OSError("an accepted client is not reopened")
+
+        link.engine = PortEngine(no_reopen, name=name, protocol=link, loop=self.loop,
+                                 queue_depth=self.queue_depth, reopen=False, on_link=on_link)
+        self.links.append(link)
+        link.engine.start_with(SocketPort(sock, name))
+        log.info("%s: GCS %s:%s connected", self.name, addr[0], addr[1])
+
+    def _client_closed(self, link: Link) -> None:
+        if link not in self.links:
+            return
+        self.links.remove(link)
+        if link.engine is not None:
+            link.engine.close(CLOSE_TIMEOUT_S)
+        self._retire(link)
+        log.info("%s: %s left", self.name, link.name)
+
+    def _retire(self, link: Link) -> None:
+        t = self._closed_totals
+        t["sent"] += link.sent
+        t["dropped"] += link.total_dropped
+        t["errors"] += _errors(link)
+        t["garbage_bytes"] += link.decoder.stats.bytes_skipped
+        t["clients_closed"] += 1
+
+    def _stream(self, spec: EndpointSpec) -> None:
+        link = Link(spec.text, self)
+
+        def opener() -> Any:
+            if spec.kind == "tcp":
+                return open_tcp_client(spec.host, spec.port)
+            return _SerialPort(open_serial(spec.device, spec.baudrate, timeout=0,
+                                           write_timeout=0))
+
+        link.engine = PortEngine(opener, name=spec.text, protocol=link, loop=self.loop,
+                                 queue_depth=self.queue_depth, on_link=link.on_link)
+        self.links.append(link)
+        self._stream_links.append(link)
+        link.engine.start()
+
+    def close(self) -> None:
+        if not self._running:
+            return
+        self._running = False
+        done = threading.Event()
+
+        def stop() -> None:
+            if self._timer is not None:
+                self._timer.cancel()
+            for _, server in self.servers:
+                server.close()
+            for link in list(self.links):
+                if link.engine is not None:
+                    link.engine.close(CLOSE_TIMEOUT_S)
+            done.set()
+
+        self.loop.call_soon(stop)
+        done.wait(2.0)
+        if self.loop.stop(1.0):
+            self.loop.close()
+
+    # -- the loop's work -------------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        now = self.clock()
+        for link in self.links:
+            link.flush_out(now)
+
+    def _post(self, msg: Any) -> Outcome:
+        if not self._running:
+            return _NOT_READY
+        with self._inbox_lock:
+            if len(self._inbox) >= self.inbox_depth:
+                self.dropped_inbox += 1
+                return Outcome.QUEUE_FULL
+            self._inbox.append(msg)
+            schedule = not self._drain_scheduled
+            self._drain_scheduled = True
+        if schedule:
+            self.loop.call_soon(self._drain)
+        return _ACCEPTED
+
+    def _drain(self) -> None:
+        with self._inbox_lock:
+            batch = list(self._inbox)
+            self._inbox.clear()
+            self._drain_scheduled = False
+        changed: dict[str, dict[str, Any]] = {}
+        v = self.vehicle
+        for msg in batch:
+            self.messages += 1
+            if isinstance(msg, SmUpdate):
+                changed.update(v.sm_update(msg))
+            elif isinstance(msg, Status):
+                changed.update(v.status(msg))
+            elif isinstance(msg, Position):
+                changed.update(v.position(msg))
+            elif isinstance(msg, Battery):
+                changed.update(v.battery(msg))
+        now = self.clock()
+        for name, values in changed.items():
+            self.store.set(name, values)
+            for link in self.links:
+                link.updated(name, now)
+
+    # -- routes ----------------------------------------------------------------------------------
+
+    def routes(self) -> Routes:
+        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
+                .on(Position, self.send_position).on(Battery, self.send_battery))
+
+    def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        return self._post(msg)
+
+    def send_status(self, msg: Status) -> Outcome:
+        return self._post(msg)
+
+    def send_position(self, msg: Position) -> Outcome:
+        return self._post(msg)
+
+    def send_battery(self, msg: Battery) -> Outcome:
+        return self._post(msg)
+
+    # -- stats -----------------------------------------------------------------------------------
+
+    def address(self, endpoint: str | None = None) -> Any:
+        """The bound (host, port) of a tcpin endpoint (the first when None)."""
+        if endpoint is None:
+            return next(iter(self.addresses.values()), None)
+        return self.addresses.get(endpoint)
+
+    def stats(self) -> dict[str, Any]:
+        t = self._closed_totals
+        links = list(self.links)
+        per = {link.name: link.stats() for link in links}
+        sent = t["sent"] + sum(d["sent"] for d in per.values())
+        dropped = t["dropped"] + sum(d["dropped"] for d in per.values()) + self.dropped_inbox
+        errors = t["errors"] + sum(_errors(link) for link in links)
+        garbage = t["garbage_bytes"] + sum(d["rx_garbage_bytes"] for d in per.values())
+        connected = sum(1 for d in per.values() if d["state"] == "connected")
+        return {"sent": sent, "dropped": dropped, "errors": errors,
+                "link": int(connected > 0), "dropped_inbox": self.dropped_inbox,
+                "dropped_queue": sum(d["dropped"] for d in per.values()) + t["dropped"],
+                "messages": self.messages, "clients": len(links), "connected": connected,
+                "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,
+                "links": per}
