@@ -18,7 +18,7 @@ from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
-from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
+from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +222,7 @@ class MavlinkBackend(Backend):
     def routes(self) -> Routes:
         return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
                 .on(Position, self.send_position).on(Battery, self.send_battery)
-                .on(LinkStats, self.send_link_stats))
+                .on(LinkStats, self.send_link_stats).on(VehicleState, self.send_vehicle_state))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         return self._post(msg)
@@ -239,6 +239,9 @@ class MavlinkBackend(Backend):
         if msg.via.startswith(VIA_MAVLINK):
             return Outcome.ACCEPTED
         return self._post(msg)
+
+    def send_vehicle_state(self, msg: VehicleState) -> Outcome:
+        return self._post(msg)  # a non-Aurora vehicle (UAVTalk): shown as this system
 
     def send_link_stats(self, msg: LinkStats) -> Outcome:
         return self._post(msg)  # → RADIO_STATUS

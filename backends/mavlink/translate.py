@@ -26,7 +26,7 @@ from typing import Any
 
 from backends.mavlink.dialect import mav
 from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_name, state_names
-from gateway.model import Battery, LinkStats, Position, SmUpdate, Status
+from gateway.model import Battery, LinkStats, Position, SmUpdate, Status, VehicleState
 
 MAV_COMP_ID_AUTOPILOT1 = 1
 #: The component the AURORA_* dialect messages come from, with its own sequence numbers: a
@@ -275,6 +275,7 @@ class AuroraVehicle:
         self._state_ts: int | None = None
         self._last_heard: float | None = None
         self.modes_seq = 0
+        self.vehicle_mode = ""  # the mode of a non-Aurora vehicle (VehicleState), by name
         # schedules
         r = self.rates
         self._heartbeat = Periodic(r["heartbeat_hz"], now)
@@ -373,7 +374,36 @@ class AuroraVehicle:
             return self._on_battery(msg)
         if isinstance(msg, LinkStats):
             return self._on_link_stats(msg)
+        if isinstance(msg, VehicleState):
+            return self._on_vehicle_state(msg)
         return []
+
+    def _on_vehicle_state(self, v: VehicleState) -> list[Any]:
+        """A vehicle that is not an Aurora state machine (e.g. a LibrePilot flight controller
+        through the UAVTalk source) shown as this system: arming, its mode by name (spoken),
+        attitude and altitude."""
+        self.stats.updates += 1
+        self._last_heard = now = self.clock()
+        out: list[Any] = []
+        if v.mode != self.vehicle_mode:
+            self.vehicle_mode = v.mode
+            out.append(mav.MAVLink_statustext_message(mav.MAV_SEVERITY_NOTICE,
+                                                      _text(f"#{v.mode}", 50), 0, 0))
+        if v.armed != self.armed:
+            self.armed = v.armed
+            out.append(self.heartbeat())
+        g = self._gates
+        if (v.roll_rad is not None and v.pitch_rad is not None and v.yaw_rad is not None
+                and g["attitude_hz"].ready(now)):
+            out.append(mav.MAVLink_attitude_message(self._boot_ms(), f32(v.roll_rad),
+                                                    f32(v.pitch_rad), f32(v.yaw_rad),
+                                                    0.0, 0.0, 0.0))
+        if v.altitude_m is not None and g["altitude_hz"].ready(now):
+            alt = f32(v.altitude_m)
+            out.append(mav.MAVLink_altitude_message(self._boot_ms() * 1000, alt,
+                                                    f32(alt + self.pad_altitude_amsl_m), alt,
+                                                    alt, -1001.0, -1.0))
+        return out
 
     def _set_state(self, sm_type: int, state: int, armed: bool, ts_ms: int,
                    out: list[Any]) -> None:
