@@ -450,6 +450,26 @@ def test_a_client_that_never_reads_stalls_nobody(gateway: Any) -> None:
         sink.close()
 
 
+def test_silent_gcs_is_disconnected_after_8_s_and_reconnects() -> None:
+    skew = [0.0]  # the backend's clock runs ahead of the GCS's by this much
+    d = Dispatcher()
+    b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"], clock=lambda: time.monotonic() + skew[0])
+    d.add(b)
+    d.start()
+    gcs = SpecGcs(b.address(), walk=())  # connected, it sends nothing
+    try:
+        assert gcs.run_until(lambda: gcs.state == CONNECTED)
+        assert wait_for(lambda: link_stats(b, gcs).get("state") == "connected")
+        skew[0] = 9.0  # 9 s of the GCS's silence, as the flight side sees it
+        assert gcs.run_until(lambda: gcs.state != CONNECTED)  # told so by FlightTelemetryStats
+        assert gcs.run_until(lambda: gcs.state == CONNECTED)  # a new handshake, same link
+        assert wait_for(lambda: link_stats(b, gcs).get("connects") == 2)
+        assert link_stats(b, gcs)["disconnects"] == 1 and b.stats()["clients"] == 1
+    finally:
+        gcs.close()
+        d.close()
+
+
 def test_garbage_is_counted_and_the_link_goes_on(gateway: Any) -> None:
     _, b = gateway
     gcs = SpecGcs(b.address(), walk=())
