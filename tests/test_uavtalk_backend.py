@@ -81,11 +81,13 @@ class SpecGcs:
 
     def __init__(self, address: Any, *, handshake_s: float = 0.1,
                  walk: tuple[int, ...] = (FIRMWARE, FLIGHT_STATUS, ATTITUDE, SYSTEM_ALARMS),
-                 rcvbuf: int | None = None) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        if rcvbuf is not None:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
-        self.sock.connect(address)
+                 rcvbuf: int | None = None, sock: socket.socket | None = None) -> None:
+        if sock is None:  # (given: a connection the flight side made to us)
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            if rcvbuf is not None:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            sock.connect(address)
+        self.sock = sock
         self.sock.settimeout(0.01)
         self.handshake_s = handshake_s
         self.state = DISCONNECTED
@@ -468,6 +470,33 @@ def test_silent_gcs_is_disconnected_after_8_s_and_reconnects() -> None:
     finally:
         gcs.close()
         d.close()
+
+
+def serve_one(b: UavtalkBackend, gcs: SpecGcs) -> None:
+    assert gcs.run_until(lambda: gcs.state == CONNECTED)
+    assert gcs.run_until(lambda: FIRMWARE in gcs.walked)
+    assert gcs.walked[FIRMWARE] is not None
+    assert wait_for(lambda: b.stats()["connected"] == 1)
+
+
+def test_tcp_client_endpoint_reconnects_with_a_fresh_session() -> None:
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        listener.settimeout(DEADLINE_S)
+        port = listener.getsockname()[1]
+        b = UavtalkBackend(endpoints=[f"tcp:127.0.0.1:{port}"])
+        b.init()
+        try:
+            for round_ in (1, 2):  # the second time after the GCS hung up
+                conn, _ = listener.accept()
+                gcs = SpecGcs(None, sock=conn, walk=(FIRMWARE,))
+                try:
+                    serve_one(b, gcs)
+                finally:
+                    gcs.close()
+                (link,) = b.stats()["links"].values()
+                assert link["sessions"] == round_
+        finally:
+            b.close()
 
 
 def test_garbage_is_counted_and_the_link_goes_on(gateway: Any) -> None:
