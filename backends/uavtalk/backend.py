@@ -177,7 +177,8 @@ class Link:
         return ()
 
     def on_link(self, up: bool) -> None:
-        if up and self.session.stats.rx_bytes:
+        """A stream's port went up or down: the next peer starts a session of its own."""
+        if self.session.stats.rx_bytes:
             self.old_drops += self._session_drops()
             self.session = self.backend.new_session()  # a new peer: a new handshake
             self.sessions += 1
