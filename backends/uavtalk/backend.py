@@ -454,6 +454,8 @@ class UavtalkBackend(Backend):
                 changed.update(v.battery(msg))
         now = self.clock()
         for name, values in changed.items():
+            if self.store.get(name) == values:
+                continue  # an on-change object goes out when it changes, not per message
             self.store.set(name, values)
             for link in self.links:
                 link.updated(name, now)
