@@ -7,6 +7,7 @@ same code; TCP clients, accepted TCP connections and UDP sockets are ports here 
 from __future__ import annotations
 
 import contextlib
+import select
 import socket
 import time
 from collections import OrderedDict
@@ -49,6 +50,45 @@ def open_serial(
         return serial.serial_for_url(url, **kwargs)
     except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
         raise TransportError(f"cannot open {url}: {exc}") from exc
+
+
+class NonBlockingSerial:
+    """A pyserial port for a shared loop (a router's or a backend's): writes never wait for
+    room.
+
+    pyserial's own non-blocking write spins while the port's buffer is full (a radio that has
+    stopped reading would hold the loop), so a port with a descriptor is asked first whether
+    it can take anything; when it cannot, nothing is written and the engine waits for room."""
+
+    def __init__(self, port: Any) -> None:
+        self.serial = port
+        try:
+            self._fd: int | None = port.fileno()
+        except Exception:  # loop://, rfc2217://: polled by the engine, written directly
+            self._fd = None
+
+    def fileno(self) -> int:
+        if self._fd is None:
+            raise OSError("no file descriptor")
+        return self._fd
+
+    def read(self, size: int = 1) -> bytes:
+        return bytes(self.serial.read(size))
+
+    def write(self, data: bytes) -> int | None:
+        fd = self._fd
+        if fd is not None and not select.select((), (fd,), (), 0)[1]:
+            return 0
+        n = self.serial.write(data)
+        return n if isinstance(n, int) else None
+
+    def close(self) -> None:
+        self.serial.close()
+
+
+def open_serial_nonblocking(url: str, baudrate: int) -> NonBlockingSerial:
+    """:func:`open_serial` for a port engine on a shared loop (see :class:`NonBlockingSerial`)."""
+    return NonBlockingSerial(open_serial(url, baudrate, timeout=0, write_timeout=0))
 
 
 # -- sockets as ports (for gateway.port.PortEngine) ----------------------------------------------

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import re
-import select
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -43,7 +42,7 @@ from gateway.transport import (
     SocketPort,
     TransportError,
     UdpPort,
-    open_serial,
+    open_serial_nonblocking,
     open_tcp_client,
     open_tcp_listener,
     open_udp,
@@ -442,41 +441,6 @@ class TcpServerEndpoint(Endpoint):
 
 # -- byte streams: serial ports and TCP clients -------------------------------------------------
 
-class _SerialPort:
-    """A pyserial port for a shared loop: writes never wait for room.
-
-    pyserial's own non-blocking write spins while the port's buffer is full (a radio that has
-    stopped reading would hold the loop), so a port with a descriptor is asked first whether
-    it can take anything; when it cannot, nothing is written and the engine waits for room."""
-
-    def __init__(self, port: Any) -> None:
-        self.serial = port
-        try:
-            self._fd: int | None = port.fileno()
-        except Exception:  # loop://, rfc2217://: polled by the engine, written directly
-            self._fd = None
-
-    def fileno(self) -> int:
-        if self._fd is None:
-            raise OSError("no file descriptor")
-        return self._fd
-
-    def read(self, size: int = 1) -> bytes:
-        return self.serial.read(size)
-
-    def write(self, data: bytes) -> int | None:
-        fd = self._fd
-        if fd is not None:
-            _, ready, _ = select.select((), (fd,), (), 0)
-            if not ready:
-                return 0
-        n = self.serial.write(data)
-        return n if isinstance(n, int) else None
-
-    def close(self) -> None:
-        self.serial.close()
-
-
 class StreamEndpoint(Endpoint, PortLink):
     """``serial:`` and ``tcp:``: one engine, reopening the port with backoff when it fails."""
 
@@ -490,8 +454,7 @@ class StreamEndpoint(Endpoint, PortLink):
         spec = self.spec
         if spec.kind == "tcp":
             return open_tcp_client(spec.host, spec.port)
-        return _SerialPort(open_serial(spec.device, spec.baudrate, timeout=0,
-                                       write_timeout=0))
+        return open_serial_nonblocking(spec.device, spec.baudrate)
 
     def start(self, loop: IoLoop, router: Router) -> None:
         engine = self.make_engine(self._open, loop, queue_depth=self.queue_depth)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import logging
 import re
-import select
 import threading
 import time
 from collections import deque
@@ -40,7 +39,12 @@ from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, SmUpdate, Status
 from gateway.port import PortEngine, PortServer
-from gateway.transport import SocketPort, open_serial, open_tcp_client, open_tcp_listener
+from gateway.transport import (
+    SocketPort,
+    open_serial_nonblocking,
+    open_tcp_client,
+    open_tcp_listener,
+)
 
 from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
@@ -112,34 +116,6 @@ def _check_endpoints(value: list[Any]) -> None:
         if not isinstance(item, str):
             raise ValueError(f"{item!r} is not a string; {USAGE}")
         parse_endpoint(item)
-
-
-class _SerialPort:
-    """A pyserial port on a shared loop: a write never waits for room (0 written instead)."""
-
-    def __init__(self, port: Any) -> None:
-        self.serial = port
-        try:
-            self._fd: int | None = port.fileno()
-        except Exception:  # loop://, socket://: polled, written directly
-            self._fd = None
-
-    def fileno(self) -> int:
-        if self._fd is None:
-            raise OSError("no file descriptor")
-        return self._fd
-
-    def read(self, size: int = 1) -> bytes:
-        return bytes(self.serial.read(size))
-
-    def write(self, data: bytes) -> int | None:
-        if self._fd is not None and not select.select((), (self._fd,), (), 0)[1]:
-            return 0
-        n = self.serial.write(data)
-        return n if isinstance(n, int) else None
-
-    def close(self) -> None:
-        self.serial.close()
 
 
 class Link:
@@ -384,8 +360,7 @@ class UavtalkBackend(Backend):
         def opener() -> Any:
             if spec.kind == "tcp":
                 return open_tcp_client(spec.host, spec.port)
-            return _SerialPort(open_serial(spec.device, spec.baudrate, timeout=0,
-                                           write_timeout=0))
+            return open_serial_nonblocking(spec.device, spec.baudrate)
 
         link.engine = PortEngine(opener, name=spec.text, protocol=link, loop=self.loop,
                                  queue_depth=self.queue_depth, on_link=link.on_link)
