@@ -24,6 +24,7 @@ from helpers import run_within, wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
 from backends.crsf import CrsfBackend
+from backends.crsf import flags as crsf_flags
 from backends.crsf.frames import LinkStatistics, RcChannels, encode
 from backends.crsf.ports import PtyPair
 from dialects.states import SimpleState
@@ -142,7 +143,7 @@ def test_run_flags() -> None:
     assert parts["crsf"].options["url"] == "socket://127.0.0.1:9"
     assert parts["crsf"].options["baudrate"] == 416666
     args = build_parser().parse_args(["run"])
-    assert CrsfBackend.cli_options(args) is None
+    assert crsf_flags.cli_options(args) is None
 
 
 # -- ports -----------------------------------------------------------------------------------

@@ -34,7 +34,6 @@ Mapping (what each gateway message feeds):
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import threading
@@ -222,18 +221,6 @@ class CrsfBackend(Backend):
         self._last_stats_emit = -math.inf
 
     # -- configuration ---------------------------------------------------------------------
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        from backends.crsf import flags  # the flags live apart, light (gateway.registry)
-
-        flags.add_cli_arguments(parser)
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        from backends.crsf import flags
-
-        return flags.cli_options(args)
 
     def attach(self, context: GatewayContext) -> None:
         """Where decoded link statistics go (the gateway's ingest; or set ``sink=``)."""

@@ -26,7 +26,6 @@ the backend relayed (see ``control.py``).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 import time
@@ -133,20 +132,6 @@ class Hc12Backend(Backend):
         self.at_exchanges = 0
         self.at_failures = 0
         self.at_refused = 0
-
-    # -- run flags -------------------------------------------------------------------------------
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        from backends.hc12 import flags  # the flags live apart, light (gateway.registry)
-
-        flags.add_cli_arguments(parser)
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        from backends.hc12 import flags
-
-        return flags.cli_options(args)
 
     # -- life cycle ----------------------------------------------------------------------------
 

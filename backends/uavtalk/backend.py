@@ -25,7 +25,6 @@ hooks only post the message to a bounded inbox (full: ``QUEUE_FULL``, counted).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import re
 import threading
@@ -262,20 +261,6 @@ class UavtalkBackend(Backend):
                               "garbage_bytes": 0}
         self.dropped_inbox = 0
         self.messages = 0
-
-    # -- run flags -------------------------------------------------------------------------------
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        from backends.uavtalk import flags
-
-        flags.add_cli_arguments(parser)
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        from backends.uavtalk import flags
-
-        return flags.cli_options(args)
 
     # -- sessions --------------------------------------------------------------------------------
 

@@ -27,7 +27,6 @@ gateway, and the id goes into the gateway's context so its own Zenoh sources ign
 
 from __future__ import annotations
 
-import argparse
 import logging
 import queue
 import threading
@@ -146,18 +145,6 @@ class ZenohBackend(Backend):
         self.unrouted = 0
 
     # -- configuration -----------------------------------------------------------------------
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        from backends.zenoh import flags  # the flags live apart, light (gateway.registry)
-
-        flags.add_cli_arguments(parser)
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        from backends.zenoh import flags
-
-        return flags.cli_options(args)
 
     # -- life cycle ------------------------------------------------------------------------------
 
