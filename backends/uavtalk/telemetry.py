@@ -246,6 +246,20 @@ class _Session:
         self._pending = None
         self._transaction_done(t.packet, False)
 
+    def receive(self, packet: Packet, now: float) -> None:
+        """Handle one packet from the peer: counted; an ACK/NACK completes the open
+        transaction; anything else is decoded and handed to the session's ``_handle``."""
+        self._count_rx(packet, now)
+        if packet.type in (PacketType.ACK, PacketType.NACK):
+            self._complete(packet)
+            return
+        obj, values = self._decode(packet)
+        self._handle(packet, obj, values, now)
+
+    def _handle(self, packet: Packet, obj: ObjectDef | None, values: dict[str, Any] | None,
+                now: float) -> None:
+        raise NotImplementedError
+
     def _complete(self, p: Packet) -> None:
         """End the open transaction if ``p`` answers it."""
         t = self._pending
@@ -377,14 +391,10 @@ class FlightSession(_Session):
 
     # --- input ------------------------------------------------------------------------------
 
-    def receive(self, packet: Packet, now: float) -> None:
-        """Handle one packet from the GCS."""
-        self._count_rx(packet, now)
+    def _handle(self, packet: Packet, obj: ObjectDef | None, values: dict[str, Any] | None,
+                now: float) -> None:
+        """One packet from the GCS (not an ACK/NACK: :meth:`_Session.receive` did those)."""
         ptype = packet.type
-        if ptype in (PacketType.ACK, PacketType.NACK):
-            self._complete(packet)
-            return
-        obj, values = self._decode(packet)
         if ptype == PacketType.OBJ_REQ:
             reply = None
             if obj is not None and packet.instance_id in (0, ALL_INSTANCES):
@@ -564,14 +574,10 @@ class GcsSession(_Session):
                 self.walk_nacked.append(obj.name)
             self._walk_next()
 
-    def receive(self, packet: Packet, now: float) -> None:
-        """Handle one packet from the flight controller."""
-        self._count_rx(packet, now)
+    def _handle(self, packet: Packet, obj: ObjectDef | None, values: dict[str, Any] | None,
+                now: float) -> None:
+        """One packet from the flight controller (not an ACK/NACK)."""
         ptype = packet.type
-        if ptype in (PacketType.ACK, PacketType.NACK):
-            self._complete(packet)
-            return
-        obj, values = self._decode(packet)
         if ptype == PacketType.OBJ_REQ:
             if obj is not None and obj.name == GCS_STATS:
                 data = obj.pack(self._stats_values(self.state))
