@@ -26,24 +26,18 @@ hooks only post the message to a bounded inbox (full: ``QUEUE_FULL``, counted).
 from __future__ import annotations
 
 import logging
-import re
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
+from gateway.links import LinkSet, StreamEndpoint, endpoints_validator, parse_stream_endpoint
 from gateway.model import Battery, Position, SmUpdate, Status
-from gateway.port import PortEngine, PortServer
-from gateway.transport import (
-    SocketPort,
-    open_serial_nonblocking,
-    open_tcp_client,
-    open_tcp_listener,
-)
+from gateway.port import PortEngine
 
 from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
@@ -53,74 +47,23 @@ from .translate import Vehicle
 log = logging.getLogger(__name__)
 
 DEFAULT_SERIAL_BAUD = 57600
-CLOSE_TIMEOUT_S = 0.5
 #: Received packets handled between two writes of a link's replies (well under the session's
 #: priority queue of 32).
 FLUSH_EVERY = 16
 USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
-_COM = re.compile(r"^COM\d+$", re.IGNORECASE)
 _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
 
-class EndpointSpec(NamedTuple):
-    kind: str  # tcpin | tcp | serial
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baudrate: int = 0
-    text: str = ""
-
-
-def parse_endpoint(text: str) -> EndpointSpec:
-    """Parse one endpoint; raises ValueError naming it and the accepted forms."""
-    t = text.strip()
-    scheme, sep, rest = t.partition(":")
-    kind = scheme.lower()
-    if sep and kind in ("tcpin", "tcp") and not rest.startswith("//"):
-        host, sep2, port_s = rest.rpartition(":")
-        if not sep2:
-            raise ValueError(f"{text!r}: expected {kind}:HOST:PORT")
-        host = host.strip("[]") or ("0.0.0.0" if kind == "tcpin" else "127.0.0.1")
-        try:
-            port = int(port_s)
-        except ValueError:
-            raise ValueError(f"{text!r}: port {port_s!r} is not a number") from None
-        lowest = 0 if kind == "tcpin" else 1  # 0: the system picks (tests)
-        if not lowest <= port <= 65535:
-            raise ValueError(f"{text!r}: port must be {lowest}..65535")
-        return EndpointSpec(kind, host, port, text=t)
-    if sep and kind == "serial":
-        t_dev = rest
-    elif t.startswith("/dev/") or _COM.match(t.partition(",")[0]) or "://" in t:
-        t_dev = t
-    else:
-        raise ValueError(f"{text!r}: not a UAVTalk endpoint; {USAGE}")
-    device, sep3, baud_s = t_dev.rpartition(",")
-    if not sep3:
-        device, baud_s = t_dev, str(DEFAULT_SERIAL_BAUD)
-    try:
-        baud = int(baud_s)
-    except ValueError:
-        raise ValueError(f"{text!r}: baud rate {baud_s!r} is not a number") from None
-    if not device or baud < 50:
-        raise ValueError(f"{text!r}: a device and a baud rate ≥ 50 are needed; {USAGE}")
-    return EndpointSpec("serial", device=device, baudrate=baud, text=t)
-
-
-def _check_endpoints(value: list[Any]) -> None:
-    if not value:
-        raise ValueError(f"at least one endpoint is needed; {USAGE}")
-    for item in value:
-        if not isinstance(item, str):
-            raise ValueError(f"{item!r} is not a string; {USAGE}")
-        parse_endpoint(item)
+def parse_endpoint(text: str) -> StreamEndpoint:
+    """Parse one endpoint (see :mod:`gateway.links`); raises ValueError naming it."""
+    return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD, usage=USAGE)
 
 
 class Link:
     """One UAVTalk peer: its engine's protocol object, its decoder and its session."""
 
-    def __init__(self, name: str, backend: UavtalkBackend) -> None:
+    def __init__(self, name: str, backend: UavtalkBackend, spec: Any = None) -> None:
         self.name = name
         self.backend = backend
         self.engine: PortEngine | None = None
@@ -220,7 +163,8 @@ class UavtalkBackend(Backend):
     NAME = "uavtalk"
     CONFIG = Schema(
         endpoints=Key(list, [], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "
-                      "serial:DEVICE[,BAUD] or a pyserial URL", validator=_check_endpoints),
+                      "serial:DEVICE[,BAUD] or a pyserial URL",
+                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD, USAGE)),
         board_type=Key(int, DEFAULT_BOARD_TYPE, "FirmwareIAPObj.BoardType shown to the GCS "
                        "(9: Revolution); must be nonzero", minimum=1, maximum=255),
         tick_s=Key(float, 0.02, "seconds between telemetry ticks (periodic sends, retries)",
@@ -248,10 +192,9 @@ class UavtalkBackend(Backend):
         self.vehicle = Vehicle(self.objects, board_type)
         self.store = ObjectStore(self.vehicle.defaults())
         self.loop = IoLoop(self.name)
-        self.links: list[Link] = []  # mutated on the loop thread only
-        self.servers: list[tuple[EndpointSpec, PortServer]] = []
-        self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
-        self._stream_links: list[Link] = []
+        self.linkset: LinkSet[Link] = LinkSet(
+            self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
+            queue_depth=queue_depth, on_closed=self._retire, label="GCS")
         self._inbox: deque[Any] = deque()
         self._inbox_lock = threading.Lock()
         self._drain_scheduled = False
@@ -269,67 +212,20 @@ class UavtalkBackend(Backend):
 
     # -- life cycle ------------------------------------------------------------------------------
 
+    @property
+    def links(self) -> list[Link]:
+        """Every link now (the loop thread mutates the list)."""
+        return self.linkset.links
+
     def init(self) -> None:
-        listeners = []
         try:
-            for spec in self.specs:
-                if spec.kind == "tcpin":
-                    sock = open_tcp_listener(spec.host, spec.port)
-                    listeners.append((spec, sock))
+            self.linkset.bind()
         except OSError as exc:
-            for _, sock in listeners:
-                sock.close()
             raise BackendError(f"{self.name}: {exc}") from exc
         self.loop.start()
         self._running = True
-        for spec, sock in listeners:
-            self.addresses[spec.text] = sock.getsockname()[:2]
-            self._serve(spec, sock)
-        for spec in self.specs:
-            if spec.kind != "tcpin":
-                self._stream(spec)
+        self.linkset.start()
         self._timer = self.loop.call_every(self.tick_s, self._tick)
-
-    def _serve(self, spec: EndpointSpec, first: Any) -> None:
-        pending = [first]
-        address = self.addresses[spec.text]
-
-        def opener() -> Any:  # bound again on the same port after a failure
-            return pending.pop() if pending else open_tcp_listener(spec.host, address[1])
-
-        server = PortServer(opener, lambda sock, addr: self._on_client(spec, sock, addr),
-                            loop=self.loop, name=f"{self.name} {spec.text}")
-        self.servers.append((spec, server))
-        server.start()
-
-    def _on_client(self, spec: EndpointSpec, sock: Any, addr: Any) -> None:  # loop thread
-        name = f"{spec.text}<{addr[0]}:{addr[1]}>"
-        if not self._running:
-            sock.close()
-            return
-        link = Link(name, self)
-
-        def on_link(up: bool) -> None:
-            if not up:
-                self.loop.call_soon(lambda: self._client_closed(link))
-
-        def no_reopen() -> Any:
-            raise OSError("an accepted client is not reopened")
-
-        link.engine = PortEngine(no_reopen, name=name, protocol=link, loop=self.loop,
-                                 queue_depth=self.queue_depth, reopen=False, on_link=on_link)
-        self.links.append(link)
-        link.engine.start_with(SocketPort(sock, name))
-        log.info("%s: GCS %s:%s connected", self.name, addr[0], addr[1])
-
-    def _client_closed(self, link: Link) -> None:
-        if link not in self.links:
-            return
-        self.links.remove(link)
-        if link.engine is not None:
-            link.engine.close(CLOSE_TIMEOUT_S)
-        self._retire(link)
-        log.info("%s: %s left", self.name, link.name)
 
     def _retire(self, link: Link) -> None:
         t = self._closed_totals
@@ -339,38 +235,13 @@ class UavtalkBackend(Backend):
         t["garbage_bytes"] += link.decoder.stats.bytes_skipped
         t["clients_closed"] += 1
 
-    def _stream(self, spec: EndpointSpec) -> None:
-        link = Link(spec.text, self)
-
-        def opener() -> Any:
-            if spec.kind == "tcp":
-                return open_tcp_client(spec.host, spec.port)
-            return open_serial_nonblocking(spec.device, spec.baudrate)
-
-        link.engine = PortEngine(opener, name=spec.text, protocol=link, loop=self.loop,
-                                 queue_depth=self.queue_depth, on_link=link.on_link)
-        self.links.append(link)
-        self._stream_links.append(link)
-        link.engine.start()
-
     def close(self) -> None:
         if not self._running:
             return
         self._running = False
-        done = threading.Event()
-
-        def stop() -> None:
-            if self._timer is not None:
-                self._timer.cancel()
-            for _, server in self.servers:
-                server.close()
-            for link in list(self.links):
-                if link.engine is not None:
-                    link.engine.close(CLOSE_TIMEOUT_S)
-            done.set()
-
-        self.loop.call_soon(stop)
-        done.wait(2.0)
+        if self._timer is not None:
+            self._timer.cancel()
+        self.linkset.close()
         if self.loop.stop(1.0):
             self.loop.close()
 
@@ -442,9 +313,7 @@ class UavtalkBackend(Backend):
 
     def address(self, endpoint: str | None = None) -> Any:
         """The bound (host, port) of a tcpin endpoint (the first when None)."""
-        if endpoint is None:
-            return next(iter(self.addresses.values()), None)
-        return self.addresses.get(endpoint)
+        return self.linkset.address(endpoint)
 
     def stats(self) -> dict[str, Any]:
         t = self._closed_totals

@@ -1,0 +1,236 @@
+"""Byte-stream peers of a backend that plays the flight side to ground tools (UAVTalk, F´):
+one endpoint syntax and one set of links on one :class:`~gateway.ioloop.IoLoop`.
+
+==========================  ==============================================================
+``tcpin:HOST:PORT``         a TCP server (the ground tool connects as a client); every
+                            accepted client is a link of its own, with its own engine
+``tcp:HOST:PORT``           a TCP client, reconnected with backoff
+``serial:DEVICE[,BAUD]``    a serial port or radio; also a bare ``/dev/…`` / ``COMn`` or a
+                            pyserial URL (``socket://…``, ``loop://``)
+==========================  ==============================================================
+
+A link is the backend's own object (its engine's protocol: ``feed(data)`` returns events,
+optionally ``flush()``; ``on_link(up)`` is called when a stream's port goes up or down) with an
+``engine`` attribute that :class:`LinkSet` sets.  Every engine shares the set's loop (one
+thread); a client that leaves is closed and handed to ``on_closed`` so the backend can keep
+its counters.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import threading
+from collections.abc import Callable
+from typing import Any, Generic, NamedTuple, Protocol, TypeVar
+
+from gateway.ioloop import IoLoop
+from gateway.port import PortEngine, PortServer
+from gateway.transport import (
+    SocketPort,
+    open_serial_nonblocking,
+    open_tcp_client,
+    open_tcp_listener,
+)
+
+log = logging.getLogger(__name__)
+
+CLOSE_TIMEOUT_S = 0.5
+_COM = re.compile(r"^COM\d+$", re.IGNORECASE)
+
+
+class StreamEndpoint(NamedTuple):
+    kind: str  # tcpin | tcp | serial
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baudrate: int = 0
+    text: str = ""
+
+
+def parse_stream_endpoint(text: str, *, default_baud: int, usage: str) -> StreamEndpoint:
+    """Parse one endpoint; raises ValueError naming it and ``usage`` (the accepted forms)."""
+    t = text.strip()
+    scheme, sep, rest = t.partition(":")
+    kind = scheme.lower()
+    if sep and kind in ("tcpin", "tcp") and not rest.startswith("//"):
+        host, sep2, port_s = rest.rpartition(":")
+        if not sep2:
+            raise ValueError(f"{text!r}: expected {kind}:HOST:PORT")
+        host = host.strip("[]") or ("0.0.0.0" if kind == "tcpin" else "127.0.0.1")
+        try:
+            port = int(port_s)
+        except ValueError:
+            raise ValueError(f"{text!r}: port {port_s!r} is not a number") from None
+        lowest = 0 if kind == "tcpin" else 1  # 0: the system picks (tests)
+        if not lowest <= port <= 65535:
+            raise ValueError(f"{text!r}: port must be {lowest}..65535")
+        return StreamEndpoint(kind, host, port, text=t)
+    if sep and kind == "serial":
+        t_dev = rest
+    elif t.startswith("/dev/") or _COM.match(t.partition(",")[0]) or "://" in t:
+        t_dev = t
+    else:
+        raise ValueError(f"{text!r}: not an endpoint; {usage}")
+    device, sep3, baud_s = t_dev.rpartition(",")
+    if not sep3:
+        device, baud_s = t_dev, str(default_baud)
+    try:
+        baud = int(baud_s)
+    except ValueError:
+        raise ValueError(f"{text!r}: baud rate {baud_s!r} is not a number") from None
+    if not device or baud < 50:
+        raise ValueError(f"{text!r}: a device and a baud rate ≥ 50 are needed; {usage}")
+    return StreamEndpoint("serial", device=device, baudrate=baud, text=t)
+
+
+def endpoints_validator(default_baud: int, usage: str) -> Callable[[list[Any]], None]:
+    """A config validator for a list of endpoints (at least one)."""
+
+    def check(value: list[Any]) -> None:
+        if not value:
+            raise ValueError(f"at least one endpoint is needed; {usage}")
+        for item in value:
+            if not isinstance(item, str):
+                raise ValueError(f"{item!r} is not a string; {usage}")
+            parse_stream_endpoint(item, default_baud=default_baud, usage=usage)
+
+    return check
+
+
+class StreamLink(Protocol):
+    name: str
+    engine: PortEngine | None
+
+    def feed(self, data: bytes, /) -> Any: ...
+
+
+L = TypeVar("L", bound=StreamLink)
+
+
+class LinkSet(Generic[L]):
+    """The links of ``specs``: listeners bound by :meth:`bind` (so a busy port refuses the
+    start), everything served from :meth:`start` on ``loop`` (already running)."""
+
+    def __init__(self, name: str, specs: list[StreamEndpoint], *, loop: IoLoop,
+                 new_link: Callable[[str, StreamEndpoint], L], queue_depth: int,
+                 on_closed: Callable[[L], Any] | None = None,
+                 label: str = "client") -> None:
+        self.name = name
+        self.specs = specs
+        self.loop = loop
+        self.new_link = new_link
+        self.queue_depth = queue_depth
+        self.on_closed = on_closed
+        self.label = label
+        self.links: list[L] = []  # mutated on the loop thread only; read anywhere as a copy
+        self.servers: list[tuple[StreamEndpoint, PortServer]] = []
+        self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
+        self._listeners: list[tuple[StreamEndpoint, Any]] = []
+        self._running = False
+
+    def bind(self) -> None:
+        """Bind every ``tcpin`` listener now; raises OSError (and binds none) on failure."""
+        try:
+            for spec in self.specs:
+                if spec.kind == "tcpin":
+                    self._listeners.append((spec, open_tcp_listener(spec.host, spec.port)))
+        except OSError:
+            for _, sock in self._listeners:
+                sock.close()
+            self._listeners.clear()
+            raise
+        for spec, sock in self._listeners:
+            self.addresses[spec.text] = sock.getsockname()[:2]
+
+    def start(self) -> None:
+        self._running = True
+        for spec, sock in self._listeners:
+            self._serve(spec, sock)
+        self._listeners.clear()
+        for spec in self.specs:
+            if spec.kind != "tcpin":
+                self._stream(spec)
+
+    def address(self, endpoint: str | None = None) -> Any:
+        """The bound (host, port) of a tcpin endpoint (the first when None)."""
+        if endpoint is None:
+            return next(iter(self.addresses.values()), None)
+        return self.addresses.get(endpoint)
+
+    def _serve(self, spec: StreamEndpoint, first: Any) -> None:
+        pending = [first]
+        address = self.addresses[spec.text]
+
+        def opener() -> Any:  # bound again on the same port after a failure
+            return pending.pop() if pending else open_tcp_listener(spec.host, address[1])
+
+        server = PortServer(opener, lambda sock, addr: self._on_client(spec, sock, addr),
+                            loop=self.loop, name=f"{self.name} {spec.text}")
+        self.servers.append((spec, server))
+        server.start()
+
+    def _on_client(self, spec: StreamEndpoint, sock: Any, addr: Any) -> None:  # loop thread
+        name = f"{spec.text}<{addr[0]}:{addr[1]}>"
+        if not self._running:
+            sock.close()
+            return
+        link = self.new_link(name, spec)
+
+        def on_link(up: bool) -> None:
+            if not up:
+                self.loop.call_soon(lambda: self._client_closed(link))
+
+        def no_reopen() -> Any:
+            raise OSError("an accepted client is not reopened")
+
+        link.engine = PortEngine(no_reopen, name=name, protocol=link, loop=self.loop,
+                                 queue_depth=self.queue_depth, reopen=False, on_link=on_link)
+        self.links.append(link)
+        link.engine.start_with(SocketPort(sock, name))
+        log.info("%s: %s %s:%s connected", self.name, self.label, addr[0], addr[1])
+
+    def _client_closed(self, link: L) -> None:
+        if link not in self.links:
+            return
+        self.links.remove(link)
+        if link.engine is not None:
+            link.engine.close(CLOSE_TIMEOUT_S)
+        if self.on_closed is not None:
+            self.on_closed(link)
+        log.info("%s: %s left", self.name, link.name)
+
+    def _stream(self, spec: StreamEndpoint) -> None:
+        link = self.new_link(spec.text, spec)
+
+        def opener() -> Any:
+            if spec.kind == "tcp":
+                return open_tcp_client(spec.host, spec.port)
+            return open_serial_nonblocking(spec.device, spec.baudrate)
+
+        on_link = getattr(link, "on_link", None)
+        link.engine = PortEngine(opener, name=spec.text, protocol=link, loop=self.loop,
+                                 queue_depth=self.queue_depth, on_link=on_link)
+        self.links.append(link)
+        link.engine.start()
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Stop listening and close every link (from any thread but the loop's)."""
+        if not self._running:
+            for _, sock in self._listeners:
+                sock.close()
+            self._listeners.clear()
+            return
+        self._running = False
+        done = threading.Event()
+
+        def stop() -> None:
+            for _, server in self.servers:
+                server.close()
+            for link in list(self.links):
+                if link.engine is not None:
+                    link.engine.close(CLOSE_TIMEOUT_S)
+            done.set()
+
+        self.loop.call_soon(stop)
+        done.wait(timeout)
