@@ -27,6 +27,10 @@ Choices:
   left is 1..6 bytes, less than an idle packet (6-byte header + at least one data byte), the idle
   packet starts there and fills the whole of one more frame, whose pointer is then ``0x7FF``:
   no packet header is ever cut short, and fprime-gds drops the idle packet after reassembling it.
+- fprime-gds completes a packet that spans frames only when a later frame's pointer shows where
+  the next packet starts.  So a call whose last frame would hold nothing but the tail of a
+  spanning packet (it ends exactly at the frame's end) gets one more frame holding an idle
+  packet: every call's packets reach the ground with that call's frames, none waits for the next.
 - Counts run on across calls (frame counts wrap at 256, sequence counts at 16384), so a ground
   deframer that checks them sees no gap; each peer needs its own framer.
 - Frames are at most 2048 bytes (the CCSDS TM limit, which keeps every data field offset below
@@ -185,6 +189,8 @@ class CcsdsFramer:
             starts.append(len(stream))
             stream += self._space_packet(packet[0] << 8 | packet[1], packet)
         room = -len(stream) % self.field_size
+        if room == 0 and starts[-1] < len(stream) - self.field_size:
+            room = self.field_size  # see the module docstring: a spanning packet ends the call
         if room:
             if room < SP_HEADER_SIZE + 1:  # the idle packet runs through one more frame
                 room += self.field_size
