@@ -394,6 +394,16 @@ def test_known_type_of_impossible_length_is_dropped(data: str) -> None:
         decode_frame_data(bytes.fromhex(data))
 
 
+@pytest.mark.parametrize("ftype", sorted(ESCAPED_BYTES))
+def test_an_escaped_type_byte_round_trips(ftype: int) -> None:
+    """Even the type byte is escaped in API 2 (digi-xbee's unescaping agrees)."""
+    rec = UnknownFrame(ftype, bytes([0x7E, 0x00, 0x7D]))
+    raw = encode(rec, 2)
+    assert raw[3] == 0x7D
+    assert bytes(XBeePacket.unescape_data(bytearray(raw))) == encode(rec, 1)
+    assert decode_all(raw, 2) == [rec]
+
+
 def test_checksum_and_escape_follow_the_spec_rule() -> None:
     assert checksum(bytes.fromhex("08 52 50 4c 02")) == 0x07
     assert escape(bytes([0x7E, 0x7D, 0x11, 0x13, 0x12])) == bytes.fromhex("7d5e 7d5d 7d31 7d33 12")

@@ -1,2 +1,1 @@
-"""XBee radio link (seed 004): API frames (:mod:`.frames`) and the link's compact packets
-(:mod:`.packets`), both sans-I/O."""
+"""XBee radio link (seed 004): API frames (frames.py) and compact link packets (packets.py)."""
