@@ -6,7 +6,10 @@ synchronisation: waits poll a condition or block on one, always with a deadline.
 
 from __future__ import annotations
 
+import contextlib
 import io
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -81,10 +84,14 @@ class Running:
     ``wait_line`` blocks until a line matches (or the deadline passes)."""
 
     def __init__(self, *args: str, cmd: Sequence[str] = GATEWAY,
-                 timeout: float = 20.0) -> None:
+                 timeout: float = 20.0, group: bool = False) -> None:
+        """``group``: the process leads a process group of its own, and :meth:`stop` ends
+        the whole group (for a launcher that starts children of its own: fprime-gds)."""
         self.timeout = timeout
+        self.group = group
         self.proc = subprocess.Popen([*cmd, *args], cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True, bufsize=1)
+                                     stderr=subprocess.PIPE, text=True, bufsize=1,
+                                     start_new_session=group)
         self.lines: dict[str, list[str]] = {"stdout": [], "stderr": []}
         self.cond = threading.Condition()
         self.eof = 0
@@ -117,6 +124,28 @@ class Running:
         for th in self.threads:
             th.join(5)
         return rc
+
+    def stop(self, timeout: float = 10.0) -> int:
+        """Terminate it (its whole group if ``group``), kill what is left after ``timeout``,
+        and collect its output; returns its exit status."""
+        def signal_all(sig: int) -> None:
+            with contextlib.suppress(ProcessLookupError):
+                if self.group:
+                    os.killpg(self.proc.pid, sig)
+                else:
+                    self.proc.send_signal(sig)
+
+        signal_all(signal.SIGTERM)
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            signal_all(signal.SIGKILL)
+            self.proc.wait(5)
+        if self.group:  # children that outlived their leader
+            signal_all(signal.SIGKILL)
+        for th in self.threads:
+            th.join(5)
+        return self.proc.returncode
 
     def kill(self) -> None:
         if self.proc.poll() is None:
