@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import re
 import struct
+from pathlib import Path
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -12,6 +14,7 @@ from backends.fprime.channels import (
     ALTITUDE,
     ARMED,
     CHANNELS,
+    DEFAULT_ID_BASE,
     MODE_CH,
     STATE_CH,
     WRITERS,
@@ -133,9 +136,20 @@ def test_workstation_time_keeps_the_flight_computers_spacing_and_resyncs_on_a_ju
     assert first == (TB_WORKSTATION_TIME, 0, 1_700_000_000, 0)
     wall.t += 0.137  # the update arrived late: its own 10 ms spacing is kept
     assert clock.tag(10_010) == (TB_WORKSTATION_TIME, 0, 1_700_000_000, 10_000)
-    wall.t += RESYNC_S + 5  # a gap longer than the timestamps say: anchored again
-    t = clock.tag(10_020)
-    assert (t[2] + t[3] / 1e6) == wall.t and clock.resyncs == 1
+    wall.t += 1.0  # a replay at 10x: the uptime runs ahead of the clock, spacing kept
+    assert clock.tag(20_010) == (TB_WORKSTATION_TIME, 0, 1_700_000_010, 10_000)
+    assert clock.resyncs == 0
+    wall.t += 30 + RESYNC_S  # a gap: the updates stamped far behind the clock
+    t = clock.tag(20_020)
+    assert (t[2], t[3]) == (int(wall.t), round(wall.t % 1 * 1e6)) and clock.resyncs == 1
     wall.t += 1.0
-    assert clock.tag(5) is not None and clock.resyncs == 2  # the board rebooted
+    t = clock.tag(5)  # the board rebooted: its uptime went back
+    assert (t[2], t[3]) == (int(wall.t), round(wall.t % 1 * 1e6)) and clock.resyncs == 2
     assert clock.tag() == (TB_WORKSTATION_TIME, 0, int(wall.t), round(wall.t % 1 * 1e6))
+
+
+def test_the_readme_lists_every_channel_with_its_default_id() -> None:
+    readme = (Path(__file__).resolve().parents[1] / "backends" / "fprime" / "README.md")
+    rows = dict(re.findall(r"^\| (\d+) \| `([\w.]+)` \|", readme.read_text(), re.M))
+    listed = {name: int(i) for i, name in rows.items()}
+    assert listed == {c.full_name(): DEFAULT_ID_BASE + c.offset for c in CHANNELS}

@@ -29,8 +29,8 @@ TB_FPGA_TIME = 4
 TB_DONT_CARE = 0xFFFF
 TIME_BASES = {"none": TB_NONE, "proc": TB_PROC_TIME, "workstation": TB_WORKSTATION_TIME,
               "spacecraft": TB_SC_TIME, "fpga": TB_FPGA_TIME, "dont-care": TB_DONT_CARE}
-#: A flight computer's time that strays this far from the gateway's clock is anchored again
-#: (it rebooted, its 32-bit ms counter wrapped, a replay jumped).
+#: An update stamped this far behind the gateway's clock (after a gap: the link was down, a
+#: replay paused) is anchored again.
 RESYNC_S = 2.0
 
 TimeTag = tuple[int, int, int, int]  # base, context, seconds, microseconds
@@ -42,7 +42,10 @@ class UpdateClock:
     With time base ``proc`` the tag is that uptime itself.  With any other base (default
     ``workstation``) the uptime is anchored once to the gateway's clock, so the ground sees
     wall-clock times spaced exactly as the flight computer stamped them, free of radio and
-    scheduling jitter; it is anchored again when the two stray more than :data:`RESYNC_S`.
+    scheduling jitter.  It is anchored again when the uptime goes back (a reboot, the 32-bit
+    ms counter's wrap, a replay starting over) or falls more than :data:`RESYNC_S` behind the
+    clock (a gap); an uptime running ahead (a simulation or replay faster than real time)
+    keeps its spacing, so the ground's times never go back while the uptime does not.
     A message without a timestamp is tagged with the gateway's clock.
     """
 
@@ -56,6 +59,7 @@ class UpdateClock:
         self.context = context
         self.clock = clock
         self.anchor: float | None = None
+        self.last = 0.0  # the last update's uptime, s
         self.resyncs = 0
 
     def tag(self, timestamp_ms: int | None = None) -> TimeTag:
@@ -65,11 +69,13 @@ class UpdateClock:
             return (self.base, self.context, timestamp_ms // 1000, timestamp_ms % 1000 * 1000)
         now = self.clock()
         t = timestamp_ms / 1000.0
-        if self.anchor is None or abs(self.anchor + t - now) > RESYNC_S:
-            if self.anchor is not None:
+        anchor = self.anchor
+        if anchor is None or t < self.last or anchor + t < now - RESYNC_S:
+            if anchor is not None:
                 self.resyncs += 1
-            self.anchor = now - t
-        return self._split(self.anchor + t)
+            self.anchor = anchor = now - t
+        self.last = t
+        return self._split(anchor + t)
 
     def _split(self, t: float) -> TimeTag:
         us = round(t * 1e6)
