@@ -47,6 +47,8 @@ bench: bytecode
 	$(BIN)/python tools/bench/bench_fanout.py
 	$(BIN)/python tools/bench/bench_mavlink_router.py
 	$(BIN)/python tools/bench/bench_zenoh.py
+	$(BIN)/python tools/bench/bench_uavtalk.py
+	$(BIN)/python tools/bench/bench_fprime.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
