@@ -19,7 +19,8 @@ from helpers import wait_for
 
 from backends.fprime.backend import FprimeBackend
 from backends.fprime.channels import codecs
-from backends.fprime.packets import TlmPacker
+from backends.fprime.commands import NO_OP, NO_OP_RECEIVED, NOT_SUPPORTED
+from backends.fprime.packets import FW_PACKET_LOG, TlmPacker
 from dialects.states import SimpleState
 from gateway import config
 from gateway.backend import STATS_KEYS, GatewayContext, Outcome
@@ -161,24 +162,34 @@ def uplink_frame(framing: str, packet: bytes) -> bytes:
 
 
 @pytest.mark.parametrize("gateway", FRAMINGS, indirect=True)
-def test_the_grounds_uplink_is_read_counted_and_telemetry_carries_on(
+def test_commands_are_answered_with_events_and_telemetry_carries_on(
         gateway: Any, caplog: pytest.LogCaptureFixture) -> None:
     d, b = gateway
     g = Ground(b.address(), b.framing)
     try:
         assert wait_for(lambda: b.stats()["connected"] == 1)
         caplog.set_level(logging.WARNING, logger="backends.fprime.backend")
+        no_op = b.id_base + NO_OP.offset
         up = (KEEPALIVE + b"\x00garbage" + uplink_frame(b.framing, command_packet(0x1234))
-              + KEEPALIVE + uplink_frame(b.framing, command_packet(0x1234)))
+              + KEEPALIVE + uplink_frame(b.framing, command_packet(no_op))
+              + uplink_frame(b.framing, command_packet(0x1234)))
         g.sock.sendall(up)
-        assert wait_for(lambda: b.stats()["commands"] == 2)
-        link = next(iter(b.stats()["links"].values()))
-        assert link["uplink_frames"] == 2 and link["uplink_garbage_bytes"] > 0
+        assert wait_for(lambda: len(g.got()) == 3)
+        # event packets: descriptor FW_PACKET_LOG, event id, time tag, the U32 arguments
+        answers = [(*struct.unpack_from(">HI", p), p[17:]) for p in g.got()]
+        not_supported = (FW_PACKET_LOG, b.id_base + NOT_SUPPORTED.offset,
+                         struct.pack(">I", 0x1234))
+        assert answers == [not_supported, (FW_PACKET_LOG, b.id_base + NO_OP_RECEIVED.offset,
+                                           b""), not_supported]
+        st = b.stats()
+        assert st["commands"] == 3 and st["commands_not_supported"] == 2
+        link = next(iter(st["links"].values()))
+        assert link["uplink_frames"] == 3 and link["uplink_keepalives"] == 2
+        assert link["uplink_garbage_bytes"] > 0 and link["uplink_bad_crc"] == 0
         # one warning per opcode, naming it
-        assert [r.getMessage() for r in caplog.records].count(
-            next(r.getMessage() for r in caplog.records if "0x1234" in r.getMessage())) == 1
+        assert sum("0x1234" in r.getMessage() for r in caplog.records) == 1
         dispatch_paced(d, [sm(t) for t in range(20)], [g])
-        assert wait_for(lambda: len(g.got()) == 20)
+        assert wait_for(lambda: len(g.got()) == 23)
     finally:
         g.close()
 

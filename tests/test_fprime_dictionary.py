@@ -34,6 +34,7 @@ from fprime_gds.common.utils.config_manager import ConfigManager
 
 from backends.fprime import channels as ch
 from backends.fprime.channels import CHANNELS, DEFAULT_ID_BASE, STATE_ENUM, codecs
+from backends.fprime.commands import COMMANDS, EVENTS
 from backends.fprime.dictionary import build_dictionary, write_dictionary
 from backends.fprime.packets import TB_PROC_TIME, TB_WORKSTATION_TIME, TlmPacker, UpdateClock
 from dialects.states import SimpleState
@@ -165,7 +166,11 @@ def test_fprime_gds_loads_it_without_fallbacks(gds: Gds) -> None:
     assert set(dicts.channel_id) == {DEFAULT_ID_BASE + c.offset for c in CHANNELS}
     assert set(dicts.channel_name) == {c.full_name() for c in CHANNELS}
     assert dicts.packet is None  # no packet sets: channels arrive as FW_PACKET_TELEM
-    assert dicts.command_id == {} and dicts.event_id == {}
+    assert {c.get_full_name() for c in dicts.command_id.values()} == {
+        c.full_name() for c in COMMANDS}
+    assert set(dicts.command_id) == {DEFAULT_ID_BASE + c.offset for c in COMMANDS}
+    assert {e.get_full_name() for e in dicts.event_id.values()} == {
+        e.full_name() for e in EVENTS}
     assert dicts.metadata["deploymentName"] == ch.DEPLOYMENT
     # the enum: the state machine's names and numbers, U8 on the wire
     state = dicts.channel_name["Aurora.flight.State"].get_type_obj()

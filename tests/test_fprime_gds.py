@@ -1,8 +1,9 @@
 """End to end with the real F´ ground system: ``aurora-gateway run --source sim --fprime
 tcpin:…`` served to a headless ``fprime-gds`` (``-n -g none --ip-client``) started with the
 dictionary ``aurora-gateway fprime-dictionary`` wrote, in both framings; fprime-gds's own
-Python API (``tests/fprime_peer.py``) reads the channels it decoded.  Every value is checked
-against the gateway's own recording of the flight, matched by the flight computer's uptime."""
+Python API (``tests/fprime_peer.py``) reads the channels it decoded and sends the gateway's
+NO_OP command.  Every value is checked against the gateway's own recording of the flight,
+matched by the flight computer's uptime; the command's answer is the gateway's event."""
 
 from __future__ import annotations
 
@@ -73,6 +74,7 @@ def test_headless_fprime_gds_shows_the_simulated_flight(framing: str, workdir: P
     zmq = [f"ipc://{workdir}/in", f"ipc://{workdir}/out"]
     values: dict[float, dict[str, list[Any]]] = defaultdict(lambda: defaultdict(list))
     ready, flown = threading.Event(), threading.Event()
+    events: list[dict[str, Any]] = []
     order = ["ARMED", "BOOST", "APOGEE"]  # a whole ascent, seen from the pad
 
     def read_peer(peer: subprocess.Popen[str]) -> None:
@@ -80,6 +82,8 @@ def test_headless_fprime_gds_shows_the_simulated_flight(framing: str, workdir: P
         for line in peer.stdout:
             v = json.loads(line)
             ready.set()
+            if "event" in v:
+                events.append(v)
             if "name" in v:
                 values[v["t"]][v["name"]].append(v["value"])
                 if v["name"] == FLIGHT + "State" and order and v["value"] == order[0]:
@@ -98,9 +102,10 @@ def test_headless_fprime_gds_shows_the_simulated_flight(framing: str, workdir: P
         assert gds.wait_line("stdout", lambda line: "F prime is now running" in line), \
             gds.text("stdout") + gds.text("stderr")
         peer_err = stack.enter_context((workdir / "peer.err").open("w"))
-        peer = subprocess.Popen([*PEER, str(dictionary), *zmq, "120",
-                                 str(workdir / "peer-logs")], stdout=subprocess.PIPE,
-                                stderr=peer_err, text=True, bufsize=1)
+        peer = subprocess.Popen(
+            [*PEER, str(dictionary), *zmq, "120", str(workdir / "peer-logs"),
+             "Aurora.gateway.NO_OP"], stdout=subprocess.PIPE, stderr=peer_err, text=True,
+            bufsize=1)
         reader = threading.Thread(target=read_peer, args=(peer,), daemon=True)
         reader.start()
         stack.callback(reader.join, 10)
@@ -115,6 +120,8 @@ def test_headless_fprime_gds_shows_the_simulated_flight(framing: str, workdir: P
             f"no flight seen\ngateway: {gateway.text('stderr')[-2000:]}\n"
             f"fprime-gds: {gds.text('stdout')[-2000:]} {gds.text('stderr')[-2000:]}\n"
             f"peer: {(workdir / 'peer.err').read_text()[-2000:]}")
+    # the command went up through fprime-gds (in this framing) and the gateway's event came back
+    assert [e["event"] for e in events] == ["Aurora.gateway.NoOpReceived"], events
     # fprime-gds decoded nothing wrong: no checksum warnings, no rejected packets
     gds_said = gds.text("stdout") + gds.text("stderr")
     logs = "".join(p.read_text(errors="replace") for p in (workdir / "logs").rglob("*.log"))

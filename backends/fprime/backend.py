@@ -9,19 +9,22 @@ fprime-dictionary`` writes the JSON dictionary that lets ``fprime-gds`` decode t
 Endpoints (``endpoints``, ``--fprime``, repeatable) are those of :mod:`gateway.links`:
 ``tcpin:HOST:PORT`` is what ``fprime-gds --ip-client`` connects to (its default port 50000);
 ``tcp:HOST:PORT`` connects out to a ``fprime-gds`` acting as the server; a serial device or
-pyserial URL is a radio or UART (``fprime-gds --comm-adapter uart``).
+pyserial URL is a radio or UART (``fprime-gds --communication-selection uart``).
 
 Each link has its own framer, so its frame and sequence counts run on without gaps for its
 peer.  The ground writes up the same connection (keep-alives, framed commands): it is read
-and counted; a command is logged once per opcode and not executed (the gateway has no F´
-command dispatcher).  Framing runs on the dispatcher's thread (a few µs per message); the
-engines only queue and write, and a peer that does not read fills its own queue and loses
-frames (``dropped``), nobody else waits.
+and counted; the command ``Aurora.gateway.NO_OP`` is answered with an event, any other with
+the event ``CommandNotSupported`` (and a log line, once per opcode): see :mod:`.commands`.
+
+Framing runs on the dispatcher's thread (a few µs per message); the engines only queue and
+write, and a peer that does not read fills its own queue and loses frames (``dropped``),
+nobody else waits.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
@@ -32,6 +35,7 @@ from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Sta
 from gateway.port import PortEngine
 
 from .channels import DEFAULT_ID_BASE, ChannelCodec, Getter, check_id_base, codecs
+from .commands import NO_OP, CommandHandler
 from .framing import DEFAULT_FRAMING, FRAMINGS, make_deframer, make_framer
 from .packets import DEFAULT_BUFFER_SIZE, TIME_BASES, TlmPacker, UpdateClock
 
@@ -39,7 +43,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SERIAL_BAUD = 115200
 USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
-FW_PACKET_COMMAND = 0
 _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
@@ -62,6 +65,7 @@ class Link:
         self.engine: PortEngine | None = None
         self.framer = backend.new_framer()
         self.deframer = backend.new_deframer()
+        self.lock = threading.Lock()
         self.sent = 0
         self.sent_bytes = 0
         self.dropped = 0
@@ -69,17 +73,22 @@ class Link:
 
     def feed(self, data: bytes) -> tuple[()]:  # the loop's thread
         for packet in self.deframer.feed(data):
-            if len(packet) >= 2 and int.from_bytes(packet[:2], "big") == FW_PACKET_COMMAND:
+            answer = self.backend.command(packet)
+            if answer is not None:
                 self.commands += 1
-                self.backend.command(packet)
+                self.send([answer])
         return ()
 
-    def send(self, packets: list[bytes]) -> None:  # the dispatcher's thread
+    def send(self, packets: list[bytes]) -> None:
+        """Frame and queue ``packets`` (telemetry from the dispatcher's thread, answers to
+        commands from the loop's: one lock keeps the framer's counts in order)."""
         engine = self.engine
         if engine is None or not engine.connected:
             return
-        data = self.framer.frame(packets)
-        if engine.submit(data, rate_limited=False) is _ACCEPTED:
+        with self.lock:
+            data = self.framer.frame(packets)
+            outcome = engine.submit(data, rate_limited=False)
+        if outcome is _ACCEPTED:
             self.sent += 1
             self.sent_bytes += len(data)
         else:
@@ -152,6 +161,7 @@ class FprimeBackend(Backend):
         self._running = False
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
                         "clients_closed": 0}
+        self.commands = CommandHandler(id_base)
         self._commands_seen: set[int] = set()
         self.messages = 0
         self.packets = 0
@@ -204,13 +214,17 @@ class FprimeBackend(Backend):
             t[key] += d[key]
         t["clients_closed"] += 1
 
-    def command(self, packet: bytes) -> None:
-        """A command packet came up: the gateway has no F´ commands; say so once per opcode."""
-        opcode = int.from_bytes(packet[2:6], "big") if len(packet) >= 6 else -1
-        if opcode not in self._commands_seen:
-            self._commands_seen.add(opcode)
-            log.warning("%s: F´ command opcode %#x received and not executed: the gateway "
-                        "serves telemetry only", self.name, opcode)
+    def command(self, packet: bytes) -> bytes | None:
+        """The event packet answering a command packet from the ground (None: not a
+        command); an opcode the gateway does not have is also logged, once per opcode."""
+        answer = self.commands.handle(packet, self.clock.tag())
+        if answer is not None:
+            opcode = self.commands.opcode(packet)
+            if opcode != self.id_base + NO_OP.offset and opcode not in self._commands_seen:
+                self._commands_seen.add(opcode)
+                log.warning("%s: F´ command opcode %#x is not supported (answered with the "
+                            "event CommandNotSupported)", self.name, opcode)
+        return answer
 
     # -- routes ----------------------------------------------------------------------------------
 
@@ -259,4 +273,5 @@ class FprimeBackend(Backend):
                 "link": int(connected > 0), "messages": self.messages, "packets": self.packets,
                 "channel_values": self.entries, "dropped_too_big": self.packer.too_big,
                 "time_resyncs": self.clock.resyncs, "clients": len(links),
+                "commands_not_supported": self.commands.not_supported,
                 "connected": connected, "clients_closed": t["clients_closed"], "links": per}

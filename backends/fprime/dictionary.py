@@ -2,12 +2,14 @@
 
 The document follows the FPP JSON dictionary specification (``dictionarySpecVersion`` 1.0.0) as
 F´ v4 writes it and fprime-gds 4.4.1 reads it: every section its loaders require is present
-(empty where the gateway has nothing: no commands, events, parameters, data products or
-packet sets), one entry per channel of :data:`~backends.fprime.channels.CHANNELS`, and the
+(empty where the gateway has nothing: no parameters, data products or packet sets), one
+entry per channel of :data:`~backends.fprime.channels.CHANNELS`, the command and events of
+:mod:`~backends.fprime.commands`, and the
 type definitions the ground needs to decode our packets, so decoding never rests on
 fprime-gds's built-in fallbacks:
 
-- ``FwPacketDescriptorType`` (U16), ``FwChanIdType`` (U32), ``FwSizeStoreType`` (U16, the
+- ``FwPacketDescriptorType`` (U16), ``FwChanIdType``, ``FwOpcodeType``, ``FwEventIdType``
+  (U32), ``FwSizeStoreType`` (U16, the
   string channel's length prefix), ``FwTimeBaseStoreType`` (U16), ``FwTimeContextStoreType``
   (U8): aliases, as F´ v4 declares them;
 - ``TimeBase`` (enum over U16, every base :data:`~backends.fprime.packets.TIME_BASES` can
@@ -30,6 +32,7 @@ from typing import Any, TextIO
 
 from backends.fprime import channels, packets
 from backends.fprime.channels import CHANNELS, DEFAULT_ID_BASE, FW_TRUE, FType
+from backends.fprime.commands import COMMANDS, EVENTS
 
 #: The FPP JSON dictionary specification version written.
 SPEC_VERSION = "1.0.0"
@@ -92,6 +95,8 @@ def type_definitions() -> list[dict[str, Any]]:
         _alias("FwPacketDescriptorType", FType(f"U{descriptor}", "integer", descriptor),
                "The width of packet descriptors when they are serialized by the framework"),
         _alias("FwChanIdType", _U32, "The type of a telemetry channel identifier"),
+        _alias("FwOpcodeType", _U32, "The type of a command opcode"),
+        _alias("FwEventIdType", _U32, "The type of an event identifier"),
         _alias("FwSizeStoreType", _U16, "The type used to serialize a size value"),
         _alias("FwTimeBaseStoreType", _U16, "The type used to serialize a time base value"),
         _alias("FwTimeContextStoreType", _U8,
@@ -121,6 +126,18 @@ def telemetry_channels(id_base: int = DEFAULT_ID_BASE) -> list[dict[str, Any]]:
             entry["format"] = ch.fmt
         out.append(entry)
     return out
+
+
+def commands_and_events(id_base: int = DEFAULT_ID_BASE) -> tuple[list[dict[str, Any]],
+                                                                  list[dict[str, Any]]]:
+    """The ``commands`` and ``events`` sections (:mod:`.commands`), ids ``id_base + offset``."""
+    cmds = [{"name": c.full_name(), "commandKind": "sync", "opcode": id_base + c.offset,
+             "formalParams": [], "annotation": c.annotation} for c in COMMANDS]
+    events = [{"name": e.full_name(), "severity": e.severity, "id": id_base + e.offset,
+               "format": e.format, "annotation": e.annotation,
+               "formalParams": [{"name": n, "type": {"U32": _U32}[t].descriptor(), "ref": False}
+                                for n, t in e.args]} for e in EVENTS]
+    return cmds, events
 
 
 def project_version() -> str:
@@ -153,6 +170,7 @@ def build_dictionary(id_base: int = DEFAULT_ID_BASE, *, scid: int | None = None,
             raise ValueError(f"TM frame size {frame_size} is not 1..65535")
         constants.append(_constant("ComCfg.TmFrameFixedSize", frame_size,
                                    "Fixed size of CCSDS TM frames"))
+    cmds, events = commands_and_events(id_base)
     return {
         "metadata": {
             "deploymentName": channels.DEPLOYMENT,
@@ -163,9 +181,9 @@ def build_dictionary(id_base: int = DEFAULT_ID_BASE, *, scid: int | None = None,
         },
         "typeDefinitions": type_definitions(),
         "constants": constants,
-        "commands": [],
+        "commands": cmds,
         "parameters": [],
-        "events": [],
+        "events": events,
         "telemetryChannels": telemetry_channels(id_base),
         "records": [],
         "containers": [],
