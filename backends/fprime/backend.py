@@ -36,7 +36,14 @@ from gateway.port import PortEngine
 
 from .channels import DEFAULT_ID_BASE, ChannelCodec, Getter, check_id_base, codecs
 from .commands import NO_OP, CommandHandler
-from .framing import DEFAULT_FRAMING, FRAMINGS, make_deframer, make_framer
+from .framing import (
+    DEFAULT_FRAMING,
+    FRAMINGS,
+    TM_MAX_FRAME,
+    TM_MIN_FRAME,
+    make_deframer,
+    make_framer,
+)
 from .packets import DEFAULT_BUFFER_SIZE, TIME_BASES, TlmPacker, UpdateClock
 
 log = logging.getLogger(__name__)
@@ -127,7 +134,8 @@ class FprimeBackend(Backend):
         vcid=Key(int, 1, "ccsds: virtual channel id (fprime-gds --vcid)", minimum=0,
                  maximum=7),
         frame_size=Key(int, 1024, "ccsds: TM frame size (fprime-gds --frame-size or the "
-                       "dictionary's ComCfg.TmFrameFixedSize)", minimum=64, maximum=2048),
+                       "dictionary's ComCfg.TmFrameFixedSize)", minimum=TM_MIN_FRAME,
+                       maximum=TM_MAX_FRAME),
         queue_depth=Key(int, 64, "writes waiting per peer before drops", minimum=1,
                         maximum=4096),
     )

@@ -33,6 +33,7 @@ from typing import Any, TextIO
 from backends.fprime import channels, packets
 from backends.fprime.channels import CHANNELS, DEFAULT_ID_BASE, FW_TRUE, FType
 from backends.fprime.commands import COMMANDS, EVENTS
+from backends.fprime.framing import TM_MAX_FRAME, TM_MIN_FRAME
 
 #: The FPP JSON dictionary specification version written.
 SPEC_VERSION = "1.0.0"
@@ -166,8 +167,8 @@ def build_dictionary(id_base: int = DEFAULT_ID_BASE, *, scid: int | None = None,
         constants.append(_constant("ComCfg.SpacecraftId", scid,
                                    "Spacecraft ID (10 bits) for CCSDS Data Link layer"))
     if frame_size is not None:
-        if not 0 < frame_size <= 0xFFFF:
-            raise ValueError(f"TM frame size {frame_size} is not 1..65535")
+        if not TM_MIN_FRAME <= frame_size <= TM_MAX_FRAME:
+            raise ValueError(f"TM frame size {frame_size} is not {TM_MIN_FRAME}..{TM_MAX_FRAME}")
         constants.append(_constant("ComCfg.TmFrameFixedSize", frame_size,
                                    "Fixed size of CCSDS TM frames"))
     cmds, events = commands_and_events(id_base)

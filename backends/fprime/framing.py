@@ -81,6 +81,8 @@ TM_HEADER = struct.Struct(">HBBH")  # frame id, MC count, VC count, data field s
 TM_HEADER_SIZE = TM_HEADER.size
 CRC_SIZE = 2
 TM_MAX_FRAME = 2048
+#: The smallest TM frame that holds a header, one 1-byte Space Packet and the CRC.
+TM_MIN_FRAME = TM_HEADER_SIZE + SP_HEADER_SIZE + 1 + CRC_SIZE
 DFS_SEGMENT_LENGTH_ID = 0b11 << 11
 FHP_NO_PACKET_START = 0x7FF
 
@@ -151,9 +153,9 @@ class CcsdsFramer:
             raise ValueError(f"spacecraft id {scid} is not 10 bits (0..1023)")
         if not 0 <= vcid <= 7:
             raise ValueError(f"virtual channel id {vcid} is not 3 bits (0..7)")
-        low = TM_HEADER_SIZE + SP_HEADER_SIZE + 1 + CRC_SIZE
-        if not low <= frame_size <= TM_MAX_FRAME:
-            raise ValueError(f"TM frame size {frame_size} is not within {low}..{TM_MAX_FRAME}")
+        if not TM_MIN_FRAME <= frame_size <= TM_MAX_FRAME:
+            raise ValueError(f"TM frame size {frame_size} is not within "
+                             f"{TM_MIN_FRAME}..{TM_MAX_FRAME}")
         self.scid = scid
         self.vcid = vcid
         self.frame_size = frame_size
