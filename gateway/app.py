@@ -15,6 +15,7 @@ from gateway.dispatcher import Dispatcher
 from gateway.model import kind
 from gateway.monitor import LinkMonitor
 from gateway.recording import Recorder, RecordingError
+from gateway.sources import SourceInbox
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,9 @@ class Gateway:
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
         for p in cfg.backends:
             self.dispatcher.add(_build(p, f"backends.{p.name}"))
+        for src in self.sources:  # a source that also takes messages (commands to send up)
+            if len(src.routes()):
+                self.dispatcher.add(SourceInbox(src))
         self.started_at: float | None = None
         self.stop_event = threading.Event()
 

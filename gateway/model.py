@@ -263,12 +263,29 @@ class VehicleState(NamedTuple):
         return own_fields(self)
 
 
+class RcChannels(NamedTuple):
+    """Pilot or servo commands from a ground link (an RC receiver's channels, an XBee command
+    packet, a ground station's RC override): pulse widths in µs, 1000..2000 nominal, channel
+    ``i`` at index ``i``; ``None`` = not sent (a channel the sender leaves alone).
+    ``seq``: the sender's sequence number, when its protocol has one."""
+
+    channels_us: tuple[int | None, ...]
+    seq: int | None = None
+    origin: str = ""
+    via: str = ""
+
+
+    def fields(self) -> dict[str, Any]:
+        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        return own_fields(self)
+
+
 #: The name of each message type in counters, recordings and publications.  A backend package
 #: may define more message types (routing is by type); they are named by :func:`kind` too.
 KINDS: dict[type, str] = {
     SmUpdate: "sm_update", Status: "status", RawFrame: "raw", LinkEvent: "link",
     LinkStats: "link_stats", Position: "position", Battery: "battery",
-    VehicleState: "vehicle_state",
+    VehicleState: "vehicle_state", RcChannels: "rc_channels",
 }
 
 #: The message classes defined here.
@@ -293,4 +310,4 @@ def own_fields(msg: Any) -> dict[str, Any]:
     return d
 
 Message = (SmUpdate | Status | RawFrame | LinkEvent | LinkStats | Position | Battery
-           | VehicleState)
+           | VehicleState | RcChannels)

@@ -28,7 +28,7 @@ from backends.crsf import flags as crsf_flags
 from backends.crsf.frames import LinkStatistics, RcChannels, encode
 from backends.crsf.ports import PtyPair
 from dialects.states import SimpleState
-from gateway import config
+from gateway import config, model
 from gateway.backend import Backend, GatewayContext, Outcome, Routes
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
@@ -64,9 +64,11 @@ class Recorder(Backend):
         self.sm: list[SmUpdate] = []
         self.link_stats: list[LinkStats] = []
         self.got_stats = threading.Event()
+        self.rc: list[model.RcChannels] = []
 
     def routes(self) -> Routes:
-        return Routes().on(SmUpdate, self.send_sm_update).on(LinkStats, self.send_link_stats)
+        return (Routes().on(SmUpdate, self.send_sm_update).on(LinkStats, self.send_link_stats)
+                .on(model.RcChannels, self.rc.append))
 
     def send_sm_update(self, m: SmUpdate) -> None:
         self.sm.append(m)
@@ -172,6 +174,10 @@ def test_own_pty_sends_telemetry_and_reads_the_receiver() -> None:
         check_link_stats(rec.link_stats[0])
         assert wait_for(lambda: b.rc_frames == 1)
         assert b.rc_channels == channels
+        # the sticks reach the gateway as pulse widths (EdgeTX: 172 → 988 µs, 992 → 1500 µs)
+        assert wait_for(lambda: len(rec.rc) == 1)
+        assert rec.rc[0].channels_us == tuple(round(1500 + (v - 992) * 5 / 8) for v in channels)
+        assert rec.rc[0].channels_us[0] == 988 and rec.rc[0].origin == b.name
         st = b.stats()
         assert st["link_stats"] == 1 and st["rx_bytes_skipped"] == 8 and st["sent"] >= 3
     finally:

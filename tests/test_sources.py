@@ -25,9 +25,10 @@ from helpers import run_within
 from dialects.states import SimpleState as S
 from gateway import recording
 from gateway.app import Gateway
-from gateway.config import ConfigError, parse
+from gateway.backend import Routes
+from gateway.config import ConfigError, GatewayConfig, Part, parse
 from gateway.flight import FlightModel, FlightProfile
-from gateway.model import RawFrame, SmUpdate, Status
+from gateway.model import RawFrame, RcChannels, SmUpdate, Status
 from gateway.recording import Recorder
 from gateway.sources import Source
 from gateway.sources.replay import ReplaySource
@@ -612,3 +613,41 @@ def test_the_gateway_drives_sources_through_the_public_contract_only() -> None:
     assert a.calls == b.calls == ["attach", "start", "request_stop", "stop"]
     assert summary["messages_in"] == {"raw": 2}
     assert summary["sources"] == {"a": {"calls": 4}, "b": {"calls": 4}}
+
+
+class _Uplink(Source):
+    """A source that also sends (as an XBee ground link sends the pilot's commands up)."""
+
+    NAME = "uplink"
+
+    def __init__(self, name: str | None = None) -> None:
+        super().__init__(name)
+        self.taken: list[RcChannels] = []
+        self.got = threading.Event()
+
+    def routes(self) -> Routes:
+        return Routes().on(RcChannels, self.take)
+
+    def take(self, msg: RcChannels) -> None:
+        self.taken.append(msg)
+        self.got.set()
+
+    def inbox_stats(self) -> dict[str, int]:
+        return {"taken": len(self.taken)}
+
+    def run(self, stop: threading.Event) -> None:
+        stop.wait()
+
+
+def test_a_source_with_routes_gets_the_gateways_messages() -> None:
+    cfg = GatewayConfig(sources=[Part("uplink", "up", {}, _Uplink)])
+    gw = Gateway(cfg)
+    gw.start()
+    try:
+        (src,) = gw.sources
+        sticks = RcChannels((1500, 1000, None), origin="crsf")
+        gw.ingest(sticks)  # e.g. a CRSF receiver's channels, handed on by its backend
+        assert src.got.wait(5) and src.taken == [sticks]
+        assert gw.dispatcher.stats()["up (in)"]["taken"] == 1
+    finally:
+        gw.stop()

@@ -88,6 +88,9 @@ BUSY_RETRY_S = 0.005  # the port is still writing: look again this soon
 MIN_WAIT_S = 0.001
 WRITE_TIMEOUT_S = 0.5  # a serial write stuck longer fails (and the port is reopened)
 CLOSE_TIMEOUT_S = 0.5
+#: The receiver's RC frames come at its packet rate (up to 1 kHz): unchanged sticks are passed
+#: on to the gateway at most this often.
+RC_EMIT_INTERVAL_S = 0.02
 _HEALTH_CHECKS = (("imu_ok", "IMU"), ("baro_ok", "BARO"), ("calibrated", "CAL"),
                   ("log_ready", "LOG"))
 
@@ -218,6 +221,9 @@ class CrsfBackend(Backend):
         self.voltages_ignored = 0
         self.last_link_stats: LinkStatistics | None = None
         self.rc_channels: tuple[int, ...] | None = None
+        self.rc_emitted = 0
+        self._last_rc: tuple[int, ...] | None = None
+        self._last_rc_emit = -math.inf
         self._last_stats_emit = -math.inf
 
     # -- configuration ---------------------------------------------------------------------
@@ -429,8 +435,30 @@ class CrsfBackend(Backend):
         elif isinstance(rec, RcChannels):
             self.rc_frames += 1
             self.rc_channels = rec.channels
+            self._emit_rc(rec)
         else:
             self.rx_other += 1
+
+    def _emit_rc(self, rec: RcChannels) -> None:
+        """The pilot's sticks as a gateway message (for an XBee ground link to send up, a
+        MAVLink ground station to show), at most every ``RC_EMIT_INTERVAL_S`` unless they
+        moved."""
+        sink = self._sink
+        if sink is None:
+            return
+        now = self._clock()
+        if rec.channels == self._last_rc and now - self._last_rc_emit < RC_EMIT_INTERVAL_S:
+            return
+        self._last_rc, self._last_rc_emit = rec.channels, now
+        us = tuple(round(v) for v in rec.microseconds())
+        try:
+            sink(model.RcChannels(us, origin=self.name))
+        except Exception:
+            self.emit_errors += 1
+            if self.emit_errors == 1:
+                log.exception("%s: handing RC channels to the gateway failed", self.name)
+            return
+        self.rc_emitted += 1
 
     def _emit_link_stats(self, rec: LinkStatistics) -> None:
         sink = self._sink
@@ -485,6 +513,7 @@ class CrsfBackend(Backend):
             "link_stats": self.link_stats_rx,
             "link_stats_emitted": self.link_stats_emitted,
             "rc_frames": self.rc_frames,
+            "rc_emitted": self.rc_emitted,
             "rx_other": self.rx_other,
         }
         if self.encode_errors:

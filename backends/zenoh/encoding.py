@@ -29,6 +29,7 @@ from gateway.model import (
     LinkStats,
     Position,
     RawFrame,
+    RcChannels,
     SmUpdate,
     Status,
     VehicleState,
@@ -210,6 +211,16 @@ def from_document(kind: str, d: Any, origin: str = "") -> Any:
             return _opt(d, Battery, ("voltage_v",))._replace(origin=origin)
         if kind == "vehicle_state":
             return _opt(d, VehicleState, ("armed", "mode"))._replace(origin=origin)
+        if kind == "rc_channels":
+            channels = d.get("channels_us")
+            if not isinstance(channels, list) or not all(
+                    c is None or (isinstance(c, int) and not isinstance(c, bool))
+                    for c in channels):
+                raise PayloadError("channels_us: expected a list of integers or nulls")
+            seq = d.get("seq")
+            if seq is not None and (isinstance(seq, bool) or not isinstance(seq, int)):
+                raise PayloadError(f"seq: expected an integer, got {seq!r}")
+            return RcChannels(tuple(channels), seq, origin)
     except TypeError as exc:
         raise PayloadError(str(exc)) from None
     raise PayloadError(f"no message for kind {kind!r}")

@@ -33,7 +33,7 @@ RAW = "raw"
 GATEWAY = "gateway"
 #: Kinds published as JSON documents under ``<prefix>/<vehicle>/<kind>``.
 JSON_KINDS = ("sm_update", "status", "link", "link_stats", "position", "battery",
-              "vehicle_state")
+              "vehicle_state", "rc_channels")
 
 _FORBIDDEN = re.compile(r"[*$?#\s]")
 

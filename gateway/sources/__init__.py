@@ -32,7 +32,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 from urllib.parse import urlsplit
 
-from gateway.backend import GatewayContext
+from gateway.backend import Backend, GatewayContext, Routes
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,12 @@ class Source:
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:
         """An instance from options the class's ``CONFIG`` has already validated."""
         return cls(name=name, **options)
+
+    def routes(self) -> Routes:
+        """Gateway messages this source takes (none by default): a source that also sends
+        (an XBee ground link sends the pilot's commands up) routes them like a backend; the
+        gateway hands them to it through a :class:`SourceInbox`."""
+        return Routes()
 
     def attach(self, context: GatewayContext) -> None:
         """Remember the gateway's context (called before :meth:`start`); a source that must
@@ -197,3 +203,19 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
     if not url:
         raise ValueError("empty source URL")
     return "serial", {"url": url}  # its scheme is checked with the url key (check_serial_url)
+
+
+class SourceInbox(Backend):
+    """The backend side of a source that takes gateway messages (:meth:`Source.routes`): the
+    dispatcher hands them to the source's handlers like to any backend's."""
+
+    def __init__(self, source: Source) -> None:
+        super().__init__(f"{source.name} (in)")
+        self.source = source
+
+    def routes(self) -> Routes:
+        return self.source.routes()
+
+    def stats(self) -> dict[str, Any]:
+        inbox = getattr(self.source, "inbox_stats", None)
+        return dict(inbox()) if inbox is not None else {}
