@@ -456,3 +456,39 @@ def test_main_prints_urls_and_serves() -> None:
             host.close()
     finally:
         assert proc.stop() == 0
+
+
+def test_a_packet_in_flight_keeps_its_power_and_dies_in_a_blackout(hosts: list[Host]) -> None:
+    latency = 0.4
+    with open_pair(1, 2, latency_s=latency) as pair:
+        a, b = connect(pair.module_a.port, 1), connect(pair.module_b.port, 2)
+        hosts += [a, b]
+        assert a.at("PL", xf.pl_param(1)).ok
+        fid = a.tx(ADDRESS_B, b"at PL 1")
+        assert a.at("PL", xf.pl_param(4)).ok  # answered at once, long before the packet lands
+        assert b.rx().data == b"at PL 1"
+        assert a.tx_status(fid).ok
+        assert xf.decode_db(b.at("DB").value) == RSSI[1]  # the power it went out at
+        (event,) = pair.event_list()
+        assert event.power == 1 and event.t_done - event.t_sent >= latency
+        t0 = time.monotonic()
+        fid = a.tx(ADDRESS_B, b"in flight")
+        pair.set_blackout(True)
+        assert time.monotonic() - t0 < latency  # the blackout began before it could land
+        assert a.tx_status(fid).delivery == 0x01
+        assert pair.module_a.tx_blackout[4] == 1
+
+
+def test_duty_cycle_is_the_airtime_of_the_last_second(hosts: list[Host]) -> None:
+    bitrate, size, count = 80_000, 100, 10
+    with open_pair(1, 1, bitrate=bitrate, latency_s=0.0) as pair:
+        a, b = connect(pair.module_a.port, 1), connect(pair.module_b.port, 1)
+        hosts += [a, b]
+        fids = [a.tx(ADDRESS_B, bytes(size)) for _ in range(count)]
+        for fid in fids:
+            assert a.tx_status(fid).ok
+        # 802.15.4 frame: 6 B PHY header + 21 B MAC header (64-bit addresses) + 2 B FCS
+        airtime = count * (size + 6 + 21 + 2) * 8 / bitrate
+        assert xf.at_int(a.at("DC").value) == round(100 * airtime)
+        assert [b.rx().data for _ in range(count)] == [bytes(size)] * count
+        assert xf.at_int(b.at("DC").value) == 0  # B sent nothing
