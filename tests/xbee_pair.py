@@ -44,8 +44,9 @@ Remote AT (0x17 → 0x97)
     Two legs over the air: the request at the requester's PL, then (if it arrived and the
     frame id is not 0) the response at the responder's PL after the command was applied (a
     remote ``PL`` set answers at the new level).  The command takes effect on the far module
-    when the request arrives, even if the response is lost.  A lost leg, or a destination that
-    is not the other module, gives 0x97 status 4 (TX failure) at once (no 2 s timeout).  Both
+    when the request arrives, even if the response is lost.  A lost leg gives 0x97 status 4
+    (TX failure) when it would have arrived (no 2 s timeout); a destination that is not the
+    other module gives it at once, with ``src64`` = the requested address.  Both
     legs update the receiver's DB and GD, and appear in the event log, but not in the per-power
     data counters.
 
