@@ -368,7 +368,7 @@ def test_air_power_rules() -> None:
 
 def test_stats_carry_module_values_and_commands_received() -> None:
     air = AirLink()
-    air.module(rx_errors=3, good_packets=70000, tx_errors=1, duty_cycle_pct=7)
+    air.module_readings(rx_errors=3, good_packets=70000, tx_errors=1, duty_cycle_pct=7)
     air.on_packet(cmd(0, 2) + cmd(1, 2), -71.4, 0.0)
     out = air.tick(0.0) + air.tick(0.06)
     stats = [p for o in out if isinstance(o, Send) for p in iter_decode(o.payload)

@@ -27,7 +27,8 @@ Air rules (the seed's, and the issue's decisions):
   last ACK left more than ``ack_interval`` (200 ms) ago;
 * every ``ping_interval`` (500 ms) a PING, its power cycling 0, 1, 2, 3, 4;
 * every ``stats_interval`` (100 ms) a STATS at the PL of the last packet received (4 before
-  anything was heard), holding the module values the driver last gave :meth:`AirLink.module`;
+  anything was heard), holding the readings the driver last gave
+  :meth:`AirLink.module_readings` (DB, ER, GD, TR, EA, DC) and the commands received;
 * telemetry (SM update → 24-byte SmTelem, STATUS → 9-byte StatTelem) goes at the highest PL
   among the packets received in the last ``silence`` (500 ms) — the ground picks its PL as the
   lowest one whose pings (air → ground) arrive well, so its power bits say what reaches it;
@@ -41,11 +42,11 @@ Grouping: every packet waits in one outbox with a deadline — ACK and PING now,
 ``telemetry_hold`` (20 ms) after it was queued, STATS ``stats_hold`` (50 ms, half its period)
 after it fell due.  When any packet is due, every packet waiting *at the same power* leaves with
 it, in queue order, packed by :func:`backends.xbee.packets.group` into payloads of at most
-``max_payload`` bytes (set it from ``AT NP``; 100 by default).  A PING's payload goes last and
-nothing follows it for ``ping_guard`` (20 ms): the ground's ``AT DB`` must be answered before
-its module receives another packet, or the reading is discarded.  So a STATS rides with the next
-telemetry going out at its power, and an SM update and a STATUS produced together share one RF
-packet; nothing waits more than its hold.
+``max_payload`` bytes (set it from ``AT NP``; 100 by default).  So a STATS rides with the
+next telemetry going out at its power, and an SM update and a STATUS produced together share
+one RF packet; nothing waits more than its hold (plus the guard below).  A PING's payload goes
+last and nothing follows it for ``ping_guard`` (20 ms): the ground's ``AT DB`` must be
+answered before its module receives another packet, or the reading is discarded.
 
 Ground rules:
 
@@ -64,8 +65,9 @@ Ground rules:
   servos exact whatever was lost before it.
 * TX power: alternately 0 and 4 (one packet each) while no ACK or PING was heard for
   ``silence`` (500 ms); otherwise the lowest level whose latest PING RSSI, no older than
-  ``ping_expiry`` (3 s: one rotation of five pings plus one period of slack, so one late ping
-  does not drop a level), is ≥ ``rssi_threshold_dbm`` (−85 dBm); 4 if none is.  (A ping
+  ``ping_expiry`` (3 s: one rotation of five pings plus one period of slack, so a late ping
+  does not drop a level; a lost one does, until that level's next ping, 2.5 s later — a level
+  that loses pings is marginal), is ≥ ``rssi_threshold_dbm`` (−85 dBm); 4 if none is.  (A ping
   measures air → ground at that PL; the ground assumes the path is reciprocal.)
 
 TX power in mW (:class:`gateway.model.LinkStats` carries whole mW): :data:`POWER_DBM_XBEE3`
@@ -270,9 +272,10 @@ class AirLink:
         heard = [p for p, t in self._heard_at.items() if now - t <= self.silence]
         return max(heard) if heard else POWER_MAX
 
-    def module(self, *, rssi_dbm: float | None = None, rx_errors: int | None = None,
-               good_packets: int | None = None, tx_errors: int | None = None,
-               ack_failures: int | None = None, duty_cycle_pct: int | None = None) -> None:
+    def module_readings(self, *, rssi_dbm: float | None = None,
+                        rx_errors: int | None = None, good_packets: int | None = None,
+                        tx_errors: int | None = None, ack_failures: int | None = None,
+                        duty_cycle_pct: int | None = None) -> None:
         """Module readings (DB, ER, GD, TR, EA, DC) for the next STATS; None = unchanged."""
         if rssi_dbm is not None:
             self._rssi = max(-255, min(0, round(rssi_dbm)))
