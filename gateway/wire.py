@@ -14,9 +14,8 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from fastcrc import crc16
-
 from gateway.counters import Counters
+from gateway.crc import mcrf4xx
 from gateway.model import (
     SM_UPDATE_F32_LEN,
     SM_UPDATE_F64_LEN,
@@ -38,13 +37,13 @@ MAX_FRAME = OVERHEAD + MAX_PAYLOAD
 _SM_F32 = struct.Struct("<IBBBB7f")
 _SM_F64 = struct.Struct("<IBBBB7d")
 _STATUS = struct.Struct("<IBBBB")
-_crc = crc16.mcrf4xx
+_crc = mcrf4xx
 # The decoder's view: "?" unpacks ``armed`` straight to a bool (any non-zero byte is True).
 _SM_F64_IN = struct.Struct("<IB?BB7d")
 _SM_F32_IN = struct.Struct("<IB?BB7f")
 # The CRC register value that the two magic bytes turn into 0xFFFF: the CRC of a whole frame
 # from this value equals the CRC of type..crc from 0xFFFF, so no second slice is needed
-# (crc16.mcrf4xx(MAGIC, _CRC_BEFORE_MAGIC) == 0xFFFF).
+# (mcrf4xx(MAGIC, _CRC_BEFORE_MAGIC) == 0xFFFF).
 _CRC_BEFORE_MAGIC = 0xA984
 _new = tuple.__new__
 

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
-from fastcrc import crc8
+from gateway.crc import dvb_s2
 
 SYNC_FC = 0xC8  # flight-controller address: what a receiver expects telemetry to carry
 SYNC_RADIO = 0xEA  # radio transmitter (handset)
@@ -65,7 +65,7 @@ BARO_METRES_FLAG = 0x8000  # packed altitude, MSB set: whole metres
 BARO_MAX_DM_FORM = 0x7FFF - BARO_DM_OFFSET  # 22767 dm = 2276.7 m
 BARO_MAX_METRES = 0x7FFE  # 0xFFFE: 32766 m (0xFFFF is "no value")
 
-_crc8 = crc8.dvb_s2
+_crc8 = dvb_s2
 
 
 def crc(data: bytes) -> int:

@@ -52,7 +52,7 @@ import zlib
 from collections.abc import Sequence
 from typing import NamedTuple, Protocol
 
-from fastcrc import crc16
+from gateway.crc import ibm_3740
 
 __all__ = [
     "DEFAULT_FRAMING", "FRAMINGS", "KEEPALIVE", "CcsdsFramer", "Deframer", "FprimeDeframer",
@@ -94,7 +94,7 @@ TC_MIN_FRAME = TC_HEADER_SIZE + SP_HEADER_SIZE + 1 + CRC_SIZE
 
 def crc16_ccitt(data: bytes) -> int:
     """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection, no final XOR)."""
-    return crc16.ibm_3740(data)
+    return ibm_3740(data)
 
 
 class Framer(Protocol):

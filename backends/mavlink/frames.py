@@ -25,10 +25,9 @@ import re
 from dataclasses import dataclass
 from typing import NamedTuple
 
-from fastcrc.crc16 import mcrf4xx
-
 from backends.mavlink.dialect import MESSAGES
 from gateway.counters import Counters
+from gateway.crc import mcrf4xx
 
 STX_V2 = 0xFD
 STX_V1 = 0xFE

@@ -25,8 +25,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import NamedTuple
 
-from fastcrc import crc8 as _fastcrc8
-
+from gateway import crc as _crc
 from gateway.counters import Counters
 
 SYNC = 0x3C
@@ -82,7 +81,7 @@ _TYPES = _type_table()
 
 def _make_crc8() -> Callable[[bytes], int]:
     """fastcrc's SMBus CRC-8 is poly 0x07, init 0, no reflection, no xorout: use it if it checks."""
-    smbus = getattr(_fastcrc8, "smbus", None)
+    smbus = _crc.smbus
     if smbus is not None and smbus(b"123456789") == 0xF4:
         return smbus
     table = []
