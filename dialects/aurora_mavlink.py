@@ -3749,8 +3749,11 @@ MAVLINK_MSG_ID_MISSION_COUNT = 44
 MAVLINK_MSG_ID_MISSION_CLEAR_ALL = 45
 MAVLINK_MSG_ID_MISSION_ACK = 47
 MAVLINK_MSG_ID_MISSION_REQUEST_INT = 51
+MAVLINK_MSG_ID_RC_CHANNELS = 65
 MAVLINK_MSG_ID_REQUEST_DATA_STREAM = 66
 MAVLINK_MSG_ID_DATA_STREAM = 67
+MAVLINK_MSG_ID_MANUAL_CONTROL = 69
+MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE = 70
 MAVLINK_MSG_ID_MISSION_ITEM_INT = 73
 MAVLINK_MSG_ID_VFR_HUD = 74
 MAVLINK_MSG_ID_COMMAND_INT = 75
@@ -4893,6 +4896,68 @@ class MAVLink_mission_request_int_message(MAVLink_message):
 setattr(MAVLink_mission_request_int_message, "name", mavlink_msg_deprecated_name_property())
 
 
+class MAVLink_rc_channels_message(MAVLink_message):
+    """
+    The PPM values of the RC channels received. The standard PPM
+    modulation is as follows: 1000 microseconds: 0%, 2000
+    microseconds: 100%.  A value of UINT16_MAX implies the channel is
+    unused. Individual receivers/transmitters might violate this
+    specification.
+    """
+
+    id = MAVLINK_MSG_ID_RC_CHANNELS
+    msgname = "RC_CHANNELS"
+    fieldnames = ["time_boot_ms", "chancount", "chan1_raw", "chan2_raw", "chan3_raw", "chan4_raw", "chan5_raw", "chan6_raw", "chan7_raw", "chan8_raw", "chan9_raw", "chan10_raw", "chan11_raw", "chan12_raw", "chan13_raw", "chan14_raw", "chan15_raw", "chan16_raw", "chan17_raw", "chan18_raw", "rssi"]
+    ordered_fieldnames = ["time_boot_ms", "chan1_raw", "chan2_raw", "chan3_raw", "chan4_raw", "chan5_raw", "chan6_raw", "chan7_raw", "chan8_raw", "chan9_raw", "chan10_raw", "chan11_raw", "chan12_raw", "chan13_raw", "chan14_raw", "chan15_raw", "chan16_raw", "chan17_raw", "chan18_raw", "chancount", "rssi"]
+    fieldtypes = ["uint32_t", "uint8_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"time_boot_ms": "ms", "chan1_raw": "us", "chan2_raw": "us", "chan3_raw": "us", "chan4_raw": "us", "chan5_raw": "us", "chan6_raw": "us", "chan7_raw": "us", "chan8_raw": "us", "chan9_raw": "us", "chan10_raw": "us", "chan11_raw": "us", "chan12_raw": "us", "chan13_raw": "us", "chan14_raw": "us", "chan15_raw": "us", "chan16_raw": "us", "chan17_raw": "us", "chan18_raw": "us"}
+    native_format = bytearray(b"<IHHHHHHHHHHHHHHHHHHBB")
+    orders = [0, 19, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 20]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 118
+    unpacker = struct.Struct("<IHHHHHHHHHHHHHHHHHHBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, time_boot_ms: int, chancount: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int, chan10_raw: int, chan11_raw: int, chan12_raw: int, chan13_raw: int, chan14_raw: int, chan15_raw: int, chan16_raw: int, chan17_raw: int, chan18_raw: int, rssi: int):
+        MAVLink_message.__init__(self, MAVLink_rc_channels_message.id, MAVLink_rc_channels_message.msgname)
+        self._fieldnames = MAVLink_rc_channels_message.fieldnames
+        self._instance_field = MAVLink_rc_channels_message.instance_field
+        self._instance_offset = MAVLink_rc_channels_message.instance_offset
+        self.time_boot_ms = time_boot_ms
+        self.chancount = chancount
+        self.chan1_raw = chan1_raw
+        self.chan2_raw = chan2_raw
+        self.chan3_raw = chan3_raw
+        self.chan4_raw = chan4_raw
+        self.chan5_raw = chan5_raw
+        self.chan6_raw = chan6_raw
+        self.chan7_raw = chan7_raw
+        self.chan8_raw = chan8_raw
+        self.chan9_raw = chan9_raw
+        self.chan10_raw = chan10_raw
+        self.chan11_raw = chan11_raw
+        self.chan12_raw = chan12_raw
+        self.chan13_raw = chan13_raw
+        self.chan14_raw = chan14_raw
+        self.chan15_raw = chan15_raw
+        self.chan16_raw = chan16_raw
+        self.chan17_raw = chan17_raw
+        self.chan18_raw = chan18_raw
+        self.rssi = rssi
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_boot_ms, self.chan1_raw, self.chan2_raw, self.chan3_raw, self.chan4_raw, self.chan5_raw, self.chan6_raw, self.chan7_raw, self.chan8_raw, self.chan9_raw, self.chan10_raw, self.chan11_raw, self.chan12_raw, self.chan13_raw, self.chan14_raw, self.chan15_raw, self.chan16_raw, self.chan17_raw, self.chan18_raw, self.chancount, self.rssi), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_rc_channels_message, "name", mavlink_msg_deprecated_name_property())
+
+
 class MAVLink_request_data_stream_message(MAVLink_message):
     """
     Request a data stream.
@@ -4973,6 +5038,124 @@ class MAVLink_data_stream_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_data_stream_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_manual_control_message(MAVLink_message):
+    """
+    This message provides an API for manually controlling the vehicle
+    using standard joystick axes nomenclature, along with a joystick-
+    like input device. Unused axes can be disabled and buttons states
+    are transmitted as individual on/off bits of a bitmask
+    """
+
+    id = MAVLINK_MSG_ID_MANUAL_CONTROL
+    msgname = "MANUAL_CONTROL"
+    fieldnames = ["target", "x", "y", "z", "r", "buttons", "buttons2", "enabled_extensions", "s", "t", "aux1", "aux2", "aux3", "aux4", "aux5", "aux6"]
+    ordered_fieldnames = ["x", "y", "z", "r", "buttons", "target", "buttons2", "enabled_extensions", "s", "t", "aux1", "aux2", "aux3", "aux4", "aux5", "aux6"]
+    fieldtypes = ["uint8_t", "int16_t", "int16_t", "int16_t", "int16_t", "uint16_t", "uint16_t", "uint8_t", "int16_t", "int16_t", "int16_t", "int16_t", "int16_t", "int16_t", "int16_t", "int16_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<hhhhHBHBhhhhhhhh")
+    orders = [5, 0, 1, 2, 3, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 243
+    unpacker = struct.Struct("<hhhhHBHBhhhhhhhh")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target: int, x: int, y: int, z: int, r: int, buttons: int, buttons2: int = 0, enabled_extensions: int = 0, s: int = 0, t: int = 0, aux1: int = 0, aux2: int = 0, aux3: int = 0, aux4: int = 0, aux5: int = 0, aux6: int = 0):
+        MAVLink_message.__init__(self, MAVLink_manual_control_message.id, MAVLink_manual_control_message.msgname)
+        self._fieldnames = MAVLink_manual_control_message.fieldnames
+        self._instance_field = MAVLink_manual_control_message.instance_field
+        self._instance_offset = MAVLink_manual_control_message.instance_offset
+        self.target = target
+        self.x = x
+        self.y = y
+        self.z = z
+        self.r = r
+        self.buttons = buttons
+        self.buttons2 = buttons2
+        self.enabled_extensions = enabled_extensions
+        self.s = s
+        self.t = t
+        self.aux1 = aux1
+        self.aux2 = aux2
+        self.aux3 = aux3
+        self.aux4 = aux4
+        self.aux5 = aux5
+        self.aux6 = aux6
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.x, self.y, self.z, self.r, self.buttons, self.target, self.buttons2, self.enabled_extensions, self.s, self.t, self.aux1, self.aux2, self.aux3, self.aux4, self.aux5, self.aux6), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_manual_control_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_rc_channels_override_message(MAVLink_message):
+    """
+    The RAW values of the RC channels sent to the MAV to override info
+    received from the RC radio. The standard PPM modulation is as
+    follows: 1000 microseconds: 0%, 2000 microseconds: 100%.
+    Individual receivers/transmitters might violate this
+    specification.  Note carefully the semantic differences between
+    the first 8 channels and the subsequent channels
+    """
+
+    id = MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE
+    msgname = "RC_CHANNELS_OVERRIDE"
+    fieldnames = ["target_system", "target_component", "chan1_raw", "chan2_raw", "chan3_raw", "chan4_raw", "chan5_raw", "chan6_raw", "chan7_raw", "chan8_raw", "chan9_raw", "chan10_raw", "chan11_raw", "chan12_raw", "chan13_raw", "chan14_raw", "chan15_raw", "chan16_raw", "chan17_raw", "chan18_raw"]
+    ordered_fieldnames = ["chan1_raw", "chan2_raw", "chan3_raw", "chan4_raw", "chan5_raw", "chan6_raw", "chan7_raw", "chan8_raw", "target_system", "target_component", "chan9_raw", "chan10_raw", "chan11_raw", "chan12_raw", "chan13_raw", "chan14_raw", "chan15_raw", "chan16_raw", "chan17_raw", "chan18_raw"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t", "uint16_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"chan1_raw": "us", "chan2_raw": "us", "chan3_raw": "us", "chan4_raw": "us", "chan5_raw": "us", "chan6_raw": "us", "chan7_raw": "us", "chan8_raw": "us", "chan9_raw": "us", "chan10_raw": "us", "chan11_raw": "us", "chan12_raw": "us", "chan13_raw": "us", "chan14_raw": "us", "chan15_raw": "us", "chan16_raw": "us", "chan17_raw": "us", "chan18_raw": "us"}
+    native_format = bytearray(b"<HHHHHHHHBBHHHHHHHHHH")
+    orders = [8, 9, 0, 1, 2, 3, 4, 5, 6, 7, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0]
+    crc_extra = 124
+    unpacker = struct.Struct("<HHHHHHHHBBHHHHHHHHHH")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_system: int, target_component: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int = 0, chan10_raw: int = 0, chan11_raw: int = 0, chan12_raw: int = 0, chan13_raw: int = 0, chan14_raw: int = 0, chan15_raw: int = 0, chan16_raw: int = 0, chan17_raw: int = 0, chan18_raw: int = 0):
+        MAVLink_message.__init__(self, MAVLink_rc_channels_override_message.id, MAVLink_rc_channels_override_message.msgname)
+        self._fieldnames = MAVLink_rc_channels_override_message.fieldnames
+        self._instance_field = MAVLink_rc_channels_override_message.instance_field
+        self._instance_offset = MAVLink_rc_channels_override_message.instance_offset
+        self.target_system = target_system
+        self.target_component = target_component
+        self.chan1_raw = chan1_raw
+        self.chan2_raw = chan2_raw
+        self.chan3_raw = chan3_raw
+        self.chan4_raw = chan4_raw
+        self.chan5_raw = chan5_raw
+        self.chan6_raw = chan6_raw
+        self.chan7_raw = chan7_raw
+        self.chan8_raw = chan8_raw
+        self.chan9_raw = chan9_raw
+        self.chan10_raw = chan10_raw
+        self.chan11_raw = chan11_raw
+        self.chan12_raw = chan12_raw
+        self.chan13_raw = chan13_raw
+        self.chan14_raw = chan14_raw
+        self.chan15_raw = chan15_raw
+        self.chan16_raw = chan16_raw
+        self.chan17_raw = chan17_raw
+        self.chan18_raw = chan18_raw
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.chan1_raw, self.chan2_raw, self.chan3_raw, self.chan4_raw, self.chan5_raw, self.chan6_raw, self.chan7_raw, self.chan8_raw, self.target_system, self.target_component, self.chan9_raw, self.chan10_raw, self.chan11_raw, self.chan12_raw, self.chan13_raw, self.chan14_raw, self.chan15_raw, self.chan16_raw, self.chan17_raw, self.chan18_raw), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_rc_channels_override_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_mission_item_int_message(MAVLink_message):
@@ -5811,8 +5994,11 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_MISSION_CLEAR_ALL: MAVLink_mission_clear_all_message,
     MAVLINK_MSG_ID_MISSION_ACK: MAVLink_mission_ack_message,
     MAVLINK_MSG_ID_MISSION_REQUEST_INT: MAVLink_mission_request_int_message,
+    MAVLINK_MSG_ID_RC_CHANNELS: MAVLink_rc_channels_message,
     MAVLINK_MSG_ID_REQUEST_DATA_STREAM: MAVLink_request_data_stream_message,
     MAVLINK_MSG_ID_DATA_STREAM: MAVLink_data_stream_message,
+    MAVLINK_MSG_ID_MANUAL_CONTROL: MAVLink_manual_control_message,
+    MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE: MAVLink_rc_channels_override_message,
     MAVLINK_MSG_ID_MISSION_ITEM_INT: MAVLink_mission_item_int_message,
     MAVLINK_MSG_ID_VFR_HUD: MAVLink_vfr_hud_message,
     MAVLINK_MSG_ID_COMMAND_INT: MAVLink_command_int_message,
@@ -7080,6 +7266,72 @@ class MAVLink(object):
         """
         self.send(self.mission_request_int_encode(target_system, target_component, seq, mission_type), force_mavlink1=force_mavlink1)
 
+    def rc_channels_encode(self, time_boot_ms: int, chancount: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int, chan10_raw: int, chan11_raw: int, chan12_raw: int, chan13_raw: int, chan14_raw: int, chan15_raw: int, chan16_raw: int, chan17_raw: int, chan18_raw: int, rssi: int) -> MAVLink_rc_channels_message:
+        """
+        The PPM values of the RC channels received. The standard PPM
+        modulation is as follows: 1000 microseconds: 0%, 2000
+        microseconds: 100%.  A value of UINT16_MAX implies the channel
+        is unused. Individual receivers/transmitters might violate
+        this specification.
+
+        time_boot_ms              : Timestamp (time since system boot). [ms] (type:uint32_t)
+        chancount                 : Total number of RC channels being received. This can be larger than 18, indicating that more channels are available but not given in this message. This value should be 0 when no RC channels are available. (type:uint8_t)
+        chan1_raw                 : RC channel 1 value. [us] (type:uint16_t)
+        chan2_raw                 : RC channel 2 value. [us] (type:uint16_t)
+        chan3_raw                 : RC channel 3 value. [us] (type:uint16_t)
+        chan4_raw                 : RC channel 4 value. [us] (type:uint16_t)
+        chan5_raw                 : RC channel 5 value. [us] (type:uint16_t)
+        chan6_raw                 : RC channel 6 value. [us] (type:uint16_t)
+        chan7_raw                 : RC channel 7 value. [us] (type:uint16_t)
+        chan8_raw                 : RC channel 8 value. [us] (type:uint16_t)
+        chan9_raw                 : RC channel 9 value. [us] (type:uint16_t)
+        chan10_raw                : RC channel 10 value. [us] (type:uint16_t)
+        chan11_raw                : RC channel 11 value. [us] (type:uint16_t)
+        chan12_raw                : RC channel 12 value. [us] (type:uint16_t)
+        chan13_raw                : RC channel 13 value. [us] (type:uint16_t)
+        chan14_raw                : RC channel 14 value. [us] (type:uint16_t)
+        chan15_raw                : RC channel 15 value. [us] (type:uint16_t)
+        chan16_raw                : RC channel 16 value. [us] (type:uint16_t)
+        chan17_raw                : RC channel 17 value. [us] (type:uint16_t)
+        chan18_raw                : RC channel 18 value. [us] (type:uint16_t)
+        rssi                      : Receive signal strength indicator in device-dependent units/scale. Values: [0-254], 255: invalid/unknown. (type:uint8_t)
+
+        """
+        return MAVLink_rc_channels_message(time_boot_ms, chancount, chan1_raw, chan2_raw, chan3_raw, chan4_raw, chan5_raw, chan6_raw, chan7_raw, chan8_raw, chan9_raw, chan10_raw, chan11_raw, chan12_raw, chan13_raw, chan14_raw, chan15_raw, chan16_raw, chan17_raw, chan18_raw, rssi)
+
+    def rc_channels_send(self, time_boot_ms: int, chancount: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int, chan10_raw: int, chan11_raw: int, chan12_raw: int, chan13_raw: int, chan14_raw: int, chan15_raw: int, chan16_raw: int, chan17_raw: int, chan18_raw: int, rssi: int, force_mavlink1: bool = False) -> None:
+        """
+        The PPM values of the RC channels received. The standard PPM
+        modulation is as follows: 1000 microseconds: 0%, 2000
+        microseconds: 100%.  A value of UINT16_MAX implies the channel
+        is unused. Individual receivers/transmitters might violate
+        this specification.
+
+        time_boot_ms              : Timestamp (time since system boot). [ms] (type:uint32_t)
+        chancount                 : Total number of RC channels being received. This can be larger than 18, indicating that more channels are available but not given in this message. This value should be 0 when no RC channels are available. (type:uint8_t)
+        chan1_raw                 : RC channel 1 value. [us] (type:uint16_t)
+        chan2_raw                 : RC channel 2 value. [us] (type:uint16_t)
+        chan3_raw                 : RC channel 3 value. [us] (type:uint16_t)
+        chan4_raw                 : RC channel 4 value. [us] (type:uint16_t)
+        chan5_raw                 : RC channel 5 value. [us] (type:uint16_t)
+        chan6_raw                 : RC channel 6 value. [us] (type:uint16_t)
+        chan7_raw                 : RC channel 7 value. [us] (type:uint16_t)
+        chan8_raw                 : RC channel 8 value. [us] (type:uint16_t)
+        chan9_raw                 : RC channel 9 value. [us] (type:uint16_t)
+        chan10_raw                : RC channel 10 value. [us] (type:uint16_t)
+        chan11_raw                : RC channel 11 value. [us] (type:uint16_t)
+        chan12_raw                : RC channel 12 value. [us] (type:uint16_t)
+        chan13_raw                : RC channel 13 value. [us] (type:uint16_t)
+        chan14_raw                : RC channel 14 value. [us] (type:uint16_t)
+        chan15_raw                : RC channel 15 value. [us] (type:uint16_t)
+        chan16_raw                : RC channel 16 value. [us] (type:uint16_t)
+        chan17_raw                : RC channel 17 value. [us] (type:uint16_t)
+        chan18_raw                : RC channel 18 value. [us] (type:uint16_t)
+        rssi                      : Receive signal strength indicator in device-dependent units/scale. Values: [0-254], 255: invalid/unknown. (type:uint8_t)
+
+        """
+        self.send(self.rc_channels_encode(time_boot_ms, chancount, chan1_raw, chan2_raw, chan3_raw, chan4_raw, chan5_raw, chan6_raw, chan7_raw, chan8_raw, chan9_raw, chan10_raw, chan11_raw, chan12_raw, chan13_raw, chan14_raw, chan15_raw, chan16_raw, chan17_raw, chan18_raw, rssi), force_mavlink1=force_mavlink1)
+
     def request_data_stream_encode(self, target_system: int, target_component: int, req_stream_id: int, req_message_rate: int, start_stop: int) -> MAVLink_request_data_stream_message:
         """
         Request a data stream.
@@ -7127,6 +7379,128 @@ class MAVLink(object):
 
         """
         self.send(self.data_stream_encode(stream_id, message_rate, on_off), force_mavlink1=force_mavlink1)
+
+    def manual_control_encode(self, target: int, x: int, y: int, z: int, r: int, buttons: int, buttons2: int = 0, enabled_extensions: int = 0, s: int = 0, t: int = 0, aux1: int = 0, aux2: int = 0, aux3: int = 0, aux4: int = 0, aux5: int = 0, aux6: int = 0) -> MAVLink_manual_control_message:
+        """
+        This message provides an API for manually controlling the vehicle
+        using standard joystick axes nomenclature, along with a
+        joystick-like input device. Unused axes can be disabled and
+        buttons states are transmitted as individual on/off bits of a
+        bitmask
+
+        target                    : The system to be controlled. (type:uint8_t)
+        x                         : X-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to forward(1000)-backward(-1000) movement on a joystick and the pitch of a vehicle. (type:int16_t)
+        y                         : Y-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to left(-1000)-right(1000) movement on a joystick and the roll of a vehicle. (type:int16_t)
+        z                         : Z-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to a separate slider movement with maximum being 1000 and minimum being -1000 on a joystick and the thrust of a vehicle. Positive values are positive thrust, negative values are negative thrust. (type:int16_t)
+        r                         : R-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to a twisting of the joystick, with counter-clockwise being 1000 and clockwise being -1000, and the yaw of a vehicle. (type:int16_t)
+        buttons                   : A bitfield corresponding to the joystick buttons' current state, 1 for pressed, 0 for released. The lowest bit corresponds to Button 1. (type:uint16_t)
+        buttons2                  : A bitfield corresponding to the joystick buttons' 16-31 current state, 1 for pressed, 0 for released. The lowest bit corresponds to Button 16. (type:uint16_t)
+        enabled_extensions        : Set bits to 1 to indicate which of the following extension fields contain valid data: bit 0: pitch, bit 1: roll, bit 2: aux1, bit 3: aux2, bit 4: aux3, bit 5: aux4, bit 6: aux5, bit 7: aux6 (type:uint8_t)
+        s                         : Pitch-only-axis, normalized to the range [-1000,1000]. Generally corresponds to pitch on vehicles with additional degrees of freedom. Valid if bit 0 of enabled_extensions field is set. Set to 0 if invalid. (type:int16_t)
+        t                         : Roll-only-axis, normalized to the range [-1000,1000]. Generally corresponds to roll on vehicles with additional degrees of freedom. Valid if bit 1 of enabled_extensions field is set. Set to 0 if invalid. (type:int16_t)
+        aux1                      : Aux continuous input field 1. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 2 of enabled_extensions field is set. 0 if bit 2 is unset. (type:int16_t)
+        aux2                      : Aux continuous input field 2. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 3 of enabled_extensions field is set. 0 if bit 3 is unset. (type:int16_t)
+        aux3                      : Aux continuous input field 3. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 4 of enabled_extensions field is set. 0 if bit 4 is unset. (type:int16_t)
+        aux4                      : Aux continuous input field 4. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 5 of enabled_extensions field is set. 0 if bit 5 is unset. (type:int16_t)
+        aux5                      : Aux continuous input field 5. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 6 of enabled_extensions field is set. 0 if bit 6 is unset. (type:int16_t)
+        aux6                      : Aux continuous input field 6. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 7 of enabled_extensions field is set. 0 if bit 7 is unset. (type:int16_t)
+
+        """
+        return MAVLink_manual_control_message(target, x, y, z, r, buttons, buttons2, enabled_extensions, s, t, aux1, aux2, aux3, aux4, aux5, aux6)
+
+    def manual_control_send(self, target: int, x: int, y: int, z: int, r: int, buttons: int, buttons2: int = 0, enabled_extensions: int = 0, s: int = 0, t: int = 0, aux1: int = 0, aux2: int = 0, aux3: int = 0, aux4: int = 0, aux5: int = 0, aux6: int = 0, force_mavlink1: bool = False) -> None:
+        """
+        This message provides an API for manually controlling the vehicle
+        using standard joystick axes nomenclature, along with a
+        joystick-like input device. Unused axes can be disabled and
+        buttons states are transmitted as individual on/off bits of a
+        bitmask
+
+        target                    : The system to be controlled. (type:uint8_t)
+        x                         : X-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to forward(1000)-backward(-1000) movement on a joystick and the pitch of a vehicle. (type:int16_t)
+        y                         : Y-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to left(-1000)-right(1000) movement on a joystick and the roll of a vehicle. (type:int16_t)
+        z                         : Z-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to a separate slider movement with maximum being 1000 and minimum being -1000 on a joystick and the thrust of a vehicle. Positive values are positive thrust, negative values are negative thrust. (type:int16_t)
+        r                         : R-axis, normalized to the range [-1000,1000]. A value of INT16_MAX indicates that this axis is invalid. Generally corresponds to a twisting of the joystick, with counter-clockwise being 1000 and clockwise being -1000, and the yaw of a vehicle. (type:int16_t)
+        buttons                   : A bitfield corresponding to the joystick buttons' current state, 1 for pressed, 0 for released. The lowest bit corresponds to Button 1. (type:uint16_t)
+        buttons2                  : A bitfield corresponding to the joystick buttons' 16-31 current state, 1 for pressed, 0 for released. The lowest bit corresponds to Button 16. (type:uint16_t)
+        enabled_extensions        : Set bits to 1 to indicate which of the following extension fields contain valid data: bit 0: pitch, bit 1: roll, bit 2: aux1, bit 3: aux2, bit 4: aux3, bit 5: aux4, bit 6: aux5, bit 7: aux6 (type:uint8_t)
+        s                         : Pitch-only-axis, normalized to the range [-1000,1000]. Generally corresponds to pitch on vehicles with additional degrees of freedom. Valid if bit 0 of enabled_extensions field is set. Set to 0 if invalid. (type:int16_t)
+        t                         : Roll-only-axis, normalized to the range [-1000,1000]. Generally corresponds to roll on vehicles with additional degrees of freedom. Valid if bit 1 of enabled_extensions field is set. Set to 0 if invalid. (type:int16_t)
+        aux1                      : Aux continuous input field 1. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 2 of enabled_extensions field is set. 0 if bit 2 is unset. (type:int16_t)
+        aux2                      : Aux continuous input field 2. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 3 of enabled_extensions field is set. 0 if bit 3 is unset. (type:int16_t)
+        aux3                      : Aux continuous input field 3. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 4 of enabled_extensions field is set. 0 if bit 4 is unset. (type:int16_t)
+        aux4                      : Aux continuous input field 4. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 5 of enabled_extensions field is set. 0 if bit 5 is unset. (type:int16_t)
+        aux5                      : Aux continuous input field 5. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 6 of enabled_extensions field is set. 0 if bit 6 is unset. (type:int16_t)
+        aux6                      : Aux continuous input field 6. Normalized in the range [-1000,1000]. Purpose defined by recipient. Valid data if bit 7 of enabled_extensions field is set. 0 if bit 7 is unset. (type:int16_t)
+
+        """
+        self.send(self.manual_control_encode(target, x, y, z, r, buttons, buttons2, enabled_extensions, s, t, aux1, aux2, aux3, aux4, aux5, aux6), force_mavlink1=force_mavlink1)
+
+    def rc_channels_override_encode(self, target_system: int, target_component: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int = 0, chan10_raw: int = 0, chan11_raw: int = 0, chan12_raw: int = 0, chan13_raw: int = 0, chan14_raw: int = 0, chan15_raw: int = 0, chan16_raw: int = 0, chan17_raw: int = 0, chan18_raw: int = 0) -> MAVLink_rc_channels_override_message:
+        """
+        The RAW values of the RC channels sent to the MAV to override info
+        received from the RC radio. The standard PPM modulation is as
+        follows: 1000 microseconds: 0%, 2000 microseconds: 100%.
+        Individual receivers/transmitters might violate this
+        specification.  Note carefully the semantic differences
+        between the first 8 channels and the subsequent channels
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        chan1_raw                 : RC channel 1 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan2_raw                 : RC channel 2 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan3_raw                 : RC channel 3 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan4_raw                 : RC channel 4 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan5_raw                 : RC channel 5 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan6_raw                 : RC channel 6 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan7_raw                 : RC channel 7 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan8_raw                 : RC channel 8 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan9_raw                 : RC channel 9 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan10_raw                : RC channel 10 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan11_raw                : RC channel 11 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan12_raw                : RC channel 12 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan13_raw                : RC channel 13 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan14_raw                : RC channel 14 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan15_raw                : RC channel 15 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan16_raw                : RC channel 16 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan17_raw                : RC channel 17 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan18_raw                : RC channel 18 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+
+        """
+        return MAVLink_rc_channels_override_message(target_system, target_component, chan1_raw, chan2_raw, chan3_raw, chan4_raw, chan5_raw, chan6_raw, chan7_raw, chan8_raw, chan9_raw, chan10_raw, chan11_raw, chan12_raw, chan13_raw, chan14_raw, chan15_raw, chan16_raw, chan17_raw, chan18_raw)
+
+    def rc_channels_override_send(self, target_system: int, target_component: int, chan1_raw: int, chan2_raw: int, chan3_raw: int, chan4_raw: int, chan5_raw: int, chan6_raw: int, chan7_raw: int, chan8_raw: int, chan9_raw: int = 0, chan10_raw: int = 0, chan11_raw: int = 0, chan12_raw: int = 0, chan13_raw: int = 0, chan14_raw: int = 0, chan15_raw: int = 0, chan16_raw: int = 0, chan17_raw: int = 0, chan18_raw: int = 0, force_mavlink1: bool = False) -> None:
+        """
+        The RAW values of the RC channels sent to the MAV to override info
+        received from the RC radio. The standard PPM modulation is as
+        follows: 1000 microseconds: 0%, 2000 microseconds: 100%.
+        Individual receivers/transmitters might violate this
+        specification.  Note carefully the semantic differences
+        between the first 8 channels and the subsequent channels
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        chan1_raw                 : RC channel 1 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan2_raw                 : RC channel 2 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan3_raw                 : RC channel 3 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan4_raw                 : RC channel 4 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan5_raw                 : RC channel 5 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan6_raw                 : RC channel 6 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan7_raw                 : RC channel 7 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan8_raw                 : RC channel 8 value. A value of UINT16_MAX means to ignore this field. A value of 0 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan9_raw                 : RC channel 9 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan10_raw                : RC channel 10 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan11_raw                : RC channel 11 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan12_raw                : RC channel 12 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan13_raw                : RC channel 13 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan14_raw                : RC channel 14 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan15_raw                : RC channel 15 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan16_raw                : RC channel 16 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan17_raw                : RC channel 17 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+        chan18_raw                : RC channel 18 value. A value of 0 or UINT16_MAX means to ignore this field. A value of UINT16_MAX-1 means to release this channel back to the RC radio. [us] (type:uint16_t)
+
+        """
+        self.send(self.rc_channels_override_encode(target_system, target_component, chan1_raw, chan2_raw, chan3_raw, chan4_raw, chan5_raw, chan6_raw, chan7_raw, chan8_raw, chan9_raw, chan10_raw, chan11_raw, chan12_raw, chan13_raw, chan14_raw, chan15_raw, chan16_raw, chan17_raw, chan18_raw), force_mavlink1=force_mavlink1)
 
     def mission_item_int_encode(self, target_system: int, target_component: int, seq: int, frame: int, command: int, current: int, autocontinue: int, param1: float, param2: float, param3: float, param4: float, x: int, y: int, z: float, mission_type: int = 0) -> MAVLink_mission_item_int_message:
         """

@@ -28,9 +28,10 @@ from dialects import aurora_mavlink as aurora
 from dialects.states import SimpleState as S
 from dialects.states import state_names
 from gateway import cli, config, registry
+from gateway.backend import Backend, GatewayContext, Routes
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
-from gateway.model import SmUpdate, Status
+from gateway.model import RcChannels, SmUpdate, Status
 from gateway.sources.sim import SimSource
 from gateway.wire import decode_all, encode
 
@@ -470,3 +471,43 @@ def test_mission_uploads_and_clears_are_refused_honestly(gcs: MavPeer) -> None:
         (dev.MAV_MISSION_UNSUPPORTED, dev.MAV_MISSION_TYPE_FENCE, 255),
         (dev.MAV_MISSION_UNSUPPORTED, dev.MAV_MISSION_TYPE_MISSION, 255)]
     assert len(gcs.messages("MISSION_ACK")) == 2
+
+
+class _RcRecorder(Backend):
+    """Keeps the RcChannels the gateway hands on (a real peer on the dispatcher)."""
+
+    def __init__(self) -> None:
+        super().__init__("rc")
+        self.rc: list[RcChannels] = []
+
+    def routes(self) -> Routes:
+        return Routes().on(RcChannels, self.rc.append)
+
+
+def test_rc_overrides_reach_the_gateway_and_commands_go_out_as_rc_channels(gcs: MavPeer) -> None:
+    dev = gcs.dialect
+    rec = _RcRecorder()
+    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
+    d = Dispatcher([b, rec])
+    b.attach(GatewayContext(emit=d.dispatch))
+    assert d.start() == []
+    try:
+        assert gcs.wait_for("HEARTBEAT", timeout=WAIT)
+        # a ground station's sticks for the rocket: 0 releases a channel, UINT16_MAX ignores it
+        gcs.send(dev.MAVLink_rc_channels_override_message(
+            *US, 1100, 1900, 0, 65535, 1500, 0, 0, 0, *([0] * 10)))
+        gcs.send(dev.MAVLink_manual_control_message(US[0], 1000, -1000, 500, 0, 0))
+        gcs.send(dev.MAVLink_rc_channels_override_message(7, 1, *([1234] * 8), *([0] * 10)))
+        assert gcs.wait_until(lambda: len(rec.rc) >= 2, WAIT)
+        assert [m.channels_us for m in rec.rc] == [(1100, 1900, None, None, 1500),
+                                                    (1000, 2000, 1500, 1500)]
+        assert rec.rc[0].origin == b.name
+        # commands the rocket's link received (an XBee air link's servos) go to the GCS
+        d.dispatch(RcChannels((1000, None, 2000), origin="xbee"))
+        assert gcs.wait_for("RC_CHANNELS", timeout=WAIT)
+        out = gcs.messages("RC_CHANNELS")[-1]
+        assert out.chancount == 3
+        assert (out.chan1_raw, out.chan2_raw, out.chan3_raw, out.chan4_raw) == \
+            (1000, 65535, 2000, 65535)
+    finally:
+        d.close()

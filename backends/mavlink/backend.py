@@ -18,7 +18,16 @@ from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
-from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RcChannels,
+    SmUpdate,
+    Status,
+    VehicleState,
+)
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +87,9 @@ class MavlinkBackend(Backend):
         aurora_status_hz=_rate_key("aurora_status_hz", "AURORA_STATUS, at most"),
         radio_status_hz=_rate_key("radio_status_hz",
                                   "RADIO_STATUS from a radio's link statistics, at most"),
+        rc_channels_hz=_rate_key("rc_channels_hz",
+                                 "RC_CHANNELS from the commands the rocket's link received, "
+                                 "at most"),
     )
     #: The default run shows the rocket in a QGroundControl on this machine.
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
@@ -107,6 +119,7 @@ class MavlinkBackend(Backend):
                                      stale_after_s=stale_after_s,
                                      pad_altitude_amsl_m=pad_altitude_amsl_m,
                                      version=__version__)
+        self.vehicle.on_rc = self._on_rc
         self.hub: MavlinkHub | None = None
         self.router: Router | None = None
         self.loop: IoLoop | None = None
@@ -222,7 +235,18 @@ class MavlinkBackend(Backend):
     def routes(self) -> Routes:
         return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
                 .on(Position, self.send_position).on(Battery, self.send_battery)
-                .on(LinkStats, self.send_link_stats).on(VehicleState, self.send_vehicle_state))
+                .on(LinkStats, self.send_link_stats).on(VehicleState, self.send_vehicle_state)
+                .on(RcChannels, self.send_rc_channels))
+
+    def send_rc_channels(self, msg: RcChannels) -> Outcome:
+        if msg.origin == self.name:
+            return Outcome.ACCEPTED  # a ground station's override: not the rocket's to repeat
+        return self._post(msg)
+
+    def _on_rc(self, channels: tuple[int | None, ...]) -> None:
+        """A ground station's RC override or manual control for the rocket (the loop's
+        thread): to the gateway, e.g. for an XBee ground link to send up."""
+        self.emit(RcChannels(channels, origin=self.name))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         return self._post(msg)

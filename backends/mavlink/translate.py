@@ -26,7 +26,15 @@ from typing import Any
 
 from backends.mavlink.dialect import mav
 from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_name, state_names
-from gateway.model import Battery, LinkStats, Position, SmUpdate, Status, VehicleState
+from gateway.model import (
+    Battery,
+    LinkStats,
+    Position,
+    RcChannels,
+    SmUpdate,
+    Status,
+    VehicleState,
+)
 
 MAV_COMP_ID_AUTOPILOT1 = 1
 #: The component the AURORA_* dialect messages come from, with its own sequence numbers: a
@@ -36,6 +44,7 @@ AURORA_COMPID = 25
 _AURORA_IDS = frozenset({mav.MAVLINK_MSG_ID_AURORA_SM_UPDATE, mav.MAVLINK_MSG_ID_AURORA_STATUS})
 UINT8_MAX = 0xFF
 UINT16_MAX = 0xFFFF
+RC_CHANNELS_MAX = 18  # RC_CHANNELS carries chan1..chan18
 
 # SYS_STATUS sensor bits the STATUS flags map to.
 SENSORS_IMU = mav.MAV_SYS_STATUS_SENSOR_3D_GYRO | mav.MAV_SYS_STATUS_SENSOR_3D_ACCEL
@@ -83,6 +92,7 @@ DEFAULT_RATES: dict[str, float] = {
     "aurora_sm_update_hz": 50.0,
     "aurora_status_hz": 10.0,
     "radio_status_hz": 2.0,
+    "rc_channels_hz": 10.0,
 }
 
 #: Messages a ground station may ask for with MAV_CMD_REQUEST_MESSAGE.
@@ -219,6 +229,7 @@ class VehicleStats:
     commands_unsupported: int = 0
     param_requests_ignored: int = 0
     mission_requests: int = 0
+    rc_overrides: int = 0
 
 
 class AuroraVehicle:
@@ -231,6 +242,7 @@ class AuroraVehicle:
         mav.MAVLINK_MSG_ID_PARAM_SET,
         mav.MAVLINK_MSG_ID_MISSION_REQUEST_LIST, mav.MAVLINK_MSG_ID_MISSION_COUNT,
         mav.MAVLINK_MSG_ID_MISSION_CLEAR_ALL, mav.MAVLINK_MSG_ID_MISSION_ACK,
+        mav.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE, mav.MAVLINK_MSG_ID_MANUAL_CONTROL,
     })
 
     #: Our HEARTBEAT's type: how the router tells our own frames coming back from another
@@ -260,6 +272,8 @@ class AuroraVehicle:
         self.clock = clock
         self.stats = VehicleStats()
         self.default_rates = {**DEFAULT_RATES, **(rates or {})}
+        #: called with the channels (µs, None = not given) of a ground station's RC override
+        self.on_rc: Callable[[tuple[int | None, ...]], Any] | None = None
         self.rates = dict(self.default_rates)
         now = clock()
         self._start = now
@@ -284,7 +298,8 @@ class AuroraVehicle:
         self._modes_monitor = Periodic(0.3, now)
         self._gates = {key: RateGate(r[key]) for key in (
             "attitude_hz", "altitude_hz", "vfr_hud_hz", "named_value_hz", "position_hz",
-            "battery_hz", "aurora_sm_update_hz", "aurora_status_hz", "radio_status_hz")}
+            "battery_hz", "aurora_sm_update_hz", "aurora_status_hz", "radio_status_hz",
+            "rc_channels_hz")}
 
     # -- what we know ------------------------------------------------------------------------
 
@@ -376,7 +391,21 @@ class AuroraVehicle:
             return self._on_link_stats(msg)
         if isinstance(msg, VehicleState):
             return self._on_vehicle_state(msg)
+        if isinstance(msg, RcChannels):
+            return self._on_rc_channels(msg)
         return []
+
+    def _on_rc_channels(self, rc: RcChannels) -> list[Any]:
+        """Commands the rocket's link received (an XBee air link's servo values): RC_CHANNELS,
+        so a ground station shows what the rocket was told."""
+        if not self._gates["rc_channels_hz"].ready(self.clock()):
+            return []
+        raw = [UINT16_MAX if v is None else max(0, min(UINT16_MAX - 1, v))
+               for v in rc.channels_us[:RC_CHANNELS_MAX]]
+        count = max((i + 1 for i, v in enumerate(rc.channels_us[:RC_CHANNELS_MAX])
+                     if v is not None), default=0)
+        raw += [UINT16_MAX] * (RC_CHANNELS_MAX - len(raw))
+        return [mav.MAVLink_rc_channels_message(self._boot_ms(), count, *raw, UINT8_MAX)]
 
     def _on_vehicle_state(self, v: VehicleState) -> list[Any]:
         """A vehicle that is not an Aurora state machine (e.g. a LibrePilot flight controller
@@ -564,6 +593,14 @@ class AuroraVehicle:
             return [mav.MAVLink_mission_ack_message(src_sysid, src_compid,
                                                     mav.MAV_MISSION_UNSUPPORTED,
                                                     msg.mission_type)]
+        if mid == mav.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE:
+            if self._mine(msg):
+                self._rc_in(rc_from_override(msg))
+            return []
+        if mid == mav.MAVLINK_MSG_ID_MANUAL_CONTROL:
+            if msg.target == self.sysid:
+                self._rc_in(rc_from_manual_control(msg))
+            return []
         if mid in (mav.MAVLINK_MSG_ID_PARAM_REQUEST_LIST, mav.MAVLINK_MSG_ID_PARAM_REQUEST_READ,
                    mav.MAVLINK_MSG_ID_PARAM_SET):
             # The parameter protocol: a component without parameters ignores the request.
@@ -571,6 +608,13 @@ class AuroraVehicle:
                 self.stats.param_requests_ignored += 1
             return []
         return []  # MISSION_ACK (end of QGC's mission download) and the like: nothing to say
+
+    def _rc_in(self, channels: tuple[int | None, ...]) -> None:
+        """A ground station's sticks for the rocket: handed to the gateway (``on_rc``), e.g.
+        for an XBee ground link to send up."""
+        self.stats.rc_overrides += 1
+        if self.on_rc is not None:
+            self.on_rc(channels)
 
     def _mine(self, msg: Any) -> bool:
         return msg.target_system == self.sysid and msg.target_component in (0, self.compid)
@@ -751,3 +795,28 @@ def _mm(m: float) -> int:
 
 def _cm(v: float) -> int:
     return max(-32768, min(round(v * 100), 32767)) if math.isfinite(v) else 0
+
+
+def rc_from_override(msg: Any) -> tuple[int | None, ...]:
+    """RC_CHANNELS_OVERRIDE's channels in µs; 0 (release) and UINT16_MAX (ignore) are None
+    (MAVLink 2's chan9..18 use 0 and UINT16_MAX - 1 the same way)."""
+    out: list[int | None] = []
+    for i in range(1, RC_CHANNELS_MAX + 1):
+        v = getattr(msg, f"chan{i}_raw", 0)
+        out.append(None if v in (0, UINT16_MAX) or (i > 8 and v == UINT16_MAX - 1) else int(v))
+    while out and out[-1] is None:
+        out.pop()
+    return tuple(out)
+
+
+def rc_from_manual_control(msg: Any) -> tuple[int | None, ...]:
+    """MANUAL_CONTROL's axes as AETR channels in µs: roll (y), pitch (x), throttle (z), yaw (r);
+    x, y, r −1000..1000 → 1000..2000, z 0..1000 → 1000..2000 (an invalid axis, INT16_MAX, is
+    None)."""
+    def axis(v: int) -> int | None:
+        return None if v == 0x7FFF else 1500 + max(-1000, min(1000, v)) // 2
+
+    z = msg.z
+    throttle = None if z == 0x7FFF else 1000 + max(0, min(1000, z))
+    return (axis(msg.y), axis(msg.x), throttle, axis(msg.r))
+
