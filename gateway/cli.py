@@ -46,6 +46,7 @@ GATEWAY_FLAGS = (
 SOURCE_FLAGS = (
     ("baud", "--baud", "serial", "baudrate"),
     ("sim_speed", "--sim-speed", "sim", "speed"),
+    ("xbee_api", "--xbee-api", "xbee", "api_mode"),  # declared by backends.xbee.flags
 )
 # simulate: (argparse dest, flag, key of the sim source)
 SIMULATE_FLAGS = (
@@ -288,6 +289,8 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
             gateway_opts[key] = value
     source_opts = []
     for dest, flag, type_name, key in SOURCE_FLAGS:
+        if getattr(args, dest, None) is None:
+            continue  # not given: its source class need not be imported to check it
         value = _checked(args, dest, flag, _source_key(type_name, key),
                          f"{key} of {type_name} sources")
         if value is not None:

@@ -176,7 +176,7 @@ def check_serial_url(url: str) -> None:
 
 
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
-    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``uavtalk:TARGET``,
+    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``uavtalk:TARGET``, ``xbee:URL``,
     ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
     pyserial URL → (source type, options); ValueError for a malformed one.  The options go
     through the source's ``CONFIG`` like a file's (a serial URL's scheme is checked there)."""
@@ -198,6 +198,12 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
             raise ValueError("uavtalk: needs a flight controller, e.g. uavtalk:tcp:HOST:PORT "
                              "or uavtalk:/dev/ttyACM0,57600")
         return "uavtalk", {"url": target}
+    if url.startswith("xbee:"):
+        target = url[len("xbee:"):]
+        if not target:
+            raise ValueError("xbee: needs the ground module's port, e.g. xbee:/dev/ttyUSB0 "
+                             "or xbee:socket://HOST:PORT")
+        return "xbee", {"url": target}
     if url == "zenoh" or url.startswith("zenoh:"):
         return "zenoh", {"url": url}  # zenoh:[VEHICLE@][ENDPOINT,…], parsed by the source
     if not url:

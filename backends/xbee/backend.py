@@ -1,0 +1,104 @@
+"""The XBee air side (the seed's "wing"), as a backend: the rocket's gateway on an XBee.
+
+``run --xbee URL [--xbee-api 1|2] [--xbee-dest HEX]``: URL a serial port or pyserial URL
+(``socket://host:port`` reaches a module's UART over TCP).  SM updates and STATUS go down as
+the link's compact telemetry packets, grouped (:class:`~.link.AirLink`); the air role's ACKs,
+PINGs (every 500 ms, PL cycling 0..4) and STATS (every 100 ms) go with them; command packets
+from the ground become :class:`~gateway.model.RcChannels` for the other backends (MAVLink
+RC_CHANNELS to a ground station, …).  Without ``dest`` the air side broadcasts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any, ClassVar
+
+from gateway.backend import Backend, Outcome, Routes
+from gateway.config import Key, Schema
+from gateway.model import SmUpdate, Status
+
+from .link import AirLink, RcCommand, Send
+from .radio import DEFAULT_BAUD, POLL_S, TICK_S, Radio, parse_dest, rc_message
+
+MIN_PAYLOAD = 24  # the largest packet (SmTelem) must fit
+
+
+def _check_dest(value: str) -> None:
+    parse_dest(value)
+
+
+class XbeeBackend(Backend):
+    """The air side of the XBee link (see the module docstring)."""
+
+    NAME = "xbee"
+    CONFIG = Schema(
+        url=Key(str, help="the XBee module: a serial device or pyserial URL "
+                "(socket://HOST:PORT)"),
+        baudrate=Key(int, DEFAULT_BAUD, "the module's UART rate (its BD)", minimum=50),
+        api_mode=Key(int, 1, "the module's API mode (AP): 1, or 2 (escaped)", choices=(1, 2)),
+        dest=Key(str, "", "64-bit destination in hex; empty: broadcast",
+                 validator=_check_dest),
+        max_payload=Key(int, 100, "largest RF payload until the module's NP is known",
+                        minimum=MIN_PAYLOAD, maximum=256),
+        tick_s=Key(float, TICK_S, "seconds between link ticks", minimum=0.001, maximum=0.1),
+        poll_s=Key(float, POLL_S, "seconds between reads of the module's counters (DB, ER, "
+                   "GD, TR, EA, DC)", minimum=0.1),
+    )
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # needs a module: opt in
+
+    def __init__(self, url: str, baudrate: int = DEFAULT_BAUD, api_mode: int = 1,
+                 dest: str = "", max_payload: int = 100, tick_s: float = TICK_S,
+                 poll_s: float = POLL_S, name: str | None = None) -> None:
+        super().__init__(name)
+        self.link = AirLink(max_payload=max_payload)
+        self.commands = 0
+        self.radio = Radio(f"{self.name} {url}", url, baudrate, api_mode,
+                           dest64=parse_dest(dest), perform=self._perform,
+                           tick=self.link.tick, on_payload=self._on_payload,
+                           on_readings=self._on_readings, on_np=self._on_np,
+                           tick_s=tick_s, poll_s=poll_s)
+
+    # -- the radio's thread -----------------------------------------------------------------
+
+    def _perform(self, outputs: Iterable[Any]) -> None:
+        for out in outputs:
+            if isinstance(out, Send):
+                self.radio.send(out)
+            elif isinstance(out, RcCommand):
+                self.commands += 1
+                self.emit(rc_message(out, self.name))
+
+    def _on_payload(self, data: bytes, src64: int, now: float) -> list[Any]:
+        return self.link.on_packet(data, None, now)
+
+    def _on_readings(self, r: dict[str, int]) -> None:
+        self.link.module_readings(
+            rssi_dbm=r.get("DB"), rx_errors=r.get("ER"), good_packets=r.get("GD"),
+            tx_errors=r.get("TR"), ack_failures=r.get("EA"), duty_cycle_pct=r.get("DC"))
+
+    def _on_np(self, np_: int) -> None:
+        if np_ >= MIN_PAYLOAD:
+            self.link.max_payload = np_
+
+    # -- life cycle and routes --------------------------------------------------------------
+
+    def init(self) -> None:
+        self.radio.start()
+
+    def close(self) -> None:
+        self.radio.close()
+
+    def routes(self) -> Routes:
+        return Routes().on(SmUpdate, self.send_telemetry).on(Status, self.send_telemetry)
+
+    def send_telemetry(self, msg: SmUpdate | Status) -> Outcome:
+        link = self.link
+        return self.radio.call(lambda now: link.telemetry(msg, now))
+
+    def stats(self) -> dict[str, Any]:
+        c = self.link.counters
+        r = self.radio.stats()
+        return {"sent": r["payloads_sent"], "dropped": r["payloads_refused"] + r["dropped_inbox"],
+                "errors": r["errors"] + r["at_errors"], "link": r["link"],
+                "commands_applied": self.commands, **r,
+                **{f"air_{k}": v for k, v in c.as_dict().items()}}
