@@ -49,6 +49,7 @@ bench: bytecode
 	$(BIN)/python tools/bench/bench_zenoh.py
 	$(BIN)/python tools/bench/bench_uavtalk.py
 	$(BIN)/python tools/bench/bench_fprime.py
+	$(BIN)/python tools/bench/bench_xbee.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info
