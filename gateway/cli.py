@@ -46,7 +46,7 @@ GATEWAY_FLAGS = (
 SOURCE_FLAGS = (
     ("baud", "--baud", "serial", "baudrate"),
     ("sim_speed", "--sim-speed", "sim", "speed"),
-    ("xbee_api", "--xbee-api", "xbee", "api_mode"),  # declared by backends.xbee.flags
+    ("xbee_api", "--xbee-api", "xbee", "api_mode"),
 )
 # simulate: (argparse dest, flag, key of the sim source)
 SIMULATE_FLAGS = (
@@ -154,6 +154,10 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
               metavar="N")
     _key_flag(p, "--sim-speed", _source_key("sim", "speed"),
               "run the simulated flight N times faster (0 = flat out)", metavar="N")
+    # checked (by the xbee source's key) only when given: its class is not imported otherwise
+    p.add_argument("--xbee-api", type=config.flag_value, metavar="1|2",
+                   help="XBee: the modules' API mode (AP) for --source xbee:URL and --xbee "
+                        "(1, or 2: escaped; default 1)")
 
 
 def _add_common_options(p: argparse.ArgumentParser) -> None:

@@ -1,7 +1,8 @@
 """``aurora-gateway run``'s XBee flags, apart from the backend so that building the parser
 imports nothing of it (the ``aurora_gateway.backend_flags`` entry point; see
-:mod:`gateway.registry`).  ``--xbee-api`` also sets the API mode of ``--source xbee:URL``
-(``gateway.cli.SOURCE_FLAGS``).  Imports nothing but the standard library."""
+:mod:`gateway.registry`).  ``--xbee-api`` sets the API mode here and of ``--source xbee:URL``
+(``gateway.cli.SOURCE_FLAGS``, which declares it: the source reads it too).  Imports
+nothing but the standard library."""
 
 from __future__ import annotations
 
@@ -14,9 +15,6 @@ def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
                         help="XBee air side: the rocket's telemetry down and commands up "
                              "through the XBee module on this serial port or pyserial URL "
                              "(socket://HOST:PORT)")
-    parser.add_argument("--xbee-api", type=int, choices=(1, 2), metavar="1|2",
-                        help="XBee: the module's API mode (AP), for --xbee and --source "
-                             "xbee:URL (default 1)")
     parser.add_argument("--xbee-dest", metavar="HEX",
                         help="XBee air side: the ground module's 64-bit address "
                              "(default: broadcast)")
