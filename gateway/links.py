@@ -36,6 +36,8 @@ from gateway.transport import (
 log = logging.getLogger(__name__)
 
 CLOSE_TIMEOUT_S = 0.5
+#: The accepted forms, for error messages.
+USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
 _COM = re.compile(r"^COM\d+$", re.IGNORECASE)
 
 
@@ -48,7 +50,7 @@ class StreamEndpoint(NamedTuple):
     text: str = ""
 
 
-def parse_stream_endpoint(text: str, *, default_baud: int, usage: str) -> StreamEndpoint:
+def parse_stream_endpoint(text: str, *, default_baud: int, usage: str = USAGE) -> StreamEndpoint:
     """Parse one endpoint; raises ValueError naming it and ``usage`` (the accepted forms)."""
     t = text.strip()
     scheme, sep, rest = t.partition(":")
@@ -84,7 +86,8 @@ def parse_stream_endpoint(text: str, *, default_baud: int, usage: str) -> Stream
     return StreamEndpoint("serial", device=device, baudrate=baud, text=t)
 
 
-def endpoints_validator(default_baud: int, usage: str) -> Callable[[list[Any]], None]:
+def endpoints_validator(default_baud: int,
+                        usage: str = USAGE) -> Callable[[list[Any]], None]:
     """A config validator for a list of endpoints (at least one)."""
 
     def check(value: list[Any]) -> None:

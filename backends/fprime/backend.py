@@ -30,7 +30,13 @@ from typing import Any, ClassVar
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop
-from gateway.links import LinkSet, StreamEndpoint, endpoints_validator, parse_stream_endpoint
+from gateway.links import (
+    USAGE,
+    LinkSet,
+    StreamEndpoint,
+    endpoints_validator,
+    parse_stream_endpoint,
+)
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
 from gateway.port import PortEngine
 
@@ -49,14 +55,13 @@ from .packets import DEFAULT_BUFFER_SIZE, TIME_BASES, TlmPacker, UpdateClock
 log = logging.getLogger(__name__)
 
 DEFAULT_SERIAL_BAUD = 115200
-USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
 _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
 
 def parse_endpoint(text: str) -> StreamEndpoint:
     """Parse one endpoint (see :mod:`gateway.links`); raises ValueError naming it."""
-    return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD, usage=USAGE)
+    return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
 
 
 def _check_id_base(value: Any) -> None:
@@ -119,7 +124,7 @@ class FprimeBackend(Backend):
     CONFIG = Schema(
         endpoints=Key(list, [], "tcpin:HOST:PORT (fprime-gds --ip-client connects), "
                       "tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL",
-                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD, USAGE)),
+                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD)),
         framing=Key(str, DEFAULT_FRAMING, "ccsds (F´ v4 / fprime-gds default) or fprime",
                     choices=tuple(FRAMINGS)),
         id_base=Key(int, DEFAULT_ID_BASE, "id of the first channel (the dictionary's "

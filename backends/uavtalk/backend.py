@@ -35,7 +35,13 @@ from typing import Any, ClassVar
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.ioloop import IoLoop, Timer
-from gateway.links import LinkSet, StreamEndpoint, endpoints_validator, parse_stream_endpoint
+from gateway.links import (
+    USAGE,
+    LinkSet,
+    StreamEndpoint,
+    endpoints_validator,
+    parse_stream_endpoint,
+)
 from gateway.model import Battery, Position, SmUpdate, Status
 from gateway.port import PortEngine
 
@@ -50,14 +56,13 @@ DEFAULT_SERIAL_BAUD = 57600
 #: Received packets handled between two writes of a link's replies (well under the session's
 #: priority queue of 32).
 FLUSH_EVERY = 16
-USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
 _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
 
 def parse_endpoint(text: str) -> StreamEndpoint:
     """Parse one endpoint (see :mod:`gateway.links`); raises ValueError naming it."""
-    return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD, usage=USAGE)
+    return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
 
 
 class Link:
@@ -164,7 +169,7 @@ class UavtalkBackend(Backend):
     CONFIG = Schema(
         endpoints=Key(list, [], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "
                       "serial:DEVICE[,BAUD] or a pyserial URL",
-                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD, USAGE)),
+                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD)),
         board_type=Key(int, DEFAULT_BOARD_TYPE, "FirmwareIAPObj.BoardType shown to the GCS "
                        "(9: Revolution); must be nonzero", minimum=1, maximum=255),
         tick_s=Key(float, 0.02, "seconds between telemetry ticks (periodic sends, retries)",
