@@ -1,0 +1,259 @@
+"""``aurora-gateway export RECORDING``: a recording's state-machine updates as a table.
+
+One row per SM_UPDATE in the recording, in recording order, for spreadsheets and pandas::
+
+    aurora-gateway export flight.aur > flight.csv
+    aurora-gateway export flight.aur --format jsonl -o flight.jsonl
+
+Columns (the same names, in this order, in both formats):
+
+=====================  =============================================================
+``t_s``                receive time, seconds since the recording's first record (to 1 µs)
+``rx_time``            receive time, seconds since the Unix epoch (what was recorded)
+``timestamp_ms``       the flight computer's uptime in the update, ms
+``state``              state number
+``state_name``         its name under ``sm_type`` (``STATE_<n>`` when unknown)
+``armed``              armed flag of the update
+``sm_type``            state machine type
+``altitude_m``         altitude above the pad, m
+``velocity_mps``       vertical speed, up positive, m/s
+``acceleration_mps2``  magnitude of the specific force (about g at rest), m/s²
+``accel_vert_mps2``    its signed component along the body axis, m/s²
+``roll_deg``           roll, degrees (converted from the update's radians)
+``pitch_deg``          pitch, degrees
+``yaw_deg``            yaw, degrees
+``imu_ok``             the latest STATUS at or before the row: IMU healthy
+``baro_ok``            … barometer healthy
+``calibrated``         … sensors calibrated
+``log_ready``          … flight log ready
+=====================  =============================================================
+
+The four health flags are empty (CSV) or ``null`` (JSONL) until the recording's first
+STATUS.  Floats are written in Python's shortest round-trip form, so reading a cell back
+gives exactly the value the gateway decoded (degrees excepted: they are converted).
+
+CSV: a header row, then one row per update, ``\\n`` line ends; booleans as ``1``/``0``;
+non-finite floats as ``nan``/``inf``/``-inf`` (which ``float()`` and pandas read back).
+JSONL: one JSON object per line; booleans as ``true``/``false``; non-finite floats as
+``null`` (JSON has no NaN).  The format defaults to JSONL when ``-o`` names a ``.jsonl``,
+``.ndjson`` or ``.json`` file, else CSV.
+
+A missing or unreadable file, or one that is not a recording, is one line on stderr and
+exit status 1.  Records that fail their CRC are skipped (as ``decode`` and ``replay`` do) and
+counted on stderr.  A closed pipe (``| head``) ends the export quietly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from gateway import recording
+from gateway.model import SmUpdate, Status
+from gateway.wire import Decoder
+
+EXIT_FAILURE = 1
+
+#: The export's columns, in order (see the module docstring for their meaning).
+COLUMNS: tuple[str, ...] = (
+    "t_s", "rx_time", "timestamp_ms", "state", "state_name", "armed", "sm_type",
+    "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
+    "roll_deg", "pitch_deg", "yaw_deg",
+    "imu_ok", "baro_ok", "calibrated", "log_ready",
+)
+#: The columns taken from the latest STATUS (None before the first one).
+HEALTH_COLUMNS: tuple[str, ...] = ("imu_ok", "baro_ok", "calibrated", "log_ready")
+FORMATS = ("csv", "jsonl")
+_JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
+
+_COLUMN_HELP = (
+    "columns: t_s (s since the first record), rx_time (Unix s), timestamp_ms, state, "
+    "state_name, armed, sm_type, altitude_m, velocity_mps, acceleration_mps2, "
+    "accel_vert_mps2, roll_deg, pitch_deg, yaw_deg, and the latest STATUS's imu_ok, baro_ok, "
+    "calibrated, log_ready (empty/null before the first STATUS). CSV: header row, booleans "
+    "1/0. JSONL: one object a line, NaN as null.")
+
+
+class ExportError(Exception):
+    """A recording that cannot be exported; the text is the one-line message."""
+
+
+@dataclass
+class Flight:
+    """What :func:`load` found in a recording: the rows and the counts behind them."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    statuses: int = 0
+    other_frames: int = 0
+    read_stats: recording.ReadStats = field(default_factory=recording.ReadStats)
+
+    def notes(self) -> str:
+        """The recording's damage in words, or "" when it was intact."""
+        s = self.read_stats
+        if not (s.torn_tail_bytes or s.corrupt_skips):
+            return ""
+        return (f"torn tail {s.torn_tail_bytes} bytes, {s.corrupt_skips} corrupt stretches "
+                f"({s.bytes_skipped} bytes) skipped")
+
+
+def row_of(t_s: float, rx_time: float, msg: SmUpdate,
+           health: dict[str, bool] | None) -> dict[str, Any]:
+    """The export row of one update received at ``rx_time`` (``t_s`` after the first
+    record), with the health flags of the latest STATUS (``health``; None before any)."""
+    return {
+        "t_s": t_s,
+        "rx_time": rx_time,
+        "timestamp_ms": msg.timestamp_ms,
+        "state": msg.state,
+        "state_name": msg.state_name,
+        "armed": bool(msg.armed),
+        "sm_type": msg.sm_type,
+        "altitude_m": msg.altitude_m,
+        "velocity_mps": msg.velocity_mps,
+        "acceleration_mps2": msg.acceleration_mps2,
+        "accel_vert_mps2": msg.accel_vert_mps2,
+        "roll_deg": math.degrees(msg.roll_rad),
+        "pitch_deg": math.degrees(msg.pitch_rad),
+        "yaw_deg": math.degrees(msg.yaw_rad),
+        **{k: (None if health is None else health[k]) for k in HEALTH_COLUMNS},
+    }
+
+
+def load(path: str | Path) -> Flight:
+    """Read the recording at ``path`` into export rows.  :class:`ExportError` (one line) when
+    it is missing, unreadable or not a recording of this version."""
+    try:
+        recording.check_file(path)
+        flight = Flight()
+        records = list(recording.read(path, flight.read_stats))
+    except ValueError as exc:  # RecordingError included
+        raise ExportError(str(exc)) from None
+    except OSError as exc:
+        raise ExportError(f"cannot read {path}: {exc.strerror or exc}") from None
+    decoder = Decoder(origin="export")
+    health: dict[str, bool] | None = None
+    t0 = records[0][0] if records else 0.0
+    for t, frame in records:
+        for msg in decoder.feed(frame):
+            if isinstance(msg, SmUpdate):
+                flight.rows.append(row_of(round(t - t0, 6), t, msg, health))
+            elif isinstance(msg, Status):
+                flight.statuses += 1
+                health = msg.health()
+            else:
+                flight.other_frames += 1
+    return flight
+
+
+# -- writers -------------------------------------------------------------------------------------
+
+def _csv_cell(v: Any) -> Any:
+    if v is None:
+        return ""
+    if isinstance(v, bool):
+        return 1 if v else 0
+    if isinstance(v, float):
+        return repr(v)  # shortest round trip; nan, inf, -inf for the non-finite
+    return v
+
+
+def write_csv(rows: list[dict[str, Any]], out: TextIO) -> None:
+    """The rows as CSV with a header row."""
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(COLUMNS)
+    for row in rows:
+        w.writerow([_csv_cell(row[c]) for c in COLUMNS])
+
+
+def _json_value(v: Any) -> Any:
+    return None if isinstance(v, float) and not math.isfinite(v) else v
+
+
+def write_jsonl(rows: list[dict[str, Any]], out: TextIO) -> None:
+    """The rows as JSON lines (non-finite floats as null: strict JSON)."""
+    for row in rows:
+        out.write(json.dumps({c: _json_value(row[c]) for c in COLUMNS}, allow_nan=False))
+        out.write("\n")
+
+
+WRITERS: dict[str, Callable[[list[dict[str, Any]], TextIO], None]] = {
+    "csv": write_csv, "jsonl": write_jsonl}
+
+
+# -- the command ---------------------------------------------------------------------------------
+
+def add_command(subparsers: Any) -> argparse.ArgumentParser:
+    """Add ``export`` to the ``aurora-gateway`` subcommands."""
+    p = subparsers.add_parser(
+        "export", help="write a recording's SM updates as CSV or JSON lines",
+        description="Write one row per SM_UPDATE of a recording, for spreadsheets and "
+                    "pandas. " + _COLUMN_HELP)
+    p.add_argument("recording", metavar="RECORDING", help="the recording (.aur)")
+    p.add_argument("--format", "-f", choices=FORMATS, default=None,
+                   help="csv or jsonl (default: jsonl for a .jsonl/.ndjson/.json -o file, "
+                        "else csv)")
+    p.add_argument("-o", "--output", metavar="FILE", default="-",
+                   help="file to write; - = stdout (default)")
+    p.set_defaults(handler=run_export)
+    return p
+
+
+def _format_of(args: argparse.Namespace) -> str:
+    if args.format:
+        return str(args.format)
+    if args.output != "-" and Path(args.output).suffix.lower() in _JSONL_SUFFIXES:
+        return "jsonl"
+    return "csv"
+
+
+def _quiet_stdout() -> None:
+    """After a closed pipe: point stdout at /dev/null, so the interpreter's last flush of
+    what is still buffered does not fail (and print) again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError):  # no real stdout (a test's capture): nothing to flush
+        pass
+
+
+def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    """The ``export`` handler; returns the exit status.  ``out`` replaces stdout (tests)."""
+    err = sys.stderr
+    fmt = _format_of(args)
+    try:
+        flight = load(args.recording)
+    except ExportError as exc:
+        print(f"aurora-gateway export: {exc}", file=err)
+        return EXIT_FAILURE
+    to_stdout = args.output == "-"
+    stream = out if out is not None else sys.stdout
+    try:
+        if to_stdout:
+            WRITERS[fmt](flight.rows, stream)
+            stream.flush()
+        else:
+            with open(args.output, "w", encoding="utf-8", newline="") as f:
+                WRITERS[fmt](flight.rows, f)
+    except BrokenPipeError:
+        if to_stdout and out is None:
+            _quiet_stdout()
+        return 0
+    except OSError as exc:
+        print(f"aurora-gateway export: cannot write {args.output}: {exc.strerror or exc}",
+              file=err)
+        return EXIT_FAILURE
+    where = "stdout" if to_stdout else args.output
+    notes = flight.notes()
+    print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
+          f"as {fmt} to {where}" + (f"; {notes}" if notes else ""), file=err)
+    return 0
+
