@@ -22,7 +22,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
-from gateway import __version__, config, recording, registry
+from gateway import __version__, config, logjson, recording, registry
 from gateway.app import Gateway
 from gateway.backoff import Backoff
 from gateway.config import ConfigError, GatewayConfig, Key, Schema
@@ -32,6 +32,16 @@ log = logging.getLogger("aurora-gateway")
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
+EXIT_CODES_HELP = """\
+exit status:
+  0    done: the duration passed, the sources ended, or SIGINT/SIGTERM stopped a
+       running gateway cleanly (a backend that failed to start is reported, not fatal)
+  1    a failure: an unexpected error (its traceback on stderr), or a subcommand that
+       could not do its job (a file it could not write, a radio that did not answer)
+  2    a usage or configuration error (one line on stderr naming the flag or key)
+  130  Ctrl-C outside a clean stop: during start-up and imports, or in decode
+  subcommands may add their own (hc12: 3 = refused by its safety rules)
+"""
 
 # -- flags that set configuration keys -------------------------------------------------------
 # (argparse dest, flag, key): checked by the key's own Key, named in errors as the flag.
@@ -59,6 +69,8 @@ SIMULATE_FLAGS = (
 # Flags of the command line only.
 CLI_KEYS = Schema(
     duration=Key(float, None, "stop after S seconds", minimum=0, nullable=True),
+    log_format=Key(str, "text", "log lines as text, or one JSON object a line (journald)",
+                   choices=logjson.FORMATS),
 )
 
 
@@ -165,6 +177,9 @@ def _add_common_options(p: argparse.ArgumentParser) -> None:
               "seconds between status lines on stderr (0 = none)", metavar="S")
     _key_flag(p, "--duration", CLI_KEYS.keys["duration"], "stop after S seconds", metavar="S")
     _key_flag(p, "--log-level", _gateway_key("log_level"), "logging level", metavar="LEVEL")
+    _key_flag(p, "--log-format", CLI_KEYS.keys["log_format"],
+              "log lines as text (default), or one JSON object a line (journald)",
+              metavar="FORMAT")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -202,7 +217,8 @@ def build_parser(backend_flags: bool = True,
     parser = _Parser(
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
-                    "to every configured backend.")
+                    "to every configured backend.",
+        epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
@@ -301,6 +317,9 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
             source_opts.append((type_name, key, value))
     if hasattr(args, "duration"):
         args.duration = _checked(args, "duration", "--duration", CLI_KEYS.keys["duration"])
+    if hasattr(args, "log_format"):
+        args.log_format = _checked(args, "log_format", "--log-format",
+                                   CLI_KEYS.keys["log_format"])
     keep, asked = _backend_filter(args, backends)
     cfg = config.load(args.config, keep) if getattr(args, "config", None) else None
     if cfg is None:
@@ -372,9 +391,8 @@ class _Stopper:
             signal.signal(sig, old)
 
 
-def _setup_logging(level: str | None) -> None:
-    logging.basicConfig(level=getattr(logging, (level or "info").upper()), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)-7s %(name)s: %(message)s")
+def _setup_logging(level: str | None, fmt: str | None = None) -> None:
+    logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
 def _report(summary: dict[str, Any]) -> None:
@@ -429,7 +447,7 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
-    _setup_logging(cfg.gateway["log_level"])
+    _setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
@@ -440,7 +458,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     opts = {"path": args.file, "speed": speed_key.default if speed is None else speed,
             "loop": args.loop}
     cfg.sources = [config.make_source("replay", opts, None, "replay")]
-    _setup_logging(cfg.gateway["log_level"])
+    _setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
@@ -448,7 +466,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     args.config = None
     cfg = config_from_args(args, backends=False)
     cfg.gateway["record"] = args.file
-    _setup_logging(cfg.gateway["log_level"])
+    _setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
