@@ -12,6 +12,7 @@ from typing import Any, TextIO
 from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
+from gateway.flight_summary import FlightSummary, crc_errors, new_recording
 from gateway.model import kind
 from gateway.monitor import LinkMonitor
 from gateway.recording import Recorder, RecordingError
@@ -31,6 +32,22 @@ def _build(part: Part, where: str) -> Any:
         raise ConfigError(f"{where}: {exc}") from None
 
 
+def _recorder_totals(recorders: list[Recorder]) -> dict[str, Any] | None:
+    """The recorders' stats added up (counters summed, ``not_recordable`` per kind)."""
+    if not recorders:
+        return None
+    out: dict[str, Any] = {}
+    for r in recorders:
+        for k, v in r.stats().items():
+            if isinstance(v, dict):
+                merged = out.setdefault(k, {})
+                for kk, vv in v.items():
+                    merged[kk] = merged.get(kk, 0) + vv
+            else:
+                out[k] = out.get(k, 0) + v
+    return out
+
+
 class Gateway:
     """Builds and runs sources and backends from a validated configuration."""
 
@@ -42,6 +59,12 @@ class Gateway:
         self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
         self.counts: Counter[str] = Counter()
         self.recorder: Recorder | None = None
+        #: every recording this run opened, the one being written last (``record_dir``: one
+        #: per flight)
+        self.recorders: list[Recorder] = []
+        self._retired: list[threading.Thread] = []  # closing a previous flight's recording
+        self._rotate_lock = threading.Lock()
+        self.flights = FlightSummary()
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
         for p in cfg.backends:
             self.dispatcher.add(_build(p, f"backends.{p.name}"))
@@ -55,8 +78,11 @@ class Gateway:
 
     def ingest(self, msg: Any) -> None:
         """Everything a source produces comes through here (from the source's thread)."""
+        new_flight = self.flights.feed(msg)
         rec = self.recorder
         if rec is not None:
+            if new_flight and self.cfg.gateway.get("record_dir"):
+                rec = self._next_recording(msg.origin) or rec
             rec.submit(msg)  # never waits on disk: a bounded queue to the writer thread
         if msg.origin:
             self.monitor.frame_seen(msg.origin, msg.via)
@@ -73,9 +99,19 @@ class Gateway:
         thread runs."""
         self.started_at = time.monotonic()
         path = self.cfg.gateway.get("record")
+        directory = self.cfg.gateway.get("record_dir")
+        if directory:
+            where = "gateway.record_dir"
+            try:
+                path = new_recording(directory, time.time(),
+                                     "+".join(s.name for s in self.sources) or "gateway")
+            except OSError as exc:
+                raise ConfigError(f"{where}: cannot create a recording in {directory}: "
+                                  f"{exc.strerror or exc}") from None
         if path:
             try:
                 self.recorder = Recorder(path)
+                self.recorders.append(self.recorder)
             except RecordingError as exc:
                 raise ConfigError(f"gateway.record: {exc}") from None
             except OSError as exc:
@@ -118,21 +154,54 @@ class Gateway:
         for src in self.sources:
             src.stop(max(0.05, (deadline - time.monotonic()) / 2))
         self.dispatcher.close()
-        if self.recorder is not None:
-            self.recorder.close(max(0.1, deadline - time.monotonic()))
+        with self._rotate_lock:
+            rec = self.recorder
+        if rec is not None:
+            rec.close(max(0.1, deadline - time.monotonic()))
+        for t in self._retired:
+            t.join(max(0.05, deadline - time.monotonic()))
         return self.summary()
+
+    def _next_recording(self, origin: str) -> Recorder | None:
+        """Open the next flight's recording in ``record_dir`` (a vehicle armed again after a
+        flight) and close the previous one off this thread; on failure keep the old one.
+        Once per flight, on the pad: the file's creation is the only disk access here."""
+        with self._rotate_lock:
+            old = self.recorder
+            try:
+                rec = Recorder(new_recording(self.cfg.gateway["record_dir"], time.time(),
+                                             origin or "gateway"))
+            except (OSError, RecordingError) as exc:
+                log.error("record_dir: cannot open the next flight's recording (%s); "
+                          "recording on into %s", exc, old.path if old else "nothing")
+                return old
+            self.recorder = rec
+            self.recorders.append(rec)
+            log.info("new flight of %s: recording into %s", origin or "the vehicle", rec.path)
+            if old is not None:
+                t = threading.Thread(target=old.close, name=f"close {old.path.name}",
+                                     daemon=True)
+                t.start()
+                self._retired.append(t)
+            return rec
 
     # -- reporting ---------------------------------------------------------------------------
 
     def summary(self) -> dict[str, Any]:
+        """What the run did (counters per source, link, backend and recording) and what it
+        saw of each vehicle (``flights``: :class:`FlightSummary`)."""
+        sources = {s.name: s.stats() for s in self.sources}
         return {
             "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
             "messages_in": dict(self.counts),
-            "sources": {s.name: s.stats() for s in self.sources},
+            "sources": sources,
             "links": self.monitor.states(),
             "backends": self.dispatcher.stats(),
-            "recorded": self.recorder.records if self.recorder else None,
-            "recorder": self.recorder.stats() if self.recorder else None,
+            "recorded": sum(r.records for r in self.recorders) if self.recorders else None,
+            "recorder": _recorder_totals(self.recorders),
+            "recordings": [str(r.path) for r in self.recorders],
+            "flights": self.flights.as_dict(),
+            "crc_errors": crc_errors(sources),
         }
 
     def status_line(self) -> str:
@@ -149,6 +218,6 @@ class Gateway:
             sent = st.get("sent", st.get("accepted", 0))
             dropped = st.get("dropped", st.get("queue-full", 0) + st.get("not-ready", 0))
             parts.append(f"{name} sent {sent} dropped {dropped}")
-        if self.recorder is not None:
-            parts.append(f"rec {self.recorder.records}")
+        if self.recorders:
+            parts.append(f"rec {sum(r.records for r in self.recorders)}")
         return " | ".join(parts)

@@ -26,6 +26,7 @@ from gateway import __version__, config, logjson, recording, registry
 from gateway.app import Gateway
 from gateway.backoff import Backoff
 from gateway.config import ConfigError, GatewayConfig, Key, Schema
+from gateway.flight_summary import summary_lines
 from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
@@ -50,6 +51,7 @@ GATEWAY_FLAGS = (
     ("status_interval", "--status-interval", "status_interval_s"),
     ("link_timeout", "--link-timeout", "link_timeout_s"),
     ("record", "--record", "record"),
+    ("record_dir", "--record-dir", "record_dir"),
     ("log_level", "--log-level", "log_level"),
 )
 # (argparse dest, flag, source type, key): set on every source of that type.
@@ -135,6 +137,9 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
         _add_source_options(p)
     _key_flag(p, "--record", _gateway_key("record"), "append every received frame to FILE",
               metavar="FILE")
+    _key_flag(p, "--record-dir", _gateway_key("record_dir"),
+              "record into a new file in DIR (created) per run and per flight, named "
+              "<UTC start>-<source>.aur; not with --record", metavar="DIR")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
                    help="leave this backend out (repeatable)")
     p.add_argument("--only", action="append", default=[], metavar="BACKEND",
@@ -302,6 +307,9 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     flags on top.  Every flag is checked first, by the key it sets, used or not.  A backend
     that ``--only``/``--disable`` leave out (all of them when ``backends`` is False) is
     dropped before its table is validated: its class is never imported."""
+    if getattr(args, "record", None) is not None and \
+            getattr(args, "record_dir", None) is not None:
+        raise ConfigError("--record, --record-dir: give one or the other")
     gateway_opts = {}
     for dest, flag, key in GATEWAY_FLAGS:
         value = _checked(args, dest, flag, _gateway_key(key), f"gateway.{key}")
@@ -331,6 +339,9 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
             if p.type == type_name:
                 cfg.sources[i] = config.make_source(type_name, {**p.options, key: value},
                                                     p.name, f"sources[{i}]")
+    for one, other in (("record", "record_dir"), ("record_dir", "record")):
+        if gateway_opts.get(one):
+            gateway_opts[other] = ""  # a flag replaces the file's way of recording
     cfg.gateway.update(gateway_opts)
     # Backend flags: each backend turns its own flags into options (and is enabled by them).
     # Only commands built with _add_gateway_options have them (`record` has no backends).
@@ -424,6 +435,14 @@ def _report(summary: dict[str, Any]) -> None:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
                      + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
     print(line, file=sys.stderr)
+    for text in summary_lines(summary.get("flights") or {}):
+        print(text, file=sys.stderr)
+    crc = summary.get("crc_errors") or {}
+    print(f"crc errors: {sum(crc.values())}"
+          + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""),
+          file=sys.stderr)
+    for path in summary.get("recordings") or ():
+        print(f"recording: {path}", file=sys.stderr)
     print("dropped: " + ("; ".join(drops) if drops else "nothing"), file=sys.stderr)
 
 

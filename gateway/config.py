@@ -148,6 +148,8 @@ GATEWAY_SCHEMA = Schema(
     status_interval_s=Key(float, 1.0, "seconds between status lines; 0 = none", minimum=0),
     link_timeout_s=Key(float, 3.0, "silence after which a source's link is down", minimum=0.05),
     record=Key(str, "", "append every received frame to this recording file"),
+    record_dir=Key(str, "", "record into a new file in this directory for each run and "
+                   "flight, named <UTC start>-<source>.aur (not with record)"),
     log_level=Key(str, "info", "logging level",
                   choices=("debug", "info", "warning", "error")),
 )
@@ -208,6 +210,8 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
         if key not in allowed:
             raise ConfigError(f"{key}: unknown section; allowed: {', '.join(sorted(allowed))}")
     cfg = GatewayConfig(gateway=GATEWAY_SCHEMA.validate(data.get("gateway", {}), "gateway"))
+    if cfg.gateway["record"] and cfg.gateway["record_dir"]:
+        raise ConfigError("gateway.record, gateway.record_dir: give one or the other")
     sources = data.get("sources", [])
     if not isinstance(sources, list):
         raise ConfigError("sources: expected an array of tables ([[sources]])")

@@ -81,7 +81,7 @@ def test_embedded_default_runs_the_sim_through_the_console() -> None:
 def test_a_full_valid_file_parses_with_defaults_filled_in() -> None:
     cfg = parse_toml(FULL)
     assert cfg.gateway == {"status_interval_s": 0.5, "link_timeout_s": 2.0,
-                           "record": "flight.aurora", "log_level": "debug"}
+                           "record": "flight.aurora", "record_dir": "", "log_level": "debug"}
     sim, radio = cfg.sources
     assert (sim.type, sim.name, sim.cls) == ("sim", "sim", SimSource)
     assert sim.options["rate_hz"] == 20.0
@@ -97,7 +97,7 @@ def test_an_empty_file_gives_the_gateway_defaults_and_nothing_else() -> None:
     cfg = parse_toml("")
     assert cfg.sources == [] and cfg.backends == []
     assert cfg.gateway == {"status_interval_s": 1.0, "link_timeout_s": 3.0, "record": "",
-                           "log_level": "info"}
+                           "record_dir": "", "log_level": "info"}
 
 
 def test_a_serial_source_is_named_after_its_url_by_default() -> None:

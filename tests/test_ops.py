@@ -227,7 +227,8 @@ def test_run_with_log_format_json_logs_one_json_object_a_line(tmp_path: Path) ->
             docs.append(json.loads(line))
         else:  # the command's own lines: the start line and the stop report
             assert '"time"' not in line, line
-            assert re.match(r"aurora-gateway \S+: sources |stopped after |dropped: ", line), line
+            assert re.match(r"aurora-gateway \S+: sources |stopped after |dropped: |flight |"
+                            r"crc errors: |recording: ", line), line
     assert docs, r.stderr
     for doc in docs:
         assert {"time", "level", "logger", "message"} <= set(doc)

@@ -1,0 +1,174 @@
+"""What a run saw of each vehicle, kept as the messages pass, and per-flight recording names.
+
+:class:`FlightSummary` is fed every message by :meth:`gateway.app.Gateway.ingest` (in the
+sources' threads) and keeps, per origin (the source that produced the updates): the states
+seen in order, the launches, the highest altitude and when it was reached (apogee) — on the
+flight computer's clock after liftoff and as the wall time it passed the gateway.  Only
+``SmUpdate`` counts; anything else costs one type check.  Nothing re-reads the recording.
+
+A *flight* begins at liftoff (the first in-flight state after one that is not).  A vehicle
+that arms on the pad again after a flight (LANDED or IDLE → ARMED) starts the next flight's
+recording: :meth:`FlightSummary.feed` returns True for that update, and the gateway opens a
+new file named by :func:`recording_name` when it records into a directory.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from gateway.model import SmUpdate
+
+RECORDING_SUFFIX = ".aur"
+_UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
+
+
+@dataclass
+class VehicleSummary:
+    """One origin's flight figures (altitudes in m; ``*_ms`` on the flight computer's clock)."""
+
+    updates: int = 0
+    states: list[str] = field(default_factory=list)  # in the order first seen
+    launches: int = 0
+    max_altitude_m: float | None = None
+    apogee_wall: float | None = None  # Unix time the highest update passed the gateway
+    apogee_after_launch_s: float | None = None  # None: reached before any liftoff was seen
+    # -- tracking
+    _state: tuple[int, int] | None = None
+    _in_flight: bool = False
+    _armed_on_pad: bool = False
+    _flown_since_arm: bool = False
+    _launch_ms: int | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        """The figures as JSON-friendly values."""
+        return {"updates": self.updates, "states": list(self.states),
+                "launches": self.launches, "max_altitude_m": self.max_altitude_m,
+                "apogee_time": utc_iso(self.apogee_wall),
+                "apogee_after_launch_s": self.apogee_after_launch_s}
+
+
+class FlightSummary:
+    """Flight figures per origin, fed message by message; cheap enough for the hot path."""
+
+    def __init__(self, clock: Any = time.time) -> None:
+        self.vehicles: dict[str, VehicleSummary] = {}
+        self._clock = clock
+
+    def feed(self, msg: Any) -> bool:
+        """Take one message; True when it is a vehicle arming on the pad after a flight (the
+        start of its next flight's recording)."""
+        if type(msg) is not SmUpdate:
+            return False
+        v = self.vehicles.get(msg.origin)
+        if v is None:
+            v = self.vehicles[msg.origin] = VehicleSummary()
+        v.updates += 1
+        key = (msg.sm_type, msg.state)
+        new_flight = False
+        if key != v._state:
+            v._state = key
+            name = msg.state_name
+            if name not in v.states:
+                v.states.append(name)
+            in_flight = msg.in_flight
+            if in_flight and not v._in_flight:
+                v.launches += 1
+                v._launch_ms = msg.timestamp_ms
+                v._flown_since_arm = True
+            v._in_flight = in_flight
+        armed_on_pad = msg.armed and msg.on_pad
+        if armed_on_pad and not v._armed_on_pad:
+            new_flight = v._flown_since_arm
+            v._flown_since_arm = False
+        v._armed_on_pad = armed_on_pad
+        alt = msg.altitude_m
+        if (v.max_altitude_m is None or alt > v.max_altitude_m) and math.isfinite(alt):
+            v.max_altitude_m = alt
+            v.apogee_wall = self._clock()
+            v.apogee_after_launch_s = (None if v._launch_ms is None
+                                       else (msg.timestamp_ms - v._launch_ms) / 1000.0)
+        return new_flight
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every origin's figures."""
+        return {name: v.as_dict() for name, v in self.vehicles.items()}
+
+
+def utc_iso(t: float | None) -> str | None:
+    """Unix time as ISO-8601 UTC to the millisecond (None stays None)."""
+    if t is None:
+        return None
+    return datetime.fromtimestamp(t, tz=UTC).isoformat(timespec="milliseconds")
+
+
+def summary_lines(flights: dict[str, Any]) -> list[str]:
+    """The end-of-run report's lines for :meth:`FlightSummary.as_dict`'s figures."""
+    lines = []
+    for name, v in flights.items():
+        alt = v["max_altitude_m"]
+        if alt is None:
+            text = "no altitude"
+        else:
+            text = f"max altitude {alt:.1f} m"
+            after = v["apogee_after_launch_s"]
+            when = (v["apogee_time"] or "")[11:19]
+            text += (f" at T+{after:.1f} s ({when} UTC)" if after is not None
+                     else f" at {when} UTC (before any liftoff)")
+        lines.append(f"flight {name}: {v['launches']} launch{'es' if v['launches'] != 1 else ''}"
+                     f", {text}, {v['updates']} updates; states "
+                     f"{' '.join(v['states']) or 'none'}")
+    return lines
+
+
+def crc_errors(sources: dict[str, dict[str, Any]]) -> dict[str, int]:
+    """Per source, the sum of its counters named ``*crc*`` (``crc_failures`` of the wire
+    decoder, ``crc_errors`` of MAVLink endpoints), nested tables included."""
+
+    def total(d: dict[str, Any]) -> int:
+        n = 0
+        for k, v in d.items():
+            if isinstance(v, dict):
+                n += total(v)
+            elif "crc" in k and isinstance(v, int) and not isinstance(v, bool):
+                n += v
+        return n
+
+    return {name: total(st) for name, st in sources.items()}
+
+
+def safe_name(name: str) -> str:
+    """``name`` made safe for a file name: runs of other characters than letters, digits,
+    ``.``, ``_`` and ``-`` become one ``_`` (``/dev/ttyUSB0`` → ``dev_ttyUSB0``)."""
+    return _UNSAFE.sub("_", name).strip("_.") or "gateway"
+
+
+def recording_name(started: float, name: str) -> str:
+    """``<UTC start, 2026-11-23T14-02-11>-<name>.aur``."""
+    stamp = datetime.fromtimestamp(started, tz=UTC).strftime("%Y-%m-%dT%H-%M-%S")
+    return f"{stamp}-{safe_name(name)}{RECORDING_SUFFIX}"
+
+
+def new_recording(directory: str | Path, started: float, name: str) -> Path:
+    """Create ``directory`` (and its parents) and an empty, new recording file in it named by
+    :func:`recording_name`; a name already taken (two runs in one second) gets ``-2``,
+    ``-3`` … before the suffix.  The file is created exclusively, so no run appends to
+    another's."""
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    base = recording_name(started, name)[: -len(RECORDING_SUFFIX)]
+    for n in range(1, 1000):
+        path = d / (base + (f"-{n}" if n > 1 else "") + RECORDING_SUFFIX)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            continue
+        os.close(fd)
+        return path
+    raise FileExistsError(f"{d}: every name for {base}{RECORDING_SUFFIX} is taken")
