@@ -1,0 +1,255 @@
+"""``aurora-gateway monitor`` (gateway/live.py, gateway/monitor_cmd.py).
+
+The view model is fed the simulator's flight and rendered into a fixed-size console; the
+expected numbers come from the messages themselves and the flight model's own figures, never
+from the monitor.  The command runs as the console script, stdout a pipe, with a fake
+``espeak-ng`` on PATH that records what it is asked to say.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import re
+import stat
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from rich.console import Console
+
+from dialects.states import SimpleState
+from gateway.flight import FlightModel, FlightProfile
+from gateway.live import (
+    EndpointRow,
+    LiveState,
+    RateMeter,
+    Speaker,
+    endpoint_row,
+    plain_line,
+    render,
+)
+from gateway.model import LinkEvent, SmUpdate, Status
+from gateway.sources.sim import flight_messages
+
+CONSOLE = Path(sys.executable).with_name("aurora-gateway")
+ANSI = re.compile(r"\x1b\[")
+
+
+def one_flight() -> tuple[FlightModel, list[tuple[float, SmUpdate | Status]]]:
+    model = FlightModel(FlightProfile())
+    return model, list(flight_messages(model, rate_hz=10.0, status_hz=1.0, cycles=1))
+
+
+def feed_until(state: LiveState, msgs: list[tuple[float, SmUpdate | Status]],
+               stop_state: SimpleState) -> tuple[float, SmUpdate]:
+    """Feed messages (their simulated time as ``now``) up to the first SM update in
+    ``stop_state``; returns its time and the update."""
+    for t, msg in msgs:
+        state.feed(msg, t)
+        state.set_counters(t, state.messages, 0)
+        if isinstance(msg, SmUpdate) and msg.state == stop_state:
+            return t, msg
+    raise AssertionError(f"the flight never reached {stop_state.name}")
+
+
+def screen(state: LiveState, now: float) -> str:
+    console = Console(width=100, height=30, record=True, force_terminal=False,
+                      color_system=None, file=open(os.devnull, "w"))  # noqa: SIM115
+    try:
+        console.print(render(state, now))
+        return console.export_text()
+    finally:
+        console.file.close()
+
+
+def test_view_shows_the_flight_in_main() -> None:
+    model, msgs = one_flight()
+    state = LiveState(link_timeout_s=3.0)
+    t, last = feed_until(state, msgs, SimpleState.MAIN)
+    fed = [m for tm, m in msgs if tm <= t and isinstance(m, SmUpdate)]
+    top = max(m.altitude_m for m in fed)
+    assert abs(top - model.apogee_altitude_m) < 1.0  # the samples see the model's apogee
+    text = screen(state, t)
+    assert "MAIN" in text
+    assert f"{last.altitude_m:.1f} m" in text
+    assert re.search(rf"max altitude\s+{top:.1f} m", text)
+    assert f"{last.velocity_mps:.1f} m/s" in text
+    assert re.search(r"link\s+up", text)
+    assert re.search(r"last update\s+0\.0 s ago", text)
+    assert len(text.splitlines()) == 30
+
+
+def test_silence_takes_the_link_down_and_link_events_name_sources() -> None:
+    _, msgs = one_flight()
+    state = LiveState(link_timeout_s=3.0)
+    t, _ = feed_until(state, msgs, SimpleState.BOOST)
+    assert re.search(r"link\s+DOWN", screen(state, t + 3.5))
+    assert re.search(r"last update\s+3\.5 s ago", screen(state, t + 3.5))
+    state.feed(LinkEvent("radio", True), t)
+    assert re.search(r"radio\s+up", screen(state, t))
+    state.feed(LinkEvent("radio", False, 3.0), t + 3)
+    text = screen(state, t + 3)
+    assert re.search(r"link\s+DOWN", text) and re.search(r"radio\s+DOWN", text)
+
+
+def test_announcements_follow_the_state_changes_with_the_apogee_altitude() -> None:
+    _, msgs = one_flight()
+    said: list[str] = []
+    state = LiveState(on_announce=said.append)
+    expected: list[str] = []
+    prev: SmUpdate | None = None
+    top = float("-inf")
+    for t, msg in msgs:
+        state.feed(msg, t)
+        if not isinstance(msg, SmUpdate):
+            continue
+        top = max(top, msg.altitude_m)
+        if prev is not None and prev.state != msg.state:
+            name = SimpleState(msg.state).name.lower()
+            expected.append(f"apogee, {top:.0f} meters" if name == "apogee" else name)
+        prev = msg
+    assert said == expected
+    assert said[:3] == ["armed", "boost", "burnout"] and said[-1] == "idle"
+    assert "landed" in said and "main" in said
+
+
+def test_plain_line_is_key_value_without_escapes() -> None:
+    _, msgs = one_flight()
+    state = LiveState()
+    t, last = feed_until(state, msgs, SimpleState.APOGEE)
+    line = plain_line(state, t)
+    assert not ANSI.search(line)
+    fields = dict(tok.split("=", 1) for tok in line.split(" "))
+    assert fields["state"] == "APOGEE" and fields["armed"] == "yes"
+    assert float(fields["alt_m"]) == pytest.approx(last.altitude_m, abs=0.05)
+    assert fields["link"] == "up" and fields["crc_errors"] == "0"
+    # 10 SM updates + 1 STATUS per simulated second, sampled every message
+    assert float(fields["updates_per_s"]) == pytest.approx(10.0, rel=0.1)
+
+
+def test_rate_meter_over_its_window() -> None:
+    r = RateMeter(window_s=2.0)
+    assert r.rate(0.0) is None
+    for i in range(11):  # 5 events per second for 10 s
+        r.sample(i * 1.0, i * 5)
+    assert r.rate(10.0) == pytest.approx(5.0)
+    assert r.rate(20.0) is None  # nobody sampled for longer than the window
+
+
+def test_endpoint_rows_from_stats() -> None:
+    row = endpoint_row("zenoh", {"received": 7, "lost": 2, "dropped_queue_full": 1,
+                                 "crc_failures": 0})
+    assert row == EndpointRow("zenoh", received=7, dropped=3, errors=0)
+    row = endpoint_row("mavlink", {"sent": 10, "dropped": 1, "errors": 2, "link": 1,
+                                   "clients": 3})
+    assert (row.sent, row.dropped, row.errors, row.clients, row.link) == (10, 1, 2, 3, True)
+    state = LiveState()
+    state.set_endpoints([row])
+    assert re.search(r"mavlink\s+–\s+10\s+1\s+2\s+3\s+up", screen(state, 0.0))
+
+
+def open_gate(gate: Path, proc: subprocess.Popen[bytes]) -> None:
+    """Let the fake speaker reading ``gate`` (a FIFO) finish: open and close the writing end
+    once it has opened its reading end (within a deadline, while it is alive)."""
+    deadline = time.monotonic() + 5.0
+    while True:
+        try:
+            fd = os.open(gate, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError as exc:  # ENXIO: the script has not opened its end yet
+            if exc.errno != errno.ENXIO or proc.poll() is not None:
+                raise
+            assert time.monotonic() < deadline, "the fake speaker never opened its gate"
+            threading.Event().wait(0.01)
+            continue
+        os.close(fd)
+        return
+
+
+def test_speaker_drops_while_busy(tmp_path: Path) -> None:
+    gate = tmp_path / "gate"
+    os.mkfifo(gate)
+    script = tmp_path / "say"
+    script.write_text(f"#!/bin/sh\nread x < {gate}\n")  # speaks until the gate opens
+    script.chmod(script.stat().st_mode | stat.S_IXUSR)
+    sp = Speaker(str(script))
+    assert sp.say("boost") is True
+    assert sp.say("burnout") is False and sp.dropped == 1
+    proc = sp._proc
+    assert proc is not None
+    open_gate(gate, proc)
+    proc.wait(timeout=5)
+    assert sp.say("apogee") is True and sp.spoken == 2
+    proc = sp._proc
+    assert proc is not None
+    open_gate(gate, proc)
+    proc.wait(timeout=5)
+
+
+def test_speaker_survives_a_program_that_cannot_start(tmp_path: Path) -> None:
+    sp = Speaker(str(tmp_path / "missing"))
+    assert sp.say("boost") is False and sp.failed == 1
+
+
+# -- the console script -----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def monitor_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str, Path]:
+    """One run of ``monitor --source sim --sim-speed 20 --speak`` into a pipe, with a fake
+    espeak-ng that appends each text it is given to a file; (stdout, stderr, that file)."""
+    bindir = tmp_path_factory.mktemp("bin")
+    said = bindir / "said.txt"
+    fake = bindir / "espeak-ng"
+    fake.write_text(f'#!/bin/sh\nprintf "%s\\n" "$*" >> {said}\n')
+    fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
+    env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ.get('PATH', '')}"}
+    proc = subprocess.run(
+        [str(CONSOLE), "monitor", "--source", "sim", "--sim-speed", "20", "--speak",
+         "--refresh", "0.25", "--duration", "1.8"],
+        capture_output=True, text=True, env=env, timeout=30, check=False)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout, proc.stderr, said
+
+
+def test_plain_lines_through_a_pipe(monitor_run: tuple[str, str, Path]) -> None:
+    out, _, _ = monitor_run
+    assert not ANSI.search(out)
+    lines = out.splitlines()
+    assert len(lines) >= 5
+    names = {s.name for s in SimpleState}
+    tops = []
+    for line in lines:
+        fields = dict(tok.split("=", 1) for tok in line.split(" "))
+        assert fields["state"] in names
+        assert fields["link"] == "up"
+        assert fields["crc_errors"] == "0"
+        tops.append(float(fields["max_alt_m"]))
+    assert tops == sorted(tops)  # the highest altitude never goes down
+    apogee = FlightModel(FlightProfile()).apogee_altitude_m
+    assert tops[-1] == pytest.approx(apogee, abs=1.0)  # 1.8 s at 20× is past apogee (~0.9 s)
+
+
+def test_speak_says_apogee(monitor_run: tuple[str, str, Path]) -> None:
+    _, _, said = monitor_run
+    deadline = time.monotonic() + 5.0  # the last fake speaker may still be writing
+    text = ""
+    while time.monotonic() < deadline:
+        text = said.read_text() if said.exists() else ""
+        if "apogee" in text:
+            break
+        threading.Event().wait(0.02)
+    assert re.search(r"^apogee, \d+ meters$", text, re.M), text
+
+
+def test_speak_without_espeak_is_one_warning(tmp_path: Path) -> None:
+    env = {**os.environ, "PATH": str(tmp_path)}
+    proc = subprocess.run([str(CONSOLE), "monitor", "--source", "sim", "--speak",
+                           "--duration", "0"],
+                          capture_output=True, text=True, env=env, timeout=30, check=False)
+    assert proc.returncode == 0, proc.stderr
+    warnings = [ln for ln in proc.stderr.splitlines() if "espeak-ng" in ln]
+    assert warnings == ["aurora-gateway monitor: --speak: espeak-ng not found on PATH; "
+                        "running without speech"]
