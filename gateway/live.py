@@ -318,7 +318,8 @@ def _vehicle_table(state: LiveState) -> Table:
                   f"{_deg(veh.roll_rad)} / {_deg(veh.pitch_rad)} / {_deg(veh.yaw_rad)}")
     if state.status is not None:
         h = state.status.health()
-        t.add_row("health", " ".join(k for k, v in h.items() if v and k != "armed") or "none")
+        ok = " ".join(k for k, v in h.items() if v and k != "armed") or "none"
+        t.add_row("health", Text(ok, no_wrap=True, overflow="ellipsis"))
     if state.position is not None:
         p = state.position
         t.add_row("position", f"{p.lat_deg:.6f}, {p.lon_deg:.6f}")

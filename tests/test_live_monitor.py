@@ -32,7 +32,7 @@ from gateway.live import (
     plain_line,
     render,
 )
-from gateway.model import LinkEvent, SmUpdate, Status
+from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
 from gateway.sources.sim import flight_messages
 
 CONSOLE = Path(sys.executable).with_name("aurora-gateway")
@@ -115,6 +115,18 @@ def test_announcements_follow_the_state_changes_with_the_apogee_altitude() -> No
     assert said == expected
     assert said[:3] == ["armed", "boost", "burnout"] and said[-1] == "idle"
     assert "landed" in said and "main" in said
+
+
+def test_position_and_battery_when_present() -> None:
+    state = LiveState()
+    assert "position" not in screen(state, 0.0) and "battery" not in screen(state, 0.0)
+    state.feed(Position(47.123456, 8.654321, satellites=9), 0.0)
+    state.feed(Battery(7.42, remaining_pct=81), 0.0)
+    text = screen(state, 0.0)
+    assert "47.123456, 8.654321" in text and re.search(r"satellites\s+9", text)
+    assert "7.42 V 81%" in text
+    fields = dict(tok.split("=", 1) for tok in plain_line(state, 0.0).split(" "))
+    assert (fields["lat"], fields["lon"], fields["batt_v"]) == ("47.123456", "8.654321", "7.42")
 
 
 def test_plain_line_is_key_value_without_escapes() -> None:
