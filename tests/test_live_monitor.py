@@ -9,11 +9,17 @@ from the monitor.  The command runs as the console script, stdout a pipe, with a
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
+import pty
 import re
+import select
+import signal
 import stat
+import struct
 import subprocess
 import sys
+import termios
 import threading
 import time
 from pathlib import Path
@@ -265,3 +271,64 @@ def test_speak_without_espeak_is_one_warning(tmp_path: Path) -> None:
     warnings = [ln for ln in proc.stderr.splitlines() if "espeak-ng" in ln]
     assert warnings == ["aurora-gateway monitor: --speak: espeak-ng not found on PATH; "
                         "running without speech"]
+
+
+def test_ctrl_c_stops_the_status_lines_cleanly() -> None:
+    proc = subprocess.Popen([str(CONSOLE), "monitor", "--source", "sim", "--sim-speed", "20",
+                             "--refresh", "0.1"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()  # running: its first status line
+        assert first.startswith("state=")
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for f in (proc.stdout, proc.stderr):
+            if f is not None:
+                f.close()
+
+
+def read_until(fd: int, needle: bytes, deadline: float) -> bytes:
+    """What the terminal shows until ``needle`` appears (or the deadline passes)."""
+    seen = b""
+    while needle not in seen:
+        left = deadline - time.monotonic()
+        assert left > 0, f"{needle!r} never appeared in {seen[-400:]!r}"
+        ready, _, _ = select.select([fd], [], [], left)
+        if ready:
+            try:
+                chunk = os.read(fd, 65536)
+            except OSError:  # EIO: the other end closed
+                break
+            if not chunk:
+                break
+            seen += chunk
+    return seen
+
+
+def test_full_screen_on_a_terminal_and_q_quits() -> None:
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 100, 0, 0))
+    env = {**os.environ, "TERM": "xterm-256color"}
+    env.pop("COLUMNS", None)
+    env.pop("LINES", None)
+    proc = subprocess.Popen([str(CONSOLE), "monitor", "--source", "sim", "--sim-speed", "20"],
+                            stdin=slave, stdout=slave, stderr=slave, env=env,
+                            start_new_session=True)
+    os.close(slave)
+    try:
+        shown = read_until(master, b"max altitude", time.monotonic() + 10)
+        assert b"\x1b[?1049h" in shown  # the alternate screen: full screen, no scrollback
+        os.write(master, b"q")
+        assert proc.wait(timeout=5) == 0
+        rest = read_until(master, b"\x1b[?1049l", time.monotonic() + 5)
+        assert b"\x1b[?1049l" in rest  # the terminal is given back
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
