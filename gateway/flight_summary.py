@@ -150,9 +150,13 @@ def safe_name(name: str) -> str:
 
 
 def recording_name(started: float, name: str) -> str:
-    """``<UTC start, 2026-11-23T14-02-11>-<name>.aur``."""
+    """``<UTC start, 2026-11-23T14-02-11>-<name>.aur`` (a replayed recording's name loses its
+    own ``.aur``: ``replay:a.aur`` → ``…-replay_a.aur``)."""
     stamp = datetime.fromtimestamp(started, tz=UTC).strftime("%Y-%m-%dT%H-%M-%S")
-    return f"{stamp}-{safe_name(name)}{RECORDING_SUFFIX}"
+    base = safe_name(name)
+    if base.endswith(RECORDING_SUFFIX) and len(base) > len(RECORDING_SUFFIX):
+        base = base[: -len(RECORDING_SUFFIX)]
+    return f"{stamp}-{base}{RECORDING_SUFFIX}"
 
 
 def new_recording(directory: str | Path, started: float, name: str) -> Path:

@@ -21,7 +21,13 @@ from dialects.states import SM_TYPE_SIMPLE, SimpleState
 from gateway import cli, config, recording
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig
-from gateway.flight_summary import FlightSummary, crc_errors, new_recording, safe_name
+from gateway.flight_summary import (
+    FlightSummary,
+    crc_errors,
+    new_recording,
+    recording_name,
+    safe_name,
+)
 from gateway.model import SmUpdate, Status
 from gateway.wire import Decoder
 
@@ -129,6 +135,7 @@ def test_recording_names_are_new_files_named_by_utc_start_and_source(tmp_path: P
     assert second.name == "2026-11-23T14-02-11-dev_ttyUSB0-2.aur"
     assert first.stat().st_size == 0 and second.stat().st_size == 0
     assert safe_name("mavlink:udpin:0.0.0.0:14551") == "mavlink_udpin_0.0.0.0_14551"
+    assert recording_name(t, "replay:old.aur") == "2026-11-23T14-02-11-replay_old.aur"
 
 
 def test_the_gateway_opens_a_new_recording_for_each_flight(tmp_path: Path) -> None:
