@@ -83,7 +83,12 @@ class Gateway:
         if rec is not None:
             if new_flight and self.cfg.gateway.get("record_dir"):
                 rec = self._next_recording(msg.origin) or rec
-            rec.submit(msg)  # never waits on disk: a bounded queue to the writer thread
+            # never waits on disk: a bounded queue to the writer thread.  Refused by a file
+            # another source's thread just closed for the next flight: the current one takes it
+            if not rec.submit(msg) and rec.closed:
+                current = self.recorder
+                if current is not None and current is not rec:
+                    current.submit(msg)
         if msg.origin:
             self.monitor.frame_seen(msg.origin, msg.via)
         self.counts[kind(msg)] += 1

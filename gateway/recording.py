@@ -207,6 +207,11 @@ class Recorder:
 
     # -- the hot path ----------------------------------------------------------------------
 
+    @property
+    def closed(self) -> bool:
+        """Whether :meth:`close` was called (it takes nothing more)."""
+        return self._closed
+
     def submit(self, msg: Any, t: float | None = None) -> bool:
         """Queue a message (or a frame as bytes) received at ``t`` (default now) for the
         writer thread; never blocks.  False if it was dropped: queue full, or closed."""
