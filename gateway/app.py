@@ -56,6 +56,7 @@ class Gateway:
         self.status_out = status_out if status_out is not None else sys.stderr
         self.dispatcher = Dispatcher()
         self.context = GatewayContext(emit=self.ingest)
+        self.context.services["gateway.stats"] = self.counters
         self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
         self.counts: Counter[str] = Counter()
         self.recorder: Recorder | None = None
@@ -191,6 +192,12 @@ class Gateway:
             return rec
 
     # -- reporting ---------------------------------------------------------------------------
+
+    def counters(self) -> dict[str, Any]:
+        """Every backend's and source's ``stats()`` now (what a Zenoh backend publishes for a
+        monitor following this gateway)."""
+        return {"backends": self.dispatcher.stats(),
+                "sources": {s.name: s.stats() for s in self.sources}}
 
     def summary(self) -> dict[str, Any]:
         """What the run did (counters per source, link, backend and recording) and what it

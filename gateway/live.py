@@ -138,6 +138,8 @@ class LiveState:
         self.crc_errors = 0
         self.last_update_at: float | None = None
         self.endpoints: list[EndpointRow] = []
+        #: the backends and sources of the gateways being followed, by gateway id
+        self.remote: dict[str, list[EndpointRow]] = {}
         self.notes: deque[str] = deque(maxlen=NOTES_KEPT)
         self.title = "aurora-gateway monitor"
         self.sources_done = False
@@ -206,6 +208,22 @@ class LiveState:
     def set_endpoints(self, rows: Iterable[EndpointRow]) -> None:
         with self._lock:
             self.endpoints = list(rows)
+
+    def set_remote(self, gateway: str, backends: Mapping[str, Any],
+                   sources: Mapping[str, Any]) -> None:
+        """A followed gateway's counters (its Zenoh backend publishes them): a row per source
+        and backend, under the gateway's id."""
+        rows = [EndpointRow(f"gateway {gateway}")]
+        for group in (sources, backends):
+            rows += [endpoint_row(f"  {name}", st) for name, st in group.items()
+                     if isinstance(st, Mapping)]
+        with self._lock:
+            self.remote[gateway] = rows
+
+    def table_rows(self) -> list[EndpointRow]:
+        """This monitor's own rows, then every followed gateway's."""
+        with self._lock:
+            return list(self.endpoints) + [r for rows in self.remote.values() for r in rows]
 
     def note(self, text: str) -> None:
         """A line for the view's notes (a warning, what was said)."""
@@ -376,8 +394,8 @@ def _endpoints_table(rows: list[EndpointRow]) -> Table:
 def render(state: LiveState, now: float) -> RenderableType:
     """The whole view at ``now``: vehicle and link side by side, then the table of sources,
     backends and endpoints, then the notes."""
+    rows = state.table_rows()
     with state._lock:
-        rows = list(state.endpoints)
         notes = list(state.notes)
     if state.sources_done:
         notes.append("the sources ended")
@@ -403,8 +421,7 @@ def render(state: LiveState, now: float) -> RenderableType:
 def render_compact(state: LiveState, now: float) -> RenderableType:
     """The same content as :func:`render`, stacked, at its natural height (for printing
     once, or a console without a fixed height)."""
-    with state._lock:
-        rows = list(state.endpoints)
+    rows = state.table_rows()
     return Group(Panel(_vehicle_table(state), title="vehicle"),
                  Panel(_link_table(state, now), title="link"),
                  Panel(_endpoints_table(rows), title="sources · backends · endpoints"))

@@ -28,6 +28,7 @@ import time
 from collections.abc import Iterator
 from typing import Any, TextIO
 
+from backends.zenoh.encoding import GatewayStats
 from gateway import cli, config
 from gateway.app import Gateway
 from gateway.backend import Backend, Routes
@@ -55,7 +56,10 @@ class LiveFeed(Backend):
         r = Routes()
         for cls in MESSAGE_TYPES:
             r.on(cls, self._take)
-        return r
+        return r.on(GatewayStats, self._remote)
+
+    def _remote(self, msg: GatewayStats) -> None:
+        self.state.set_remote(msg.gateway, msg.backends, msg.sources)
 
     def _take(self, msg: Any) -> None:
         self.state.feed(msg, self._clock())

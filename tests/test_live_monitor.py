@@ -332,3 +332,47 @@ def test_full_screen_on_a_terminal_and_q_quits() -> None:
             proc.kill()
             proc.wait()
         os.close(master)
+
+
+def test_following_a_gateway_shows_its_backends_counters() -> None:
+    """A gateway's Zenoh backend publishes every backend's and source's counters; a monitor
+    following it (a Zenoh source and the monitor's feed, as ``monitor`` builds them) lists
+    them under the gateway's id, with the numbers the gateway itself reports."""
+    from zenoh_peer import free_endpoint
+
+    from gateway import config as cfgmod
+    from gateway.app import Gateway
+    from gateway.monitor_cmd import LiveFeed
+
+    endpoint = free_endpoint()
+    watched = Gateway(cfgmod.parse({
+        "gateway": {"status_interval_s": 0.0},
+        "sources": [{"type": "sim", "speed": 0.0, "cycles": 1, "rate_hz": 50.0}],
+        "backends": {"zenoh": {"listen": [endpoint], "stats_interval_s": 0.2,
+                               "vehicle": "watched"},
+                     "console": {"enabled": False}}}))
+    state = LiveState()
+    monitor = Gateway(cfgmod.parse({
+        "gateway": {"status_interval_s": 0.0},
+        "sources": [{"type": "zenoh", "connect": [endpoint], "listen": [], "keys": "json",
+                     "name": "zenoh"}]}))
+    monitor.dispatcher.add(LiveFeed(state))
+    watched.start()
+    monitor.start()
+    try:
+        gw_id = watched.dispatcher.backends()[0].gateway_id
+
+        def listed() -> bool:
+            names = [r.name.strip() for r in state.table_rows()]
+            return f"gateway {gw_id}" in names and "zenoh" in names and "sim" in names
+
+        deadline = time.monotonic() + 20
+        while not listed():
+            assert time.monotonic() < deadline, [r.name for r in state.table_rows()]
+            time.sleep(0.05)  # the view polls its state the same way
+        rows = {r.name.strip(): r for r in state.remote[gw_id]}
+        assert rows["zenoh"].sent is not None and rows["zenoh"].sent > 0
+        assert rows["zenoh"].link is True
+    finally:
+        monitor.stop()
+        watched.stop()

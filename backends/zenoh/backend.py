@@ -37,6 +37,7 @@ from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     DEFAULT_PREFIX,
     DEFAULT_VEHICLE,
+    STATS_KIND,
     VIA_ZENOH,
     KeyLayout,
     check_chunk,
@@ -93,6 +94,8 @@ class ZenohBackend(Backend):
                         "dropped", minimum=1, maximum=1_000_000),
         liveliness=Key(bool, True, "declare a liveliness token for this gateway"),
         queryable=Key(bool, True, "answer get() with the latest value of each key"),
+        stats_interval_s=Key(float, 1.0, "seconds between publications of this gateway's "
+                             "counters on gateway_stats (for a monitor); 0 = none", minimum=0),
         **SESSION_KEYS,
     )
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
@@ -101,7 +104,7 @@ class ZenohBackend(Backend):
                  vehicle: str = DEFAULT_VEHICLE, gateway_id: str = "", encoding: str = "json",
                  raw: bool = True, congestion_control: str = "drop", priority: str = "data",
                  queue_depth: int = 1024, liveliness: bool = True, queryable: bool = True,
-                 **session: Any) -> None:
+                 stats_interval_s: float = 1.0, **session: Any) -> None:
         super().__init__(name)
         # The options were validated by CONFIG (the configuration or the flags); a caller
         # building the backend directly passes valid ones.
@@ -116,6 +119,9 @@ class ZenohBackend(Backend):
         self.queue_depth = queue_depth
         self.declare_token = liveliness
         self.declare_queryable = queryable
+        self.stats_interval_s = stats_interval_s
+        self._stats_due = 0.0
+        self.stats_published = 0
 
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._stop = threading.Event()
@@ -256,6 +262,7 @@ class ZenohBackend(Backend):
                 if self._session is None and not self._open(stop):
                     stop.wait(self._backoff.next())
                     continue
+                self._maybe_publish_stats()
                 try:
                     item = self._queue.get(timeout=0.25)
                 except queue.Empty:
@@ -274,6 +281,26 @@ class ZenohBackend(Backend):
         except Exception:
             log.exception("zenoh %s: worker failed", self.name)
             self._ready.clear()
+
+    def _maybe_publish_stats(self) -> None:
+        """This gateway's counters on ``gateway_stats`` every ``stats_interval_s`` (the
+        worker's thread; the counters are read as the status line reads them)."""
+        if not self.stats_interval_s:
+            return
+        now = time.monotonic()
+        if now < self._stats_due:
+            return
+        self._stats_due = now + self.stats_interval_s
+        stats = self.context.services.get("gateway.stats")
+        if stats is None:
+            return
+        try:
+            payload = enc.stats_document(stats())
+        except Exception:
+            self.publish_errors += 1
+            return
+        if self._put(self.layout.kind(STATS_KIND), payload, enc.JSON):
+            self.stats_published += 1
 
     def _open(self, stop: threading.Event) -> bool:
         import zenoh
@@ -418,7 +445,7 @@ class ZenohBackend(Backend):
             "link": int(self._ready.is_set()),
             "put_errors": self.put_errors,
             "publish_errors": self.publish_errors,
-            "puts": self.puts,
+            "puts": self.puts, "stats_published": self.stats_published,
             "unrouted": self.unrouted,
             "skipped_from_zenoh": self.skipped_from_zenoh,
             "queued": self._queue.qsize(),

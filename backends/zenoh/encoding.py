@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import orjson
 
@@ -241,3 +241,32 @@ def decode(kind: str, payload: bytes, encoding: str, origin: str = "") -> Any:
     except (ValueError, UnicodeDecodeError) as exc:
         raise PayloadError(f"not JSON: {exc}") from None
     return from_document(kind, doc, origin)
+
+
+class GatewayStats(NamedTuple):
+    """Another gateway's counters, as its Zenoh backend publishes them (``gateway_stats``):
+    ``backends`` and ``sources`` map each name to its ``stats()``."""
+
+    gateway: str
+    backends: dict[str, Any]
+    sources: dict[str, Any]
+    origin: str = ""
+    via: str = ""
+
+
+def stats_document(stats: dict[str, Any]) -> bytes:
+    """A gateway's counters as JSON (values JSON cannot hold are written as text)."""
+    return orjson.dumps(stats, default=str, option=orjson.OPT_NON_STR_KEYS)
+
+
+def gateway_stats(gateway: str, payload: bytes, origin: str = "") -> GatewayStats:
+    """A published ``gateway_stats`` document back; raises :class:`PayloadError`."""
+    try:
+        doc = json.loads(payload)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise PayloadError(f"not JSON: {exc}") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("backends", {}), dict) \
+            or not isinstance(doc.get("sources", {}), dict):
+        raise PayloadError("expected {\"backends\": {...}, \"sources\": {...}}")
+    return GatewayStats(gateway, doc.get("backends", {}), doc.get("sources", {}), origin)
+

@@ -35,6 +35,10 @@ GATEWAY = "gateway"
 JSON_KINDS = ("sm_update", "status", "link", "link_stats", "position", "battery",
               "vehicle_state", "rc_channels")
 
+#: The kind under which a gateway publishes its own counters (every backend's and source's
+#: ``stats()``), every ``stats_interval_s``: for a monitor that follows it.
+STATS_KIND = "gateway_stats"
+
 _FORBIDDEN = re.compile(r"[*$?#\s]")
 
 

@@ -37,6 +37,7 @@ from backends.zenoh.keys import (
     DEFAULT_PREFIX,
     JSON_KINDS,
     RAW,
+    STATS_KIND,
     VIA_ZENOH,
     SeqTracker,
     check_chunk,
@@ -238,6 +239,15 @@ class ZenohSource(Source):
             for msg in msgs:
                 self.emitted += 1
                 self.emit(msg)
+            return
+        if kind == STATS_KIND:  # another gateway's counters, for a monitor
+            try:
+                stats = enc.gateway_stats(gateway, payload, origin=self.name)._replace(via=via)
+            except enc.PayloadError:
+                self.bad_payloads += 1
+                return
+            self.emitted += 1
+            self.emit(stats)
             return
         if kind not in JSON_KINDS or kind == "link":  # link events are this gateway's own
             self.ignored_other += 1
