@@ -185,7 +185,7 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
     if url.startswith("replay:"):
         path = url[len("replay:"):]
         if not path:
-            raise ValueError("replay: needs a file, e.g. replay:flight.agrec")
+            raise ValueError("replay: needs a file, e.g. replay:flight.aur")
         return "replay", {"path": path}
     if url.startswith("mavlink:"):
         endpoint = url[len("mavlink:"):]
