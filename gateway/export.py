@@ -1,9 +1,18 @@
-"""``aurora-gateway export RECORDING``: a recording's state-machine updates as a table.
+"""``aurora-gateway export RECORDING``: a recording's state-machine updates as a table, or
+the whole flight as an MCAP file.
 
 One row per SM_UPDATE in the recording, in recording order, for spreadsheets and pandas::
 
     aurora-gateway export flight.aur > flight.csv
     aurora-gateway export flight.aur --format jsonl -o flight.jsonl
+
+Or the decoded flight on the Foxglove backend's channels (``/aurora/state``, ``/aurora/altitude``,
+``/aurora/attitude``, ``/aurora/status``, ``/aurora/link``), JSON with JSON schemas, stamped
+with the receive times, for Foxglove or any MCAP tool (see :mod:`gateway.export_mcap`)::
+
+    aurora-gateway export flight.aur -o flight.mcap
+
+The recording itself stays the lossless format (every frame as received); the MCAP is a view.
 
 Columns (the same names, in this order, in both formats):
 
@@ -36,7 +45,8 @@ CSV: a header row, then one row per update, ``\\n`` line ends; booleans as ``1``
 non-finite floats as ``nan``/``inf``/``-inf`` (which ``float()`` and pandas read back).
 JSONL: one JSON object per line; booleans as ``true``/``false``; non-finite floats as
 ``null`` (JSON has no NaN).  The format defaults to JSONL when ``-o`` names a ``.jsonl``,
-``.ndjson`` or ``.json`` file, else CSV.
+``.ndjson`` or ``.json`` file, to MCAP when it names a ``.mcap`` file, else CSV.  An MCAP
+export needs ``-o FILE``: to stdout it is refused with one line and exit status 2.
 
 A missing or unreadable file, or one that is not a recording, is one line on stderr and
 exit status 1.  Records that fail their CRC are skipped (as ``decode`` and ``replay`` do) and
@@ -61,6 +71,7 @@ from gateway.model import SmUpdate, Status
 from gateway.wire import Decoder
 
 EXIT_FAILURE = 1
+EXIT_USAGE = 2
 
 #: The export's columns, in order (see the module docstring for their meaning).
 COLUMNS: tuple[str, ...] = (
@@ -71,15 +82,18 @@ COLUMNS: tuple[str, ...] = (
 )
 #: The columns taken from the latest STATUS (None before the first one).
 HEALTH_COLUMNS: tuple[str, ...] = ("imu_ok", "baro_ok", "calibrated", "log_ready")
-FORMATS = ("csv", "jsonl")
+FORMATS = ("csv", "jsonl", "mcap")
 _JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
+_MCAP_SUFFIXES = (".mcap",)
 
 _COLUMN_HELP = (
     "columns: t_s (s since the first record), rx_time (Unix s), timestamp_ms, state, "
     "state_name, armed, sm_type, altitude_m, velocity_mps, acceleration_mps2, "
     "accel_vert_mps2, roll_deg, pitch_deg, yaw_deg, and the latest STATUS's imu_ok, baro_ok, "
     "calibrated, log_ready (empty/null before the first STATUS). CSV: header row, booleans "
-    "1/0. JSONL: one object a line, NaN as null.")
+    "1/0. JSONL: one object a line, NaN as null. MCAP (needs -o FILE): the flight on the "
+    "channels /aurora/state, /aurora/altitude, /aurora/attitude, /aurora/status and "
+    "/aurora/link, JSON with JSON schemas, log time = receive time.")
 
 
 class ExportError(Exception):
@@ -91,6 +105,8 @@ class Flight:
     """What :func:`load` found in a recording: the rows and the counts behind them."""
 
     rows: list[dict[str, Any]] = field(default_factory=list)
+    #: every decoded message (RawFrame included) with its receive time, in recording order
+    messages: list[tuple[float, Any]] = field(default_factory=list)
     statuses: int = 0
     other_frames: int = 0
     read_stats: recording.ReadStats = field(default_factory=recording.ReadStats)
@@ -143,6 +159,7 @@ def load(path: str | Path) -> Flight:
     t0 = records[0][0] if records else 0.0
     for t, frame in records:
         for msg in decoder.feed(frame):
+            flight.messages.append((t, msg))
             if isinstance(msg, SmUpdate):
                 flight.rows.append(row_of(round(t - t0, 6), t, msg, health))
             elif isinstance(msg, Status):
@@ -193,13 +210,13 @@ WRITERS: dict[str, Callable[[list[dict[str, Any]], TextIO], None]] = {
 def add_command(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``export`` to the ``aurora-gateway`` subcommands."""
     p = subparsers.add_parser(
-        "export", help="write a recording's SM updates as CSV or JSON lines",
+        "export", help="write a recording's SM updates as CSV or JSON lines, or as MCAP",
         description="Write one row per SM_UPDATE of a recording, for spreadsheets and "
-                    "pandas. " + _COLUMN_HELP)
+                    "pandas, or the flight as an MCAP file for Foxglove. " + _COLUMN_HELP)
     p.add_argument("recording", metavar="RECORDING", help="the recording (.aur)")
     p.add_argument("--format", "-f", choices=FORMATS, default=None,
-                   help="csv or jsonl (default: jsonl for a .jsonl/.ndjson/.json -o file, "
-                        "else csv)")
+                   help="csv, jsonl or mcap (default: jsonl for a .jsonl/.ndjson/.json -o "
+                        "file, mcap for a .mcap one, else csv)")
     p.add_argument("-o", "--output", metavar="FILE", default="-",
                    help="file to write; - = stdout (default)")
     p.set_defaults(handler=run_export)
@@ -209,8 +226,11 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
 def _format_of(args: argparse.Namespace) -> str:
     if args.format:
         return str(args.format)
-    if args.output != "-" and Path(args.output).suffix.lower() in _JSONL_SUFFIXES:
+    suffix = Path(args.output).suffix.lower() if args.output != "-" else ""
+    if suffix in _JSONL_SUFFIXES:
         return "jsonl"
+    if suffix in _MCAP_SUFFIXES:
+        return "mcap"
     return "csv"
 
 
@@ -229,11 +249,17 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
     """The ``export`` handler; returns the exit status.  ``out`` replaces stdout (tests)."""
     err = sys.stderr
     fmt = _format_of(args)
+    if fmt == "mcap" and args.output == "-":
+        print("aurora-gateway export: an MCAP file is written with -o FILE, not to stdout",
+              file=err)
+        return EXIT_USAGE
     try:
         flight = load(args.recording)
     except ExportError as exc:
         print(f"aurora-gateway export: {exc}", file=err)
         return EXIT_FAILURE
+    if fmt == "mcap":
+        return _run_mcap(args, flight)
     to_stdout = args.output == "-"
     stream = out if out is not None else sys.stdout
     try:
@@ -257,3 +283,29 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
           f"as {fmt} to {where}" + (f"; {notes}" if notes else ""), file=err)
     return 0
 
+
+
+def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
+    """Write ``flight`` as MCAP to ``args.output``; the exit status."""
+    try:
+        from gateway import export_mcap  # the mcap library only when asked for
+    except ModuleNotFoundError as exc:
+        print(f"aurora-gateway export: MCAP needs the {exc.name} package "
+              "(pip install 'aurora-gateway[mcap]')", file=sys.stderr)
+        return EXIT_FAILURE
+    name = Path(args.recording).name
+    try:
+        with open(args.output, "wb") as f:
+            written = export_mcap.write(
+                flight.messages, f, source=f"replay:{name}",
+                metadata={"recording": name, "records": str(flight.read_stats.records)})
+    except OSError as exc:
+        print(f"aurora-gateway export: cannot write {args.output}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return EXIT_FAILURE
+    topics = ", ".join(f"{t} {n}" for t, n in written.counts.items())
+    notes = flight.notes()
+    print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
+          f"as mcap to {args.output}: {topics or 'no messages'}"
+          + (f"; {notes}" if notes else ""), file=sys.stderr)
+    return 0

@@ -1,0 +1,258 @@
+"""A recording's messages as an MCAP file (``aurora-gateway export RECORDING -f mcap -o F``).
+
+MCAP (https://mcap.dev) is the log container Foxglove and most robotics tools open: this
+writes the flight on the same channels, with the same field names, as the live Foxglove
+backend publishes, so a recorded flight opens with the same layout as a live one.  The
+native recording (:mod:`gateway.recording`) stays the lossless format: it keeps every frame
+exactly as received; the MCAP is a decoded view of it and cannot be replayed.
+
+Every channel has a JSON schema (schema encoding ``jsonschema``) and JSON messages (message
+encoding ``json``); non-finite floats are written as ``null`` (JSON has no NaN).
+
+==================  ======================  ================================================
+channel             from                    fields
+==================  ======================  ================================================
+``/aurora/state``    each SM_UPDATE          state, state_name, armed, sm_type, timestamp_ms
+``/aurora/altitude`` each SM_UPDATE          altitude_m, velocity_mps, acceleration_mps2,
+                                             accel_vert_mps2
+``/aurora/attitude`` each SM_UPDATE          roll_rad, pitch_rad, yaw_rad and the quaternion
+                                             qx, qy, qz, qw of that attitude (Z-Y-X: yaw,
+                                             then pitch, then roll)
+``/aurora/status``   each STATUS             state, state_name, sm_type, flags, armed,
+                                             imu_ok, baro_ok, calibrated, log_ready,
+                                             timestamp_ms
+``/aurora/link``     link up/down            source, up, silence_s
+``/aurora/position`` each Position           only when present: a GNSS fix's fields
+``/aurora/battery``  each Battery            only when present: a battery's fields
+==================  ======================  ================================================
+
+The link channel replays the gateway's link rule (:class:`gateway.monitor.LinkMonitor`) on
+the receive times: up at the first valid frame, down at ``timeout_s`` after the last one when
+the next comes later than that (``silence_s`` = the timeout), up again at the next frame.
+Each message's log time and publish time are its receive time in ns since the Unix epoch.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Callable, Iterable
+from typing import IO, Any
+
+import orjson
+from mcap.well_known import MessageEncoding, SchemaEncoding
+from mcap.writer import Writer
+
+from gateway import __version__
+from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
+from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
+
+STATE = "/aurora/state"
+ALTITUDE = "/aurora/altitude"
+ATTITUDE = "/aurora/attitude"
+STATUS = "/aurora/status"
+LINK = "/aurora/link"
+POSITION = "/aurora/position"
+BATTERY = "/aurora/battery"
+
+_NUM = {"type": "number"}
+_NUM_OR_NULL = {"type": ["number", "null"]}
+_INT = {"type": "integer"}
+_INT_OR_NULL = {"type": ["integer", "null"]}
+_BOOL = {"type": "boolean"}
+_STR = {"type": "string"}
+
+
+def _object(title: str, description: str, properties: dict[str, dict[str, Any]],
+            optional: tuple[str, ...] = ()) -> dict[str, Any]:
+    return {"title": title, "description": description, "type": "object",
+            "properties": properties,
+            "required": [k for k in properties if k not in optional]}
+
+
+#: topic -> (schema name, JSON schema); the channels in the order they are registered.
+SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
+    STATE: ("aurora.State", _object(
+        "aurora.State", "The flight computer's state machine (SM_UPDATE)",
+        {"state": _INT, "state_name": _STR, "armed": _BOOL, "sm_type": _INT,
+         "timestamp_ms": _INT})),
+    ALTITUDE: ("aurora.Altitude", _object(
+        "aurora.Altitude", "Altitude above the pad and vertical motion (SM_UPDATE)",
+        {"altitude_m": _NUM_OR_NULL, "velocity_mps": _NUM_OR_NULL,
+         "acceleration_mps2": _NUM_OR_NULL, "accel_vert_mps2": _NUM_OR_NULL})),
+    ATTITUDE: ("aurora.Attitude", _object(
+        "aurora.Attitude", "Roll, pitch, yaw (rad) and the same attitude as a quaternion",
+        {"roll_rad": _NUM_OR_NULL, "pitch_rad": _NUM_OR_NULL, "yaw_rad": _NUM_OR_NULL,
+         "qx": _NUM_OR_NULL, "qy": _NUM_OR_NULL, "qz": _NUM_OR_NULL, "qw": _NUM_OR_NULL})),
+    STATUS: ("aurora.Status", _object(
+        "aurora.Status", "The health heartbeat (STATUS): flags byte and its named bits",
+        {"state": _INT, "state_name": _STR, "sm_type": _INT, "flags": _INT, "armed": _BOOL,
+         "imu_ok": _BOOL, "baro_ok": _BOOL, "calibrated": _BOOL, "log_ready": _BOOL,
+         "timestamp_ms": _INT})),
+    LINK: ("aurora.Link", _object(
+        "aurora.Link", "A source's link came up (first valid frame) or went down (silence)",
+        {"source": _STR, "up": _BOOL, "silence_s": _NUM})),
+    POSITION: ("aurora.Position", _object(
+        "aurora.Position", "A GNSS fix, WGS-84 degrees; null = not known",
+        {"lat_deg": _NUM_OR_NULL, "lon_deg": _NUM_OR_NULL, "alt_amsl_m": _NUM_OR_NULL,
+         "relative_alt_m": _NUM_OR_NULL, "ground_speed_mps": _NUM_OR_NULL,
+         "course_deg": _NUM_OR_NULL, "satellites": _INT_OR_NULL,
+         "fix_type": _INT_OR_NULL})),
+    BATTERY: ("aurora.Battery", _object(
+        "aurora.Battery", "A battery's state; null = not measured",
+        {"voltage_v": _NUM_OR_NULL, "current_a": _NUM_OR_NULL,
+         "consumed_mah": _NUM_OR_NULL, "remaining_pct": _INT_OR_NULL,
+         "battery_id": _INT})),
+}
+#: The channels every export has, even with no message on them.
+CORE_TOPICS: tuple[str, ...] = (STATE, ALTITUDE, ATTITUDE, STATUS, LINK)
+
+
+def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of the rotation yaw about z, then pitch about the new y, then roll about
+    the newest x (the aerospace Z-Y-X convention), angles in radians."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy)
+
+
+def time_ns(t: float) -> int:
+    """Seconds since the epoch as integer ns, rounded (exact for the integer part, unlike
+    ``round(t * 1e9)``, which loses about 100 ns at today's epoch)."""
+    if not t > 0:  # negative or NaN: MCAP times are unsigned
+        return 0
+    whole = math.floor(t)
+    return whole * 1_000_000_000 + round((t - whole) * 1e9)
+
+
+def state_fields(m: SmUpdate) -> dict[str, Any]:
+    """The ``/aurora/state`` message of an update."""
+    return {"state": m.state, "state_name": m.state_name, "armed": bool(m.armed),
+            "sm_type": m.sm_type, "timestamp_ms": m.timestamp_ms}
+
+
+def altitude_fields(m: SmUpdate) -> dict[str, Any]:
+    """The ``/aurora/altitude`` message of an update."""
+    return {"altitude_m": m.altitude_m, "velocity_mps": m.velocity_mps,
+            "acceleration_mps2": m.acceleration_mps2, "accel_vert_mps2": m.accel_vert_mps2}
+
+
+def attitude_fields(m: SmUpdate) -> dict[str, Any]:
+    """The ``/aurora/attitude`` message of an update."""
+    qx, qy, qz, qw = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
+    return {"roll_rad": m.roll_rad, "pitch_rad": m.pitch_rad, "yaw_rad": m.yaw_rad,
+            "qx": qx, "qy": qy, "qz": qz, "qw": qw}
+
+
+def status_fields(m: Status) -> dict[str, Any]:
+    """The ``/aurora/status`` message of a STATUS."""
+    return {"state": m.state, "state_name": m.state_name, "sm_type": m.sm_type,
+            "flags": m.flags, **m.health(), "timestamp_ms": m.timestamp_ms}
+
+
+class McapExport:
+    """Writes messages, each with its receive time, to an MCAP stream.
+
+    Call :meth:`add` per message in time order (any message kind; the kinds without a
+    channel are counted in ``skipped``), then :meth:`finish`.  ``source`` names the link on
+    ``/aurora/link``.  ``counts`` holds the messages written per topic.
+    """
+
+    def __init__(self, stream: IO[bytes], source: str = "recording",
+                 link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S,
+                 metadata: dict[str, str] | None = None) -> None:
+        self.counts: Counter[str] = Counter()
+        self.skipped: Counter[str] = Counter()
+        self._writer = Writer(stream)
+        self._writer.start(library=f"aurora-gateway {__version__}")
+        self._channels: dict[str, int] = {}
+        for topic in CORE_TOPICS:
+            self._channel(topic)
+        if metadata:
+            self._writer.add_metadata("aurora.export", metadata)
+        self._source = source
+        self._now = 0.0
+        self._link_timeout_s = link_timeout_s
+        self._links = LinkMonitor(self._link_event, link_timeout_s, clock=lambda: self._now)
+        self._last_frame: float | None = None
+        self._routes: dict[type, Callable[[int, Any], None]] = {
+            SmUpdate: self._sm_update, Status: self._status, Position: self._position,
+            Battery: self._battery, LinkEvent: self._link_message,
+        }
+
+    def _channel(self, topic: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            name, schema = SCHEMAS[topic]
+            sid = self._writer.register_schema(name, SchemaEncoding.JSONSchema,
+                                               orjson.dumps(schema))
+            cid = self._writer.register_channel(topic, MessageEncoding.JSON, sid)
+            self._channels[topic] = cid
+        return cid
+
+    def _write(self, topic: str, ns: int, fields: dict[str, Any]) -> None:
+        # orjson writes floats in their shortest round-trip form, and NaN/inf as null
+        self._writer.add_message(self._channel(topic), log_time=ns, data=orjson.dumps(fields),
+                                 publish_time=ns, sequence=self.counts[topic])
+        self.counts[topic] += 1
+
+    def add(self, t: float, msg: object, frame: bool = True) -> None:
+        """Write ``msg``, received at ``t`` (s since the epoch).  ``frame``: it came in a
+        valid wire frame from the source (which keeps the link up)."""
+        if frame:
+            self._frame_seen(t)
+        ns = time_ns(t)
+        route = self._routes.get(type(msg))
+        if route is None:
+            self.skipped[type(msg).__name__] += 1
+        else:
+            route(ns, msg)
+
+    def _frame_seen(self, t: float) -> None:
+        last = self._last_frame
+        if last is not None and t - last >= self._link_timeout_s:
+            self._now = last + self._link_timeout_s  # when the gateway would call it down
+            self._links.check()
+        self._now = t
+        self._last_frame = t
+        self._links.frame_seen(self._source)
+
+    def _link_event(self, ev: LinkEvent) -> None:
+        self._link_message(time_ns(self._now), ev)
+
+    def _sm_update(self, ns: int, m: SmUpdate) -> None:
+        self._write(STATE, ns, state_fields(m))
+        self._write(ALTITUDE, ns, altitude_fields(m))
+        self._write(ATTITUDE, ns, attitude_fields(m))
+
+    def _status(self, ns: int, m: Status) -> None:
+        self._write(STATUS, ns, status_fields(m))
+
+    def _position(self, ns: int, m: Position) -> None:
+        self._write(POSITION, ns, m.fields())
+
+    def _battery(self, ns: int, m: Battery) -> None:
+        self._write(BATTERY, ns, m.fields())
+
+    def _link_message(self, ns: int, ev: LinkEvent) -> None:
+        self._write(LINK, ns, {"source": ev.source, "up": ev.up, "silence_s": ev.silence_s})
+
+    def finish(self) -> None:
+        """Write the summary (statistics, indexes) and the closing magic."""
+        self._writer.finish()
+
+
+def write(messages: Iterable[tuple[float, object]], stream: IO[bytes],
+          source: str = "recording", link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S,
+          metadata: dict[str, str] | None = None) -> McapExport:
+    """Write ``(receive time, message)`` pairs, each from a valid frame, as a whole MCAP
+    file to ``stream``; returns the export (its ``counts`` per topic)."""
+    export = McapExport(stream, source, link_timeout_s, metadata)
+    for t, msg in messages:
+        export.add(t, msg)
+    export.finish()
+    return export
