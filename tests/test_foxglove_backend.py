@@ -1,0 +1,436 @@
+"""The Foxglove live backend against a Foxglove WebSocket client written here with the
+``websockets`` library (the protocol's ``foxglove.websocket.v1``: serverInfo, advertise,
+subscribe, binary messageData).  Protobuf channels are decoded with the field numbers read
+from the advertised schema (a FileDescriptorSet), by a small wire-format reader of our own."""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import contextlib
+import json
+import math
+import socket
+import struct
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from helpers import wait_for
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import ClientConnection, connect
+from websockets.typing import Subprotocol
+
+from backends.foxglove import flags
+from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
+from gateway import config, registry
+from gateway.backend import Outcome
+from gateway.dispatcher import Dispatcher
+from gateway.model import LinkStats, Position, SmUpdate, Status
+
+DEADLINE_S = 5.0
+# The protocol's name since foxglove-sdk 0.15-ish; the SDK's server refuses the older name
+# (test_the_legacy_protocol_name_alone_is_refused), the messages are the same.
+SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+TOPICS = {"/aurora/state", "/aurora/altitude", "/aurora/attitude", "/aurora/position",
+          "/aurora/link", "/aurora/status"}
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# --- a minimal protobuf wire reader (varint, fixed64, length-delimited, fixed32) -------------
+
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    shift = value = 0
+    while True:
+        b = buf[i]
+        i += 1
+        value |= (b & 0x7F) << shift
+        shift += 7
+        if not b & 0x80:
+            return value, i
+
+
+def wire_fields(buf: bytes) -> Iterator[tuple[int, int, Any]]:
+    i = 0
+    while i < len(buf):
+        key, i = _varint(buf, i)
+        num, wt = key >> 3, key & 7
+        val: Any
+        if wt == 0:
+            val, i = _varint(buf, i)
+        elif wt == 1:
+            val, i = buf[i:i + 8], i + 8
+        elif wt == 2:
+            n, i = _varint(buf, i)
+            val, i = buf[i:i + n], i + n
+        elif wt == 5:
+            val, i = buf[i:i + 4], i + 4
+        else:
+            raise ValueError(f"wire type {wt}")
+        yield num, wt, val
+
+
+def descriptor_messages(fds: bytes) -> dict[str, dict[int, tuple[str, int, str]]]:
+    """Full message name → {field number: (name, type, type_name)} from a FileDescriptorSet."""
+    out: dict[str, dict[int, tuple[str, int, str]]] = {}
+    for num, _, file_bytes in wire_fields(fds):
+        assert num == 1  # FileDescriptorSet.file
+        package = ""
+        messages = []
+        for fnum, _, val in wire_fields(file_bytes):
+            if fnum == 2:  # FileDescriptorProto.package
+                package = val.decode()
+            elif fnum == 4:  # message_type
+                messages.append(val)
+        for msg in messages:
+            name, fields = "", {}
+            for mnum, _, mval in wire_fields(msg):
+                if mnum == 1:
+                    name = mval.decode()
+                elif mnum == 2:  # FieldDescriptorProto: name 1, number 3, type 5, type_name 6
+                    f = {n: v for n, _, v in wire_fields(mval)}
+                    fields[f[3]] = (f[1].decode(), f.get(5, 0), f.get(6, b"").decode())
+            out[f"{package}.{name}" if package else name] = fields
+    return out
+
+
+def decode_proto(buf: bytes, name: str, msgs: dict[str, dict[int, tuple[str, int, str]]]
+                 ) -> dict[str, Any]:
+    fields = msgs[name]
+    out: dict[str, Any] = {}
+    for num, _, val in wire_fields(buf):
+        fname, ftype, tname = fields[num]
+        if ftype == 1:  # double
+            out[fname] = struct.unpack("<d", val)[0]
+        elif ftype == 9:  # string
+            out[fname] = val.decode()
+        elif ftype == 11 and tname.lstrip(".") in msgs:  # message
+            out[fname] = decode_proto(val, tname.lstrip("."), msgs)
+        else:
+            out[fname] = val
+    return out
+
+
+# --- the client -------------------------------------------------------------------------------
+
+class FoxgloveClient:
+    """Collects the advertised channels, subscribes, reads messageData frames."""
+
+    def __init__(self, ws: ClientConnection) -> None:
+        self.ws = ws
+        self.server_info: dict[str, Any] | None = None
+        self.channels: dict[str, dict[str, Any]] = {}  # topic → advertised channel
+        self.by_sub: dict[int, str] = {}
+        deadline = time.monotonic() + DEADLINE_S
+        while self.server_info is None or set(self.channels) < TOPICS:
+            msg = self.ws.recv(timeout=max(0.0, deadline - time.monotonic()))
+            assert isinstance(msg, str), "binary data before any subscription"
+            op = json.loads(msg)
+            if op["op"] == "serverInfo":
+                self.server_info = op
+            elif op["op"] == "advertise":
+                for ch in op["channels"]:
+                    self.channels[ch["topic"]] = ch
+
+    def subscribe_all(self) -> None:
+        subs = []
+        for sub_id, (topic, ch) in enumerate(sorted(self.channels.items()), start=1):
+            self.by_sub[sub_id] = topic
+            subs.append({"id": sub_id, "channelId": ch["id"]})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def read(self, want: dict[str, int]) -> dict[str, list[tuple[int, bytes]]]:
+        """messageData per topic (log time ns, payload) until ``want`` counts arrived."""
+        got: dict[str, list[tuple[int, bytes]]] = {t: [] for t in want}
+        deadline = time.monotonic() + DEADLINE_S
+        while any(len(got[t]) < n for t, n in want.items()):
+            msg = self.ws.recv(timeout=max(0.0, deadline - time.monotonic()))
+            if isinstance(msg, str):
+                continue  # status, (un)advertise…
+            assert msg[0] == 0x01  # messageData
+            sub_id, log_time = struct.unpack_from("<IQ", msg, 1)
+            topic = self.by_sub[sub_id]
+            if topic in got:
+                got[topic].append((log_time, bytes(msg[13:])))
+        return got
+
+
+
+@contextlib.contextmanager
+def foxglove_client(port: int) -> Iterator[FoxgloveClient]:
+    """A client offering both names of the protocol, as the Foxglove app does."""
+    with connect(f"ws://127.0.0.1:{port}", open_timeout=DEADLINE_S,
+                 subprotocols=[Subprotocol(SUBPROTOCOL), Subprotocol(LEGACY_SUBPROTOCOL)]
+                 ) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        yield FoxgloveClient(ws)
+
+
+def sm(i: int) -> SmUpdate:
+    return SmUpdate(timestamp_ms=1000 + 50 * i, state=2 + (i % 3), armed=i % 2 == 0, sm_type=0,
+                    altitude_m=10.5 * i, acceleration_mps2=-9.81 + i, accel_vert_mps2=0.25 * i,
+                    velocity_mps=3.0 * i - 1.0, roll_rad=0.1 * i, pitch_rad=-0.2 + 0.05 * i,
+                    yaw_rad=1.0 - 0.3 * i)
+
+
+def rotate(q: dict[str, float], v: tuple[float, float, float]) -> tuple[float, ...]:
+    """v rotated by quaternion q (q v q*), written from the Hamilton product."""
+    w, x, y, z = (q.get(k, 0.0) for k in ("w", "x", "y", "z"))
+
+    def mul(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, ...]:
+        aw, ax, ay, az = a
+        bw, bx, by, bz = b
+        return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+    r = mul(mul((w, x, y, z), (0.0, *v)), (w, -x, -y, -z))
+    return r[1:]
+
+
+def euler_matrix(roll: float, pitch: float, yaw: float) -> list[list[float]]:
+    """Rz(yaw) · Ry(pitch) · Rx(roll): the aerospace Z-Y-X rotation (body → world)."""
+    def matmul(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
+        return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
+                              math.cos(yaw), math.sin(yaw))
+    rz = [[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]]
+    ry = [[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]]
+    rx = [[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]]
+    return matmul(rz, matmul(ry, rx))
+
+
+def assert_same_rotation(q: dict[str, float], roll: float, pitch: float, yaw: float) -> None:
+    m = euler_matrix(roll, pitch, yaw)
+    for col, axis in enumerate(((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))):
+        got = rotate(q, axis)
+        want = [m[row][col] for row in range(3)]
+        assert got == pytest.approx(want, abs=1e-9)
+
+
+# --- tests ------------------------------------------------------------------------------------
+
+def test_a_client_sees_the_channels_and_the_flight() -> None:
+    backend = FoxgloveBackend(host="127.0.0.1", port=0)
+    dispatcher = Dispatcher([backend])
+    assert dispatcher.start() == []
+    try:
+        with foxglove_client(backend.port) as client:
+            check_a_flight(backend, dispatcher, client)
+            assert backend.stats()["clients"] == 1
+        # the server reports the subscriptions of a client that left as unsubscribed
+        assert backend.wait_subscriptions(0, DEADLINE_S)
+        assert backend.stats()["clients"] == 0
+    finally:
+        dispatcher.close()
+    assert backend.stats()["link"] == 0
+
+
+def check_a_flight(backend: FoxgloveBackend, dispatcher: Dispatcher,
+                   client: FoxgloveClient) -> None:
+    assert client.server_info is not None
+    chans = client.channels
+    for topic in ("/aurora/state", "/aurora/altitude", "/aurora/link", "/aurora/status"):
+        assert chans[topic]["encoding"] == "json"
+        assert chans[topic]["schemaEncoding"] == "jsonschema"
+        assert json.loads(chans[topic]["schema"])["type"] == "object"
+    assert chans["/aurora/attitude"]["schemaName"] == "foxglove.FrameTransform"
+    assert chans["/aurora/position"]["schemaName"] == "foxglove.LocationFix"
+    for topic in ("/aurora/attitude", "/aurora/position"):
+        assert chans[topic]["encoding"] == "protobuf"
+    client.subscribe_all()
+    assert backend.wait_subscriptions(len(TOPICS), DEADLINE_S)
+    assert backend.stats()["clients"] == 1
+
+    updates = [sm(i) for i in range(5)]
+    pos = Position(lat_deg=46.5191, lon_deg=6.5668, alt_amsl_m=412.5)
+    status = Status(timestamp_ms=4321, state=3, sm_type=0,
+                    flags=Status.make_flags(armed=True, baro_ok=True, log_ready=True))
+    link = LinkStats(rssi_dbm=-71.0, link_quality_pct=98, snr_db=7.5)
+    before = time.time_ns()
+    for msg in (*updates, pos, status, link):
+        assert dispatcher.dispatch(msg) == Outcome.ACCEPTED
+    got = client.read({"/aurora/state": 5, "/aurora/altitude": 5, "/aurora/attitude": 5,
+                       "/aurora/position": 1, "/aurora/status": 1, "/aurora/link": 1})
+    after = time.time_ns()
+
+    for u, (t, data) in zip(updates, got["/aurora/state"], strict=True):
+        assert before <= t <= after  # log time: when the update reached the gateway
+        assert json.loads(data) == {"timestamp_ms": u.timestamp_ms, "state": u.state,
+                                    "state_name": u.state_name, "armed": u.armed,
+                                    "sm_type": u.sm_type}
+    for u, (_, data) in zip(updates, got["/aurora/altitude"], strict=True):
+        d = json.loads(data)
+        assert (d["altitude_m"], d["velocity_mps"], d["acceleration_mps2"],
+                d["accel_vert_mps2"]) == (u.altitude_m, u.velocity_mps, u.acceleration_mps2,
+                                          u.accel_vert_mps2)
+
+    fds = base64.b64decode(chans["/aurora/attitude"]["schema"])
+    msgs = descriptor_messages(fds)
+    for u, (_, data) in zip(updates, got["/aurora/attitude"], strict=True):
+        tf = decode_proto(data, "foxglove.FrameTransform", msgs)
+        assert (tf["parent_frame_id"], tf["child_frame_id"]) == ("world", "rocket")
+        assert tf.get("translation", {}).get("z", 0.0) == u.altitude_m
+        assert_same_rotation(tf["rotation"], u.roll_rad, u.pitch_rad, u.yaw_rad)
+
+    msgs = descriptor_messages(base64.b64decode(chans["/aurora/position"]["schema"]))
+    fix = decode_proto(got["/aurora/position"][0][1], "foxglove.LocationFix", msgs)
+    assert (fix["latitude"], fix["longitude"], fix["altitude"]) == (46.5191, 6.5668, 412.5)
+
+    st_ = json.loads(got["/aurora/status"][0][1])
+    assert st_["flags"] == status.flags and st_["state"] == 3
+    assert (st_["armed"], st_["imu_ok"], st_["baro_ok"], st_["calibrated"],
+            st_["log_ready"]) == (True, False, True, False, True)
+    lk = json.loads(got["/aurora/link"][0][1])
+    assert (lk["rssi_dbm"], lk["link_quality_pct"], lk["snr_db"]) == (-71.0, 98, 7.5)
+    assert lk["tx_power_mw"] is None
+
+    # the worker counts a message once logged: the client may see it a moment before
+    assert wait_for(lambda: backend.stats()["sent"] == 5 * 3 + 3)
+    s = backend.stats()
+    assert s["dropped"] == 0 and s["errors"] == 0
+    assert s["link"] == 1
+
+
+def test_a_full_queue_drops_and_counts() -> None:
+    b = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=3)
+    assert b.send_sm_update(sm(0)) == Outcome.NOT_READY  # before init
+    entered, release = threading.Event(), threading.Event()
+    real_log = b._log
+
+    def stalled(msg: Any, log_time: int) -> int:  # the worker stuck on its first message
+        entered.set()
+        release.wait(DEADLINE_S)
+        return real_log(msg, log_time)
+
+    b._log = stalled  # type: ignore[method-assign]
+    b.init()
+    try:
+        assert b.send_sm_update(sm(1)) == Outcome.ACCEPTED
+        assert entered.wait(DEADLINE_S)
+        outcomes = [b.send_sm_update(sm(i)) for i in range(2, 10)]
+        assert outcomes == [Outcome.ACCEPTED] * 3 + [Outcome.QUEUE_FULL] * 5
+        s = b.stats()
+        assert (s["dropped"], s["dropped_queue_full"], s["dropped_not_ready"]) == (6, 5, 1)
+    finally:
+        release.set()
+        b.close()
+
+
+def test_close_is_quick_safe_twice_and_frees_the_port() -> None:
+    b = FoxgloveBackend(host="127.0.0.1", port=0)
+    b.init()
+    port = b.port
+    with foxglove_client(port) as client:
+        client.subscribe_all()
+        assert b.wait_subscriptions(len(TOPICS), DEADLINE_S)
+        for i in range(200):
+            b.send_sm_update(sm(i))
+        t0 = time.monotonic()
+        b.close()
+        assert time.monotonic() - t0 < 1.0
+        b.close()
+        assert b.stats()["link"] == 0
+        assert b.send_sm_update(sm(0)) == Outcome.NOT_READY
+        with socket.socket() as s:  # the server's listening socket is gone (SO_REUSEADDR:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # the closed connection
+            s.bind(("127.0.0.1", port))  # may linger in TIME_WAIT; a listener may not)
+            s.listen()
+        with pytest.raises(ConnectionClosed):  # and the client was disconnected
+            while True:
+                client.ws.recv(timeout=DEADLINE_S)
+
+
+def test_a_busy_port_is_a_backend_error_naming_it() -> None:
+    from gateway.backend import BackendError
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        b = FoxgloveBackend(host="127.0.0.1", port=port)
+        with pytest.raises(BackendError, match=f"127.0.0.1:{port}"):
+            b.init()
+        b.close()
+
+
+def test_the_legacy_protocol_name_alone_is_refused() -> None:
+    b = FoxgloveBackend(host="127.0.0.1", port=0)
+    b.init()
+    try:
+        with pytest.raises(InvalidStatus), connect(
+                f"ws://127.0.0.1:{b.port}", open_timeout=DEADLINE_S,
+                subprotocols=[Subprotocol(LEGACY_SUBPROTOCOL)]):
+            pass
+    finally:
+        b.close()
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.floats(-math.pi, math.pi), st.floats(-math.pi / 2, math.pi / 2),
+       st.floats(-math.pi, math.pi))
+def test_the_quaternion_is_the_zyx_rotation(roll: float, pitch: float, yaw: float) -> None:
+    x, y, z, w = quaternion_from_euler(roll, pitch, yaw)
+    assert x * x + y * y + z * z + w * w == pytest.approx(1.0)
+    assert_same_rotation({"x": x, "y": y, "z": z, "w": w}, roll, pitch, yaw)
+
+
+def _flags(*argv: str) -> dict[str, Any] | None:
+    mod = registry.load_flags("foxglove")
+    parser = argparse.ArgumentParser()
+    mod.add_cli_arguments(parser)
+    result: dict[str, Any] | None = mod.cli_options(parser.parse_args(list(argv)))
+    return result
+
+
+def test_run_flag_defaults_to_loopback() -> None:
+    assert _flags() is None  # off by default
+    assert _flags("--foxglove", "8765") == {"host": "127.0.0.1", "port": 8765}
+    assert _flags("--foxglove", "0.0.0.0:9000") == {"host": "0.0.0.0", "port": 9000}
+    assert _flags("--foxglove", "[::1]:8766") == {"host": "::1", "port": 8766}
+    for bad in ("abc", "host:", "1.2.3.4:70000", ":8765", "[::1]8765"):
+        with pytest.raises(ValueError):
+            flags.parse_address(bad)
+        with pytest.raises(SystemExit):
+            _flags("--foxglove", bad)
+
+
+def test_the_backend_is_registered_with_its_defaults() -> None:
+    assert registry.load(registry.BACKEND_GROUP, "foxglove") is FoxgloveBackend
+    part = config.make_backend("foxglove", {"host": "127.0.0.1", "port": 9001}, "foxglove",
+                               "backends.foxglove")
+    assert part.options["port"] == 9001 and part.options["queue_depth"] == 1024
+
+
+@pytest.mark.parametrize(("table", "key"), [
+    ({"port": 70000}, "backends.foxglove.port"),
+    ({"port": "8765"}, "backends.foxglove.port"),
+    ({"queue_depth": 0}, "backends.foxglove.queue_depth"),
+    ({"host": 1}, "backends.foxglove.host"),
+    ({"hots": "x"}, "backends.foxglove.hots"),
+])
+def test_config_errors_name_the_key(table: dict[str, Any], key: str) -> None:
+    with pytest.raises(config.ConfigError, match=key.replace(".", r"\.")):
+        config.make_backend("foxglove", table, "foxglove", "backends.foxglove")
+
+
+def test_the_shipped_layout_names_the_channels() -> None:
+    layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
+    text = json.dumps(layout["configById"])
+    for path in ("/aurora/altitude.altitude_m", "/aurora/altitude.velocity_mps",
+                 "/aurora/state", "/aurora/position"):
+        assert path in text
+    assert "layout" in layout  # the panel tree refers to panels that are configured
+    ids = set(layout["configById"])
+
+    def leaves(node: Any) -> Iterator[str]:
+        if isinstance(node, str):
+            yield node
+        else:
+            yield from leaves(node["first"])
+            yield from leaves(node["second"])
+    assert set(leaves(layout["layout"])) == ids
