@@ -7,8 +7,9 @@ One row per SM_UPDATE in the recording, in recording order, for spreadsheets and
     aurora-gateway export flight.aur --format jsonl -o flight.jsonl
 
 Or the decoded flight on the Foxglove backend's channels (``/aurora/state``, ``/aurora/altitude``,
-``/aurora/attitude``, ``/aurora/status``, ``/aurora/link``), JSON with JSON schemas, stamped
-with the receive times, for Foxglove or any MCAP tool (see :mod:`gateway.export_mcap`)::
+``/aurora/attitude`` as a ``foxglove.FrameTransform``, ``/aurora/status``) and link up/down on
+``/aurora/link_events``, JSON with JSON schemas, stamped with the receive times, for Foxglove
+or any MCAP tool (see :mod:`gateway.export_mcap`)::
 
     aurora-gateway export flight.aur -o flight.mcap
 
@@ -92,8 +93,9 @@ _COLUMN_HELP = (
     "accel_vert_mps2, roll_deg, pitch_deg, yaw_deg, and the latest STATUS's imu_ok, baro_ok, "
     "calibrated, log_ready (empty/null before the first STATUS). CSV: header row, booleans "
     "1/0. JSONL: one object a line, NaN as null. MCAP (needs -o FILE): the flight on the "
-    "channels /aurora/state, /aurora/altitude, /aurora/attitude, /aurora/status and "
-    "/aurora/link, JSON with JSON schemas, log time = receive time.")
+    "channels /aurora/state, /aurora/altitude, /aurora/attitude (foxglove.FrameTransform), "
+    "/aurora/status and /aurora/link_events, JSON with JSON schemas, log time = receive "
+    "time.")
 
 
 class ExportError(Exception):

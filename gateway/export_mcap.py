@@ -1,33 +1,38 @@
 """A recording's messages as an MCAP file (``aurora-gateway export RECORDING -f mcap -o F``).
 
 MCAP (https://mcap.dev) is the log container Foxglove and most robotics tools open: this
-writes the flight on the same channels, with the same field names, as the live Foxglove
-backend publishes, so a recorded flight opens with the same layout as a live one.  The
-native recording (:mod:`gateway.recording`) stays the lossless format: it keeps every frame
-exactly as received; the MCAP is a decoded view of it and cannot be replayed.
+writes the flight on the same channels, with the same schema names and field names, as the
+live Foxglove backend (``backends/foxglove``) publishes, so a recorded flight opens with the
+same layout (``docs/foxglove-layout.json``) as a live one.  The native recording
+(:mod:`gateway.recording`) stays the lossless format: it keeps every frame exactly as
+received; the MCAP is a decoded view of it and cannot be replayed.
 
-Every channel has a JSON schema (schema encoding ``jsonschema``) and JSON messages (message
-encoding ``json``); non-finite floats are written as ``null`` (JSON has no NaN).
+Every message is JSON (message encoding ``json``) with a JSON Schema (schema encoding
+``jsonschema``); the attitude and the position use Foxglove's own schema names
+(``foxglove.FrameTransform``, ``foxglove.LocationFix``) in their JSON form, which the 3D and
+Map panels recognise (the live backend sends the same messages as protobuf).  Non-finite
+floats are written as ``null`` (JSON has no NaN).
 
-==================  ======================  ================================================
-channel             from                    fields
-==================  ======================  ================================================
-``/aurora/state``    each SM_UPDATE          state, state_name, armed, sm_type, timestamp_ms
-``/aurora/altitude`` each SM_UPDATE          altitude_m, velocity_mps, acceleration_mps2,
-                                             accel_vert_mps2
-``/aurora/attitude`` each SM_UPDATE          roll_rad, pitch_rad, yaw_rad and the quaternion
-                                             qx, qy, qz, qw of that attitude (Z-Y-X: yaw,
-                                             then pitch, then roll)
-``/aurora/status``   each STATUS             state, state_name, sm_type, flags, armed,
-                                             imu_ok, baro_ok, calibrated, log_ready,
-                                             timestamp_ms
-``/aurora/link``     link up/down            source, up, silence_s
-``/aurora/position`` each Position           only when present: a GNSS fix's fields
-``/aurora/battery``  each Battery            only when present: a battery's fields
-==================  ======================  ================================================
+======================  ================  ==============================================
+channel                 from              fields
+======================  ================  ==============================================
+``/aurora/state``       each SM_UPDATE    timestamp_ms, state, state_name, armed, sm_type
+``/aurora/altitude``    each SM_UPDATE    timestamp_ms, altitude_m, velocity_mps,
+                                          acceleration_mps2, accel_vert_mps2
+``/aurora/attitude``    each SM_UPDATE    foxglove.FrameTransform: ``world`` → ``rocket``,
+                                          rotation = roll/pitch/yaw as a quaternion
+                                          (Z-Y-X), translation z = altitude_m
+``/aurora/status``      each STATUS       timestamp_ms, state, state_name, sm_type, flags,
+                                          armed, imu_ok, baro_ok, calibrated, log_ready
+``/aurora/link_events`` link up/down      source, up, silence_s
+``/aurora/link``        each LinkStats    only when present: its fields and origin
+``/aurora/position``    each Position     only when present: foxglove.LocationFix
+``/aurora/battery``     each Battery      only when present: a battery's fields
+======================  ================  ==============================================
 
-The link channel replays the gateway's link rule (:class:`gateway.monitor.LinkMonitor`) on
-the receive times: up at the first valid frame, down at ``timeout_s`` after the last one when
+A recording holds the wire frames only, so today's exports have the first five channels.
+``/aurora/link_events`` replays the gateway's link rule (:class:`gateway.monitor.LinkMonitor`)
+on the receive times: up at the first valid frame, down ``timeout_s`` after the last one when
 the next comes later than that (``silence_s`` = the timeout), up again at the next frame.
 Each message's log time and publish time are its receive time in ns since the Unix epoch.
 """
@@ -44,7 +49,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
 
 from gateway import __version__
-from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
+from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
 from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 
 STATE = "/aurora/state"
@@ -52,6 +57,7 @@ ALTITUDE = "/aurora/altitude"
 ATTITUDE = "/aurora/attitude"
 STATUS = "/aurora/status"
 LINK = "/aurora/link"
+LINK_EVENTS = "/aurora/link_events"
 POSITION = "/aurora/position"
 BATTERY = "/aurora/battery"
 
@@ -61,6 +67,16 @@ _INT = {"type": "integer"}
 _INT_OR_NULL = {"type": ["integer", "null"]}
 _BOOL = {"type": "boolean"}
 _STR = {"type": "string"}
+#: The frames of the attitude transform (as the live backend names them).
+PARENT_FRAME = "world"
+CHILD_FRAME = "rocket"
+_TIME = {"type": "object", "properties": {"sec": _INT, "nsec": _INT},
+         "required": ["sec", "nsec"]}
+
+
+def _xyz(*axes: str) -> dict[str, Any]:
+    return {"type": "object", "properties": dict.fromkeys(axes, _NUM_OR_NULL),
+            "required": list(axes)}
 
 
 def _object(title: str, description: str, properties: dict[str, dict[str, Any]],
@@ -74,30 +90,37 @@ def _object(title: str, description: str, properties: dict[str, dict[str, Any]],
 SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
     STATE: ("aurora.State", _object(
         "aurora.State", "The flight computer's state machine (SM_UPDATE)",
-        {"state": _INT, "state_name": _STR, "armed": _BOOL, "sm_type": _INT,
-         "timestamp_ms": _INT})),
+        {"timestamp_ms": _INT, "state": _INT, "state_name": _STR, "armed": _BOOL,
+         "sm_type": _INT})),
     ALTITUDE: ("aurora.Altitude", _object(
         "aurora.Altitude", "Altitude above the pad and vertical motion (SM_UPDATE)",
-        {"altitude_m": _NUM_OR_NULL, "velocity_mps": _NUM_OR_NULL,
+        {"timestamp_ms": _INT, "altitude_m": _NUM_OR_NULL, "velocity_mps": _NUM_OR_NULL,
          "acceleration_mps2": _NUM_OR_NULL, "accel_vert_mps2": _NUM_OR_NULL})),
-    ATTITUDE: ("aurora.Attitude", _object(
-        "aurora.Attitude", "Roll, pitch, yaw (rad) and the same attitude as a quaternion",
-        {"roll_rad": _NUM_OR_NULL, "pitch_rad": _NUM_OR_NULL, "yaw_rad": _NUM_OR_NULL,
-         "qx": _NUM_OR_NULL, "qy": _NUM_OR_NULL, "qz": _NUM_OR_NULL, "qw": _NUM_OR_NULL})),
+    ATTITUDE: ("foxglove.FrameTransform", _object(
+        "foxglove.FrameTransform", "The rocket's attitude (and altitude) as a transform",
+        {"timestamp": _TIME, "parent_frame_id": _STR, "child_frame_id": _STR,
+         "translation": _xyz("x", "y", "z"), "rotation": _xyz("x", "y", "z", "w")})),
     STATUS: ("aurora.Status", _object(
         "aurora.Status", "The health heartbeat (STATUS): flags byte and its named bits",
-        {"state": _INT, "state_name": _STR, "sm_type": _INT, "flags": _INT, "armed": _BOOL,
-         "imu_ok": _BOOL, "baro_ok": _BOOL, "calibrated": _BOOL, "log_ready": _BOOL,
-         "timestamp_ms": _INT})),
-    LINK: ("aurora.Link", _object(
-        "aurora.Link", "A source's link came up (first valid frame) or went down (silence)",
+        {"timestamp_ms": _INT, "state": _INT, "state_name": _STR, "sm_type": _INT,
+         "flags": _INT, "armed": _BOOL, "imu_ok": _BOOL, "baro_ok": _BOOL, "calibrated": _BOOL,
+         "log_ready": _BOOL})),
+    LINK_EVENTS: ("aurora.LinkEvent", _object(
+        "aurora.LinkEvent", "A source's link came up (first valid frame) or went down (silence)",
         {"source": _STR, "up": _BOOL, "silence_s": _NUM})),
-    POSITION: ("aurora.Position", _object(
-        "aurora.Position", "A GNSS fix, WGS-84 degrees; null = not known",
-        {"lat_deg": _NUM_OR_NULL, "lon_deg": _NUM_OR_NULL, "alt_amsl_m": _NUM_OR_NULL,
-         "relative_alt_m": _NUM_OR_NULL, "ground_speed_mps": _NUM_OR_NULL,
-         "course_deg": _NUM_OR_NULL, "satellites": _INT_OR_NULL,
-         "fix_type": _INT_OR_NULL})),
+    LINK: ("aurora.LinkStats", _object(
+        "aurora.LinkStats", "Radio link quality as the receiver reports it; null = not reported",
+        {"rssi_dbm": _NUM_OR_NULL, "link_quality_pct": _INT_OR_NULL, "snr_db": _NUM_OR_NULL,
+         "tx_power_mw": _INT_OR_NULL, "downlink_rssi_dbm": _NUM_OR_NULL,
+         "downlink_link_quality_pct": _INT_OR_NULL, "downlink_snr_db": _NUM_OR_NULL,
+         "rf_mode": _INT_OR_NULL, "antenna": _INT_OR_NULL, "origin": _STR})),
+    POSITION: ("foxglove.LocationFix", _object(
+        "foxglove.LocationFix", "A GNSS fix, WGS-84 degrees, altitude above mean sea level",
+        {"timestamp": _TIME, "frame_id": _STR, "latitude": _NUM_OR_NULL,
+         "longitude": _NUM_OR_NULL, "altitude": _NUM_OR_NULL,
+         "position_covariance": {"type": "array", "items": _NUM, "minItems": 9,
+                                 "maxItems": 9},
+         "position_covariance_type": _INT})),
     BATTERY: ("aurora.Battery", _object(
         "aurora.Battery", "A battery's state; null = not measured",
         {"voltage_v": _NUM_OR_NULL, "current_a": _NUM_OR_NULL,
@@ -105,7 +128,7 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
          "battery_id": _INT})),
 }
 #: The channels every export has, even with no message on them.
-CORE_TOPICS: tuple[str, ...] = (STATE, ALTITUDE, ATTITUDE, STATUS, LINK)
+CORE_TOPICS: tuple[str, ...] = (STATE, ALTITUDE, ATTITUDE, STATUS, LINK_EVENTS)
 
 
 def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
@@ -129,29 +152,46 @@ def time_ns(t: float) -> int:
     return whole * 1_000_000_000 + round((t - whole) * 1e9)
 
 
+def _stamp(ns: int) -> dict[str, int]:
+    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
+
+
 def state_fields(m: SmUpdate) -> dict[str, Any]:
     """The ``/aurora/state`` message of an update."""
-    return {"state": m.state, "state_name": m.state_name, "armed": bool(m.armed),
-            "sm_type": m.sm_type, "timestamp_ms": m.timestamp_ms}
+    return {"timestamp_ms": m.timestamp_ms, "state": m.state, "state_name": m.state_name,
+            "armed": bool(m.armed), "sm_type": m.sm_type}
 
 
 def altitude_fields(m: SmUpdate) -> dict[str, Any]:
     """The ``/aurora/altitude`` message of an update."""
-    return {"altitude_m": m.altitude_m, "velocity_mps": m.velocity_mps,
-            "acceleration_mps2": m.acceleration_mps2, "accel_vert_mps2": m.accel_vert_mps2}
+    return {"timestamp_ms": m.timestamp_ms, "altitude_m": m.altitude_m,
+            "velocity_mps": m.velocity_mps, "acceleration_mps2": m.acceleration_mps2,
+            "accel_vert_mps2": m.accel_vert_mps2}
 
 
-def attitude_fields(m: SmUpdate) -> dict[str, Any]:
-    """The ``/aurora/attitude`` message of an update."""
-    qx, qy, qz, qw = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
-    return {"roll_rad": m.roll_rad, "pitch_rad": m.pitch_rad, "yaw_rad": m.yaw_rad,
-            "qx": qx, "qy": qy, "qz": qz, "qw": qw}
+def attitude_fields(m: SmUpdate, ns: int) -> dict[str, Any]:
+    """The ``/aurora/attitude`` message (a foxglove.FrameTransform) of an update received at
+    ``ns``."""
+    x, y, z, w = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
+    return {"timestamp": _stamp(ns), "parent_frame_id": PARENT_FRAME,
+            "child_frame_id": CHILD_FRAME,
+            "translation": {"x": 0.0, "y": 0.0, "z": m.altitude_m},
+            "rotation": {"x": x, "y": y, "z": z, "w": w}}
 
 
 def status_fields(m: Status) -> dict[str, Any]:
     """The ``/aurora/status`` message of a STATUS."""
-    return {"state": m.state, "state_name": m.state_name, "sm_type": m.sm_type,
-            "flags": m.flags, **m.health(), "timestamp_ms": m.timestamp_ms}
+    return {"timestamp_ms": m.timestamp_ms, "state": m.state, "state_name": m.state_name,
+            "sm_type": m.sm_type, "flags": m.flags, **m.health()}
+
+
+def position_fields(m: Position, ns: int) -> dict[str, Any]:
+    """The ``/aurora/position`` message (a foxglove.LocationFix) of a fix received at ``ns``
+    (an unknown altitude as 0, as the live backend sends it)."""
+    return {"timestamp": _stamp(ns), "frame_id": CHILD_FRAME, "latitude": m.lat_deg,
+            "longitude": m.lon_deg,
+            "altitude": m.alt_amsl_m if m.alt_amsl_m is not None else 0.0,
+            "position_covariance": [0.0] * 9, "position_covariance_type": 0}
 
 
 class McapExport:
@@ -181,7 +221,7 @@ class McapExport:
         self._last_frame: float | None = None
         self._routes: dict[type, Callable[[int, Any], None]] = {
             SmUpdate: self._sm_update, Status: self._status, Position: self._position,
-            Battery: self._battery, LinkEvent: self._link_message,
+            Battery: self._battery, LinkEvent: self._link_message, LinkStats: self._link_stats,
         }
 
     def _channel(self, topic: str) -> int:
@@ -227,19 +267,23 @@ class McapExport:
     def _sm_update(self, ns: int, m: SmUpdate) -> None:
         self._write(STATE, ns, state_fields(m))
         self._write(ALTITUDE, ns, altitude_fields(m))
-        self._write(ATTITUDE, ns, attitude_fields(m))
+        self._write(ATTITUDE, ns, attitude_fields(m, ns))
 
     def _status(self, ns: int, m: Status) -> None:
         self._write(STATUS, ns, status_fields(m))
 
     def _position(self, ns: int, m: Position) -> None:
-        self._write(POSITION, ns, m.fields())
+        self._write(POSITION, ns, position_fields(m, ns))
 
     def _battery(self, ns: int, m: Battery) -> None:
         self._write(BATTERY, ns, m.fields())
 
     def _link_message(self, ns: int, ev: LinkEvent) -> None:
-        self._write(LINK, ns, {"source": ev.source, "up": ev.up, "silence_s": ev.silence_s})
+        self._write(LINK_EVENTS, ns,
+                    {"source": ev.source, "up": ev.up, "silence_s": ev.silence_s})
+
+    def _link_stats(self, ns: int, m: LinkStats) -> None:
+        self._write(LINK, ns, {**m.fields(), "origin": m.origin})
 
     def finish(self) -> None:
         """Write the summary (statistics, indexes) and the closing magic."""

@@ -1,7 +1,8 @@
 """``aurora-gateway export RECORDING -o FILE.mcap`` (gateway/export.py, gateway/export_mcap.py):
 a recording of the simulated flight is read back with the ``mcap`` library's own reader: the
 channels and their JSON schemas, one message per SM update / STATUS with the decoded values,
-receive times as log times, link up/down from the gaps; MCAP to stdout is refused."""
+receive times as log times, link up/down from the gaps; the attitude and position in
+Foxglove's own JSON schemas; MCAP to stdout is refused."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from gateway import recording
 from gateway.cli import main
 from gateway.export_mcap import McapExport
 from gateway.flight import FlightModel, FlightProfile
-from gateway.model import Battery, Position, RawFrame, SmUpdate, Status
+from gateway.model import Battery, LinkStats, Position, RawFrame, SmUpdate, Status
 from gateway.sources.sim import flight_messages
 from gateway.wire import decode_all, encode
 
@@ -32,16 +33,23 @@ GAP_S = 4.5  # ... for longer than the gateway's 3 s link timeout
 LINK_TIMEOUT_S = 3.0  # README: "link-down silence (default 3 s)"
 CONSOLE = Path(sys.executable).with_name("aurora-gateway")
 
-# The channels and fields the export promises (its docstring and the issue), written out here.
+# The channels, schema names and fields the export promises (its docstring; the live Foxglove
+# backend's names; Foxglove's FrameTransform and LocationFix schemas), written out here.
 CORE = {"/aurora/state", "/aurora/altitude", "/aurora/attitude", "/aurora/status",
-        "/aurora/link"}
+        "/aurora/link_events"}
+SCHEMA_NAMES = {"/aurora/state": "aurora.State", "/aurora/altitude": "aurora.Altitude",
+                "/aurora/attitude": "foxglove.FrameTransform", "/aurora/status": "aurora.Status",
+                "/aurora/link_events": "aurora.LinkEvent", "/aurora/link": "aurora.LinkStats",
+                "/aurora/position": "foxglove.LocationFix", "/aurora/battery": "aurora.Battery"}
 FIELDS = {
     "/aurora/state": {"state", "state_name", "armed", "sm_type", "timestamp_ms"},
-    "/aurora/altitude": {"altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2"},
-    "/aurora/attitude": {"roll_rad", "pitch_rad", "yaw_rad", "qx", "qy", "qz", "qw"},
+    "/aurora/altitude": {"timestamp_ms", "altitude_m", "velocity_mps", "acceleration_mps2",
+                         "accel_vert_mps2"},
+    "/aurora/attitude": {"timestamp", "parent_frame_id", "child_frame_id", "translation",
+                         "rotation"},
     "/aurora/status": {"state", "state_name", "sm_type", "flags", "armed", "imu_ok", "baro_ok",
                        "calibrated", "log_ready", "timestamp_ms"},
-    "/aurora/link": {"source", "up", "silence_s"},
+    "/aurora/link_events": {"source", "up", "silence_s"},
 }
 # STATUS flag bits (shared/specs/aurora-wire.md)
 FLAG_BITS = {"armed": 0x01, "imu_ok": 0x02, "baro_ok": 0x04, "calibrated": 0x08,
@@ -130,6 +138,7 @@ def test_channels_and_their_json_schemas(exported: tuple[list[Any], Path]) -> No
         assert ch.message_encoding == "json"
         schema = summary.schemas[ch.schema_id]
         assert schema.encoding == "jsonschema"
+        assert schema.name == SCHEMA_NAMES[topic]
         doc = json.loads(schema.data)
         assert doc["type"] == "object"
         assert set(doc["properties"]) == FIELDS[topic], topic
@@ -158,9 +167,13 @@ def test_one_message_per_update_and_status_with_the_decoded_values(
             elif topic == "/aurora/altitude":
                 assert data == {k: getattr(m, k) for k in FIELDS[topic]}  # floats exact
             else:
+                ns = _ns(t)
+                assert data["timestamp"] == {"sec": ns // 10**9, "nsec": ns % 10**9}
+                assert (data["parent_frame_id"], data["child_frame_id"]) == ("world", "rocket")
+                assert data["translation"] == {"x": 0.0, "y": 0.0, "z": m.altitude_m}
                 angles = (m.roll_rad, m.pitch_rad, m.yaw_rad)
-                assert (data["roll_rad"], data["pitch_rad"], data["yaw_rad"]) == angles
-                q = (data["qx"], data["qy"], data["qz"], data["qw"])
+                rot = data["rotation"]
+                q = (rot["x"], rot["y"], rot["z"], rot["w"])
                 assert math.fsum(c * c for c in q) == pytest.approx(1.0, abs=1e-12)
                 r = _rotation_matrix(*angles)
                 for axis in range(3):
@@ -184,7 +197,7 @@ def test_the_link_goes_down_after_the_timeout_and_up_at_the_next_frame(
     times = [t for t, _ in decoded]
     (before, after), = [(a, b) for a, b in itertools.pairwise(times)
                         if b - a >= LINK_TIMEOUT_S]
-    link = [(rec.log_time, data) for rec, data in got["/aurora/link"]]
+    link = [(rec.log_time, data) for rec, data in got["/aurora/link_events"]]
     source = "replay:flight.aur"
     assert link == [
         (_ns(times[0]), {"source": source, "up": True, "silence_s": 0.0}),
@@ -206,25 +219,39 @@ def test_the_f32_revision_and_non_finite_values(tmp_path: Path) -> None:
     assert f32[0].payload_len == 36
     assert [d["altitude_m"] for _, d in got["/aurora/altitude"][:-1]] == [
         m.altitude_m for m in f32]
-    assert got["/aurora/altitude"][-1][1] == {"altitude_m": None, "velocity_mps": 0.5,
+    assert got["/aurora/altitude"][-1][1] == {"timestamp_ms": 1, "altitude_m": None,
+                                               "velocity_mps": 0.5,
                                                "acceleration_mps2": None,
                                                "accel_vert_mps2": None}
 
 
-def test_position_and_battery_get_their_channels_when_present(tmp_path: Path) -> None:
+def test_position_battery_and_link_stats_get_their_channels_when_present(
+        tmp_path: Path) -> None:
     out = tmp_path / "gps.mcap"
     with out.open("wb") as f:
         export = McapExport(f, source="gps")
         export.add(T0, Position(52.5, 13.25, 40.0, 1.5, None, None, 9, 3))
         export.add(T0 + 1, Battery(7.4, 1.25, None, 80))
         export.add(T0 + 2, RawFrame(0x7E, b""))
+        export.add(T0 + 3, Position(52.5, 13.5, None))
+        export.add(T0 + 4, LinkStats(-70.0, 99, origin="crsf"), frame=False)
         export.finish()
     summary, got = _read(out)
-    assert {c.topic for c in summary.channels.values()} == CORE | {"/aurora/position",
-                                                                   "/aurora/battery"}
-    assert [d for _, d in got["/aurora/position"]] == [
-        {"lat_deg": 52.5, "lon_deg": 13.25, "alt_amsl_m": 40.0, "relative_alt_m": 1.5,
-         "ground_speed_mps": None, "course_deg": None, "satellites": 9, "fix_type": 3}]
+    assert {c.topic for c in summary.channels.values()} == CORE | {
+        "/aurora/position", "/aurora/battery", "/aurora/link"}
+    for ch in summary.channels.values():
+        assert summary.schemas[ch.schema_id].name == SCHEMA_NAMES[ch.topic]
+    ns = _ns(T0)
+    # foxglove.LocationFix: an unknown altitude as 0 (as the live backend sends it)
+    assert got["/aurora/position"][0][1] == {
+        "timestamp": {"sec": ns // 10**9, "nsec": ns % 10**9}, "frame_id": "rocket",
+        "latitude": 52.5, "longitude": 13.25, "altitude": 40.0,
+        "position_covariance": [0.0] * 9, "position_covariance_type": 0}
+    assert got["/aurora/position"][1][1]["altitude"] == 0.0
+    assert [d for _, d in got["/aurora/link"]] == [
+        {"rssi_dbm": -70.0, "link_quality_pct": 99, "snr_db": None, "tx_power_mw": None,
+         "downlink_rssi_dbm": None, "downlink_link_quality_pct": None,
+         "downlink_snr_db": None, "rf_mode": None, "antenna": None, "origin": "crsf"}]
     assert [d for _, d in got["/aurora/battery"]] == [
         {"voltage_v": 7.4, "current_a": 1.25, "consumed_mah": None, "remaining_pct": 80,
          "battery_id": 0}]
