@@ -1,7 +1,4 @@
-"""The HTTP status page and Prometheus metrics backend (``run --http HOST:PORT``)."""
-
-from __future__ import annotations
-
-from .backend import HttpBackend
-
-__all__ = ["HttpBackend"]
+"""The HTTP status page and Prometheus metrics backend (``run --http [HOST:]PORT``):
+:class:`backends.http.backend.HttpBackend`.  Nothing is imported here, so that loading the
+``--http`` flag (:mod:`backends.http.flags`) imports neither the backend nor
+prometheus-client."""
