@@ -29,7 +29,7 @@ from websockets.typing import Subprotocol
 from backends.foxglove import flags
 from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
 from gateway import config, registry
-from gateway.backend import Outcome
+from gateway.backend import GatewayContext, Outcome
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats, Position, SmUpdate, Status
 
@@ -39,7 +39,7 @@ DEADLINE_S = 5.0
 SUBPROTOCOL = "foxglove.sdk.v1"
 LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 TOPICS = {"/aurora/state", "/aurora/altitude", "/aurora/attitude", "/aurora/position",
-          "/aurora/link", "/aurora/status"}
+          "/aurora/link", "/aurora/status", "/aurora/backends"}
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -295,6 +295,25 @@ def check_a_flight(backend: FoxgloveBackend, dispatcher: Dispatcher,
     s = backend.stats()
     assert s["dropped"] == 0 and s["errors"] == 0
     assert s["link"] == 1
+
+
+def test_the_gateways_counters_every_second() -> None:
+    counters = {"backends": {"mavlink": {"sent": 12, "dropped": 0, "errors": 1, "link": 1}},
+                "sources": {"sim": {"frames": 40}}}
+    backend = FoxgloveBackend(host="127.0.0.1", port=0)
+    backend.attach(GatewayContext(services={"gateway.stats": lambda: counters}))
+    dispatcher = Dispatcher([backend])
+    assert dispatcher.start() == []
+    try:
+        with foxglove_client(backend.port) as client:
+            chans = client.channels
+            assert chans["/aurora/backends"]["schemaName"] == "aurora.GatewayCounters"
+            client.subscribe_all()
+            assert backend.wait_subscriptions(len(TOPICS), DEADLINE_S)
+            got = client.read({"/aurora/backends": 2})  # one a second, without any update
+            assert [json.loads(data) for _, data in got["/aurora/backends"]] == [counters] * 2
+    finally:
+        dispatcher.close()
 
 
 def test_a_full_queue_drops_and_counts() -> None:

@@ -49,6 +49,10 @@ TOPIC_ATTITUDE = "/aurora/attitude"
 TOPIC_POSITION = "/aurora/position"
 TOPIC_LINK = "/aurora/link"
 TOPIC_STATUS = "/aurora/status"
+TOPIC_BACKENDS = "/aurora/backends"
+#: Seconds between two logs of the gateway's counters on ``/aurora/backends``.
+COUNTERS_INTERVAL_S = 1.0
+_IDLE: tuple[int, Any] = (0, None)  # the worker woke for the counters, not for a message
 
 #: Frames of the attitude transform (the 3D panel's display frame is ``world``).
 PARENT_FRAME = "world"
@@ -83,6 +87,10 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "flags": {"type": "integer"}, "armed": {"type": "boolean"},
         "imu_ok": {"type": "boolean"}, "baro_ok": {"type": "boolean"},
         "calibrated": {"type": "boolean"}, "log_ready": {"type": "boolean"}}),
+    TOPIC_BACKENDS: _object("aurora.GatewayCounters", {
+        "backends": {"type": "object", "description": "each backend's stats(): sent, "
+                     "dropped, errors, link, its own counters"},
+        "sources": {"type": "object", "description": "each source's stats()"}}),
 }
 
 
@@ -252,16 +260,38 @@ class FoxgloveBackend(Backend):
     # --- the worker ---------------------------------------------------------------------------
 
     def _work(self) -> None:
+        due = time.monotonic() + COUNTERS_INTERVAL_S
         while not self._stop.is_set():
-            item = self._queue.get()
+            try:
+                item = self._queue.get(timeout=max(0.0, due - time.monotonic()))
+            except queue.Empty:
+                item = _IDLE  # only the counters are due
+            if time.monotonic() >= due:
+                due = time.monotonic() + COUNTERS_INTERVAL_S
+                self._log_counters()
             if item is None:
                 return
+            if item is _IDLE:
+                continue
             log_time, msg = item
             try:
                 self.sent += self._log(msg, log_time)
             except Exception:
                 self.errors += 1
                 log.exception("%s: cannot log %s", self.name, type(msg).__name__)
+
+    def _log_counters(self) -> None:
+        """The gateway's backends' and sources' counters on ``/aurora/backends``."""
+        counters = self.context.services.get("gateway.stats")
+        if counters is None:
+            return
+        try:
+            data = orjson.dumps(counters(), default=str, option=orjson.OPT_NON_STR_KEYS)
+            self._channels[TOPIC_BACKENDS].log(data, log_time=time.time_ns())
+            self.sent += 1
+        except Exception:
+            self.errors += 1
+            log.exception("%s: cannot log the gateway's counters", self.name)
 
     def _json(self, topic: str, data: dict[str, Any], log_time: int) -> None:
         self._channels[topic].log(orjson.dumps(data), log_time=log_time)
