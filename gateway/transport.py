@@ -177,6 +177,7 @@ class UdpPort:
         self.last_peer: Any = None
         self.new_peers = 0
         self.send_errors = 0
+        self.send_refused = 0  # "port unreachable": nobody listens there (yet); not an error
         self.send_dropped = 0
         self.not_sent = 0  # writes with nobody to send to (udpin before any peer)
         self.connected = False  # udpout from open_udp: connected, so refusals are reported
@@ -204,7 +205,7 @@ class UdpPort:
             except (BlockingIOError, InterruptedError):
                 return b""
             except ConnectionRefusedError:  # ICMP for an earlier send: nobody listens there
-                self.send_errors += 1
+                self.send_refused += 1
                 continue
             data = bytes(self._view[:n])
             if self.dest is None:
@@ -225,6 +226,8 @@ class UdpPort:
                 self.sock.send(data)
             except BlockingIOError:
                 self.send_dropped += 1
+            except ConnectionRefusedError:
+                self.send_refused += 1
             except OSError:
                 self.send_errors += 1
             return len(data)

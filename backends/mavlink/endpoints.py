@@ -248,7 +248,8 @@ class UdpEndpoint(Endpoint, PortLink):
         self._bound_port = spec.port  # udpin:HOST:0 binds the same port again on a reopen
         self._first: UdpPort | None = None
         self._new_peers = 0
-        self._closed_counts = {"tx_errors": 0, "tx_dropped": 0}  # from sockets reopened since
+        # from sockets reopened since
+        self._closed_counts = {"tx_errors": 0, "tx_refused": 0, "tx_dropped": 0}
 
     def _open(self) -> UdpPort:
         spec = self.spec
@@ -261,6 +262,7 @@ class UdpEndpoint(Endpoint, PortLink):
         old, self.port = self.port, port
         if old is not None:
             self._closed_counts["tx_errors"] += old.send_errors
+            self._closed_counts["tx_refused"] += old.send_refused
             self._closed_counts["tx_dropped"] += old.send_dropped
         self._new_peers = 0
         return port
@@ -332,11 +334,14 @@ class UdpEndpoint(Endpoint, PortLink):
     def stats(self) -> dict[str, Any]:
         d = PortLink.stats(self)
         port = self.port
-        errors, dropped = self._closed_counts["tx_errors"], self._closed_counts["tx_dropped"]
+        closed = self._closed_counts
+        errors, refused, dropped = closed["tx_errors"], closed["tx_refused"], closed["tx_dropped"]
         if port is not None:
             errors += port.send_errors
+            refused += port.send_refused
             dropped += port.send_dropped
-        d["tx_errors"] += errors  # the OS refused a datagram (nobody listening, no route)
+        d["tx_errors"] += errors  # the OS refused a datagram (no route, a bad address …)
+        d["tx_refused"] = refused  # "port unreachable": nobody listens there (yet): not an error
         d["tx_dropped"] += dropped  # the socket buffer was full
         if self.listen:
             d["peers"] = len(port.peers) if port is not None else 0
