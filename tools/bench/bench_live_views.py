@@ -5,7 +5,10 @@ Cases, each repeated ``--repeat`` times after one uncounted warm-up (median, min
 * ``off``: the dispatcher with no backend (the floor);
 * ``foxglove``: the Foxglove backend on loopback, no client;
 * ``foxglove+client``: the same with one client, in *another process*, subscribed to every
-  channel and counting what arrives.
+  channel and counting what arrives;
+* ``http``: the status page and metrics backend on loopback (no client: its hook stores the
+  latest message per kind);
+* ``foxglove+http``: both live views on (MCAP is written offline by ``export``: no cost here).
 
 Per case: the caller's time per dispatch (what the fan-out pays: the hook only queues), and
 this process's CPU per update (``time.process_time``: the dispatcher's thread, the backend's
@@ -35,6 +38,7 @@ if str(ROOT) not in sys.path:  # run as a script from anywhere, without installi
     sys.path.insert(0, str(ROOT))
 
 from backends.foxglove.backend import FoxgloveBackend  # noqa: E402
+from backends.http.backend import HttpBackend  # noqa: E402
 from gateway.dispatcher import Dispatcher  # noqa: E402
 from gateway.model import SmUpdate  # noqa: E402
 
@@ -79,10 +83,12 @@ def run_case(case: str, msgs: list[SmUpdate]) -> dict[str, Any]:
     n = len(msgs)
     backend = None
     client = None
-    backends = []
-    if case != "off":
+    backends: list[Any] = []
+    if "foxglove" in case:
         backend = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=n + 1)
         backends.append(backend)
+    if "http" in case:
+        backends.append(HttpBackend(host="127.0.0.1", port=0))
     dispatcher = Dispatcher(backends)
     dispatcher.start()
     try:
@@ -92,7 +98,7 @@ def run_case(case: str, msgs: list[SmUpdate]) -> dict[str, Any]:
                                       stdout=subprocess.PIPE, text=True)
             assert client.stdout is not None
             assert client.stdout.readline().strip() == "subscribed"
-            assert backend.wait_subscriptions(6, 10.0), "the client did not subscribe"
+            assert backend.wait_subscriptions(7, 10.0), "the client did not subscribe"
         dispatch = dispatcher.dispatch
         cpu0 = time.process_time()
         t0 = time.perf_counter()
@@ -126,7 +132,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()
     msgs = updates(args.updates)
-    cases = ("off", "foxglove", "foxglove+client")
+    cases = ("off", "foxglove", "foxglove+client", "http", "foxglove+http")
     results: dict[str, list[dict[str, Any]]] = {c: [] for c in cases}
     for rep in range(args.repeat + 1):
         for case in cases:
