@@ -49,6 +49,7 @@ from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
 
 from gateway import __version__
+from gateway.attitude import quaternion_xyzw
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
 from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 
@@ -132,15 +133,9 @@ CORE_TOPICS: tuple[str, ...] = (STATE, ALTITUDE, ATTITUDE, STATUS, LINK_EVENTS)
 
 
 def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of the rotation yaw about z, then pitch about the new y, then roll about
-    the newest x (the aerospace Z-Y-X convention), angles in radians."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy)
+    """(x, y, z, w) of the Z-Y-X rotation (:func:`gateway.attitude.quaternion_xyzw`), as
+    FrameTransform carries it."""
+    return quaternion_xyzw(roll, pitch, yaw)
 
 
 def time_ns(t: float) -> int:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import queue
 import threading
 import time
@@ -37,6 +36,7 @@ from foxglove.messages import FrameTransform, LocationFix, Quaternion, Timestamp
 from foxglove.websocket import ServerListener
 
 from backends.foxglove.flags import DEFAULT_HOST, DEFAULT_PORT
+from gateway.attitude import quaternion_xyzw
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.model import LinkStats, Position, SmUpdate, Status
@@ -97,14 +97,8 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
 def quaternion_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float,
                                                                          float]:
     """(x, y, z, w) of the rotation yaw about Z, then pitch about Y, then roll about X
-    (aerospace Z-Y-X order: body → world)."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return (sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy)
+    (aerospace Z-Y-X order: body → world): FrameTransform's order."""
+    return quaternion_xyzw(roll, pitch, yaw)
 
 
 class _Listener(ServerListener):

@@ -41,6 +41,7 @@ import math
 from typing import Any
 
 from dialects.states import SM_TYPE_SIMPLE, SimpleState
+from gateway.attitude import quaternion_wxyz
 from gateway.model import (
     STATUS_ARMED,
     STATUS_BARO_OK,
@@ -77,13 +78,7 @@ FIX_STATUS = {0: "NoFix", 1: "NoFix", 2: "Fix2D"}  # MAVLink GPS_FIX_TYPE; 3 and
 
 def quaternion(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, ...]:
     """(q1, q2, q3, q4) of the Z-Y-X (yaw, pitch, roll) rotation, scalar first, q1 ≥ 0."""
-    cr, sr = math.cos(roll_rad / 2), math.sin(roll_rad / 2)
-    cp, sp = math.cos(pitch_rad / 2), math.sin(pitch_rad / 2)
-    cy, sy = math.cos(yaw_rad / 2), math.sin(yaw_rad / 2)
-    q = (cr * cp * cy + sr * sp * sy,
-         sr * cp * cy - cr * sp * sy,
-         cr * sp * cy + sr * cp * sy,
-         cr * cp * sy - sr * sp * cy)
+    q = quaternion_wxyz(roll_rad, pitch_rad, yaw_rad)
     return tuple(-v for v in q) if q[0] < 0 else q
 
 
