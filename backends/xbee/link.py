@@ -45,7 +45,7 @@ it, in queue order, packed by :func:`backends.xbee.packets.group` into payloads 
 ``max_payload`` bytes (set it from ``AT NP``; 100 by default).  So a STATS rides with the
 next telemetry going out at its power, and an SM update and a STATUS produced together share
 one RF packet; nothing waits more than its hold (plus the guard below).  A PING's payload goes
-last and nothing follows it for ``ping_guard`` (20 ms): the ground's ``AT DB`` must be
+last and nothing follows it for ``ping_guard`` (50 ms): the ground's ``AT DB`` must be
 answered before its module receives another packet, or the reading is discarded.
 
 Ground rules:
@@ -65,10 +65,11 @@ Ground rules:
   servos exact whatever was lost before it.
 * TX power: alternately 0 and 4 (one packet each) while no ACK or PING was heard for
   ``silence`` (500 ms); otherwise the lowest level whose latest PING RSSI, no older than
-  ``ping_expiry`` (3 s: one rotation of five pings plus one period of slack, so a late ping
-  does not drop a level; a lost one does, until that level's next ping, 2.5 s later — a level
-  that loses pings is marginal), is ≥ ``rssi_threshold_dbm`` (−85 dBm); 4 if none is.  (A ping
-  measures air → ground at that PL; the ground assumes the path is reciprocal.)
+  ``ping_expiry`` (5.5 s: two rotations of five pings plus one period of slack, so one lost
+  ping — or one reading discarded because another packet beat the DB answer — does not move
+  the power; two in a row do, until that level's next ping), is ≥ ``rssi_threshold_dbm``
+  (−85 dBm); 4 if none is.  (A ping measures air → ground at that PL; the ground assumes the
+  path is reciprocal.)
 
 TX power in mW (:class:`gateway.model.LinkStats` carries whole mW): :data:`POWER_DBM_XBEE3`
 is the Digi XBee 3 802.15.4 user guide's PL table (PL 0..4 = −5, −1, 2, 5, 8 dBm; the module
@@ -226,7 +227,7 @@ class AirLink:
     def __init__(self, *, max_payload: int = 100, ack_interval: float = 0.2,
                  ping_interval: float = 0.5, stats_interval: float = 0.1,
                  silence: float = 0.5, stats_hold: float = 0.05,
-                 telemetry_hold: float = 0.02, ping_guard: float = 0.02,
+                 telemetry_hold: float = 0.02, ping_guard: float = 0.05,
                  max_queued: int = 64) -> None:
         self.max_payload = max_payload
         self.ack_interval = ack_interval
@@ -407,7 +408,7 @@ class GroundLink:
 
     def __init__(self, *, rssi_threshold_dbm: float = -85.0, min_send_interval: float = 0.03,
                  keepalive_interval: float = 0.15, silence: float = 0.5,
-                 ack_stale: float = 0.5, ping_expiry: float = 3.0,
+                 ack_stale: float = 0.5, ping_expiry: float = 5.5,
                  lq_window: float = 1.0,
                  power_dbm: Sequence[float] = POWER_DBM_XBEE3,
                  origin: str = "xbee", via: str = "") -> None:
