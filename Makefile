@@ -13,6 +13,8 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 ARGS ?=
 PYTEST_ARGS ?=
+# The suite is mostly waiting on sockets, ptys and subprocesses: four workers on two cores.
+PYTEST_WORKERS ?= 4
 
 PACKAGES := gateway backends dialects
 
@@ -36,7 +38,7 @@ run: bytecode
 	$(BIN)/aurora-gateway run $(ARGS)
 
 test: bytecode
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -1,6 +1,6 @@
 """Console backend: one human-readable line per update, rate-limited, for people watching.
 
-Lines go through a :class:`~gateway.port.PortEngine`, so a stalled terminal or a full pipe
+Lines go through a :class:`~gateway.io.port.PortEngine`, so a stalled terminal or a full pipe
 never blocks the dispatcher: lines are dropped (and counted) instead.
 """
 
@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.port import PortEngine
 from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
-from gateway.port import PortEngine
 
 
 class _StreamTransport:

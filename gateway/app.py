@@ -13,8 +13,8 @@ from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
 from gateway.flight_summary import FlightSummary, crc_errors, new_recording
+from gateway.link_monitor import LinkMonitor
 from gateway.model import kind
-from gateway.monitor import LinkMonitor
 from gateway.recording import Recorder, RecordingError
 from gateway.sources import SourceInbox
 

@@ -8,7 +8,7 @@ A backend **must**:
   ``Routes().on(SmUpdate, self.send_sm_update)`` is checked by mypy, so a misspelled handler
   or one that takes another message type fails ``make lint``, not silently at run time;
 * never block in a handler: a backend that does I/O hands the work to a
-  :class:`gateway.port.PortEngine` (or a bounded queue of its own) and drops, counted, when it
+  :class:`gateway.io.port.PortEngine` (or a bounded queue of its own) and drops, counted, when it
   is full.  A handler returns an :class:`Outcome` (``None`` counts as accepted).
 
 A backend **may** implement:
@@ -40,31 +40,17 @@ A backend **may** implement:
 
 from __future__ import annotations
 
-import errno
 import itertools
 import os
 import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Any, ClassVar, TypeVar
+
+from gateway.outcome import Outcome
 
 #: The stats keys every built-in backend reports (see the module docstring).
 STATS_KEYS = ("sent", "dropped", "errors", "link")
-
-
-class Outcome(IntEnum):
-    """What a backend did with a message (the firmware's return codes)."""
-
-    ACCEPTED = 0
-    THROTTLED = -errno.EAGAIN
-    QUEUE_FULL = -errno.ENOMEM
-    NOT_READY = -errno.ENODEV
-    FAILED = -errno.EIO  # the handler raised; the dispatcher isolates it
-
-    @property
-    def label(self) -> str:
-        return self.name.lower().replace("_", "-")
 
 
 class BackendError(Exception):

@@ -19,7 +19,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from gateway.backend import Handler, Outcome
+from gateway.backend import Backend, Handler
+from gateway.outcome import Outcome
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +31,7 @@ ACCEPTED = Outcome.ACCEPTED
 class BackendRecord:
     """A registered backend and what the dispatcher has seen it do."""
 
-    backend: Any
+    backend: Backend
     started: bool = False
     init_error: str | None = None
     outcomes: dict[Outcome, int] = field(default_factory=lambda: dict.fromkeys(Outcome, 0))
@@ -44,7 +45,7 @@ class BackendRecord:
 class Dispatcher:
     """Fans messages out to backends; see the module docstring for the contract."""
 
-    def __init__(self, backends: Iterable[Any] = ()) -> None:
+    def __init__(self, backends: Iterable[Backend] = ()) -> None:
         self._records: list[BackendRecord] = []
         self._routes: dict[type, list[tuple[BackendRecord, Handler]]] = {}
         self._lock = threading.RLock()  # re-entrant: a hook may dispatch (no self-deadlock)
@@ -55,7 +56,7 @@ class Dispatcher:
 
     # -- registration and life cycle ----------------------------------------------------------
 
-    def add(self, backend: Any) -> None:
+    def add(self, backend: Backend) -> None:
         """Register a backend.  It receives messages once :meth:`start` has initialised it."""
         if not callable(getattr(backend, "routes", None)):
             raise TypeError(f"{backend!r} has no routes(): derive it from gateway.backend.Backend")
@@ -69,7 +70,7 @@ class Dispatcher:
     def records(self) -> list[BackendRecord]:
         return list(self._records)
 
-    def backends(self) -> list[Any]:
+    def backends(self) -> list[Backend]:
         return [r.backend for r in self._records]
 
     def start(self) -> list[tuple[str, str]]:

@@ -291,6 +291,18 @@ KINDS: dict[type, str] = {
 #: The message classes defined here.
 MESSAGE_TYPES: tuple[type, ...] = tuple(KINDS)
 
+
+class GatewayStats(NamedTuple):
+    """Another gateway's counters, as its Zenoh backend publishes them (``gateway_stats``):
+    ``backends`` and ``sources`` map each name to its ``stats()``."""
+
+    gateway: str
+    backends: dict[str, Any]
+    sources: dict[str, Any]
+    origin: str = ""
+    via: str = ""
+
+
 _PROVENANCE = ("raw", "origin", "via")
 
 

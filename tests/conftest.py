@@ -59,7 +59,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 # Zenoh's Rust runtime keeps native threads after every session is closed.  If one needs the
 # GIL while CPython finalizes, CPython ends it with pthread_exit and the unwind through Rust
 # frames aborts the process ("FATAL: exception not rethrown") -- after every test has passed,
-# turning a green run red.  The CLI avoids it the same way (gateway.cli.console_main): once
+# turning a green run red.  The CLI avoids it the same way (gateway.commands.cli.console_main): once
 # pytest has reported, leave with its exit status without interpreter teardown.
 
 _exit_status: list[int] = []

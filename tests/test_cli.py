@@ -1,4 +1,4 @@
-"""``aurora-gateway`` as a user runs it: in a subprocess, through ``python -m gateway.cli`` or
+"""``aurora-gateway`` as a user runs it: in a subprocess, through ``python -m gateway`` or
 the installed console script.
 
 Waits are on the processes' own output (reader threads set events) or ``Popen.wait`` with a
@@ -26,8 +26,9 @@ import pytest
 from helpers import Running
 
 from dialects.states import state_name
-from gateway import cli, config, recording
+from gateway import config, recording
 from gateway.app import STOP_BUDGET_S, Gateway
+from gateway.commands import cli
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate
 from gateway.recording import Recorder
@@ -36,7 +37,7 @@ from gateway.wire import decode_all, frame, to_wire_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 VECTORS = Path(__file__).resolve().parents[1].parent / "shared" / "vectors" / "aurora-wire.json"
-GATEWAY = [sys.executable, "-m", "gateway.cli"]
+GATEWAY = [sys.executable, "-m", "gateway"]
 CONSOLE_SCRIPT = Path(sys.executable).parent / "aurora-gateway"
 TIMEOUT_S = 20.0
 STOP_SLACK_S = 1.5  # scheduling slack for a loaded 2-core CI machine, on top of the 1 s budget
@@ -276,7 +277,7 @@ class CtrlC(importlib.abc.MetaPathFinder):
 TARGET = sys.argv[1]
 sys.argv = ["aurora-gateway", *sys.argv[2:]]
 sys.meta_path.insert(0, CtrlC())
-from gateway.cli import console_main
+from gateway.commands.cli import console_main
 console_main()
 """
 
@@ -636,10 +637,10 @@ def test_config_from_args_overrides_the_embedded_default() -> None:
 HEAVY = ("pymavlink", "dialects.aurora_mavlink", "zenoh", "backends.mavlink.backend",
          "backends.zenoh.backend")
 # Ends as the console script does (os._exit): Zenoh's native threads can abort a normal
-# interpreter teardown (see gateway.cli.console_main).
+# interpreter teardown (see gateway.commands.cli.console_main).
 IMPORT_CHECK = f"""
 import json, os, sys
-from gateway import cli
+from gateway.commands import cli
 try:
     code = cli.main(sys.argv[1:])
 except SystemExit as exc:
@@ -652,7 +653,7 @@ os._exit(0)
 
 
 def _imports_of(*argv: str) -> tuple[int, list[str], str]:
-    """Exit status, which of HEAVY a ``gateway.cli.main(argv)`` left imported, its stdout."""
+    """Exit status, which of HEAVY ``cli.main(argv)`` left imported, its stdout."""
     r = subprocess.run([sys.executable, "-c", IMPORT_CHECK, *argv], cwd=ROOT,
                        capture_output=True, text=True, timeout=TIMEOUT_S)
     line = next(ln for ln in r.stderr.splitlines() if ln.startswith("IMPORTS "))

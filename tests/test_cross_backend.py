@@ -8,9 +8,9 @@ import os
 from helpers import wait_for
 from mavlink_peer import MavPeer
 
-from backends.crsf import CrsfBackend
+from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import LinkStatistics, encode
-from backends.mavlink import MavlinkBackend
+from backends.mavlink.backend import MavlinkBackend
 from gateway.backend import GatewayContext
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats

@@ -23,8 +23,8 @@ import pytest
 from helpers import run_within, wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
-from backends.crsf import CrsfBackend
 from backends.crsf import flags as crsf_flags
+from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import LinkStatistics, RcChannels, encode
 from backends.crsf.ports import PtyPair
 from dialects.states import SimpleState
@@ -137,7 +137,7 @@ def test_embedded_default_runs_on_a_pty() -> None:
 
 
 def test_run_flags() -> None:
-    from gateway.cli import build_parser, config_from_args
+    from gateway.commands.cli import build_parser, config_from_args
 
     args = build_parser().parse_args(["run", "--crsf", "socket://127.0.0.1:9", "--crsf-baud",
                                       "416666"])
@@ -531,7 +531,7 @@ def test_run_crsf_flag_full_flight(peer: PtyPeer, tmp_path: Path) -> None:
                    'pad_idle_s = 1\npad_armed_s = 1\n\n'
                    '[backends.crsf]\nurl = "pty"\n', encoding="utf-8")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "gateway.cli", "run", "--config", str(cfg), "--crsf", peer.path,
+        [sys.executable, "-m", "gateway", "run", "--config", str(cfg), "--crsf", peer.path,
          "--log-level", "warning"],
         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     radio = EdgeTxRadio()

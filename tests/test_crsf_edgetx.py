@@ -18,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from backends.crsf import CrsfBackend
+from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import (
     FRAME_ATTITUDE,
     FRAME_BARO_ALTITUDE,

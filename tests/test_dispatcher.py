@@ -14,8 +14,8 @@ from helpers import BlockingTransport, run_within
 
 from gateway.backend import Backend, Outcome, Routes
 from gateway.dispatcher import Dispatcher
+from gateway.io.port import DEFAULT_QUEUE_DEPTH, PortEngine
 from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
-from gateway.port import DEFAULT_QUEUE_DEPTH, PortEngine
 
 DEADLINE_S = 5.0
 

@@ -42,7 +42,7 @@ from gateway.sources.sim import flight_frames
 from gateway.wire import decode_all, to_wire_dict
 
 ROOT = Path(__file__).resolve().parents[1]
-GATEWAY = [sys.executable, "-m", "gateway.cli"]
+GATEWAY = [sys.executable, "-m", "gateway"]
 TIMEOUT_S = 30.0
 SPEED = 20.0
 

@@ -1,4 +1,4 @@
-"""``aurora-gateway export`` (gateway/export.py): a recording of the simulated flight comes back
+"""``aurora-gateway export``: a recording of the simulated flight comes back
 as CSV and JSON lines with the values the wire decoder gives, one row per SM update, in the
 documented columns; errors are one line; a closed pipe is quiet."""
 
@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 
 from gateway import recording
-from gateway.cli import main
+from gateway.commands.cli import main
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate, Status
 from gateway.sources.sim import flight_messages

@@ -1,4 +1,4 @@
-"""``aurora-gateway export RECORDING -o FILE.mcap`` (gateway/export.py, gateway/export_mcap.py):
+"""``aurora-gateway export RECORDING -o FILE.mcap``:
 a recording of the simulated flight is read back with the ``mcap`` library's own reader: the
 channels and their JSON schemas, one message per SM update / STATUS with the decoded values,
 receive times as log times, link up/down from the gaps; the attitude and position in
@@ -20,8 +20,8 @@ import pytest
 from mcap.reader import make_reader
 
 from gateway import recording
-from gateway.cli import main
-from gateway.export_mcap import McapExport
+from gateway.commands.cli import main
+from gateway.commands.export_mcap import McapExport
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Battery, LinkStats, Position, RawFrame, SmUpdate, Status
 from gateway.sources.sim import flight_messages

@@ -248,7 +248,7 @@ def test_options_are_checked_with_the_key_named() -> None:
 
 
 def test_run_flags_and_off_by_default() -> None:
-    from gateway.cli import build_parser, config_from_args
+    from gateway.commands.cli import build_parser, config_from_args
 
     assert FprimeBackend.EMBEDDED_DEFAULT is None
     assert "fprime" not in {p.name for p in config.embedded_default().backends}

@@ -23,12 +23,13 @@ from test_hc12_support import (
     write_settings,
 )
 
-from backends.hc12 import Hc12Backend
-from gateway import cli, config
-from gateway.backend import Outcome
+from backends.hc12.backend import Hc12Backend
+from gateway import config
+from gateway.commands import cli
 from gateway.config import ConfigError
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import RawFrame, SmUpdate, Status
+from gateway.outcome import Outcome
 from gateway.pacing import paced
 from gateway.sources.sim import flight_frames
 from gateway.wire import Decoder, decode_all, encode, frame

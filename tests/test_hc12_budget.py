@@ -11,13 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_hc12_support import FakeClock, sm, status
 
-from backends.hc12 import Hc12Backend, at
+from backends.hc12 import at
+from backends.hc12.backend import Hc12Backend
 from backends.hc12.budget import AirBudget, figures
 from backends.hc12.setline import BENCH_HINT, NoSetLine, SetLineError, parse_set_line
 from backends.hc12.vehicle import VehicleWatch
-from gateway.backend import Outcome
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Status
+from gateway.outcome import Outcome
 from gateway.sources.sim import flight_messages
 from gateway.wire import decode_all, encode
 

@@ -32,14 +32,15 @@ from test_hc12_support import (
     write_settings,
 )
 
-from backends.hc12 import Hc12Backend, cli, control
+from backends.hc12 import cli, control
+from backends.hc12.backend import Hc12Backend
 from backends.hc12.port import open_port
 from backends.hc12.provision import run_request
 from backends.hc12.setline import BENCH_HINT, GpioSetLine, SetLineSpec
 from gateway import config
 from gateway.app import Gateway
-from gateway.backend import Outcome
-from gateway.ioloop import IoLoop
+from gateway.io.ioloop import IoLoop
+from gateway.outcome import Outcome
 from gateway.wire import decode_all, encode
 
 BASE = ["--set-line", "rts", "--listen", "0", "--bench", "--baud", "19200"]

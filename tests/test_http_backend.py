@@ -287,7 +287,7 @@ def test_a_busy_port_refuses_the_start() -> None:
 
 
 def test_run_flags_loopback_by_default_and_off_by_default() -> None:
-    from gateway.cli import build_parser, config_from_args
+    from gateway.commands.cli import build_parser, config_from_args
 
     assert HttpBackend.EMBEDDED_DEFAULT is None
     assert "http" not in {p.name for p in config.embedded_default().backends}

@@ -1,4 +1,4 @@
-"""``aurora-gateway monitor`` (gateway/live.py, gateway/monitor_cmd.py).
+"""``aurora-gateway monitor`` (gateway/commands/live.py, gateway/commands/monitor.py).
 
 The view model is fed the simulator's flight and rendered into a fixed-size console; the
 expected numbers come from the messages themselves and the flight model's own figures, never
@@ -28,8 +28,7 @@ import pytest
 from rich.console import Console
 
 from dialects.states import SimpleState
-from gateway.flight import FlightModel, FlightProfile
-from gateway.live import (
+from gateway.commands.live import (
     EndpointRow,
     LiveState,
     RateMeter,
@@ -38,6 +37,7 @@ from gateway.live import (
     plain_line,
     render,
 )
+from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
 from gateway.sources.sim import flight_messages
 
@@ -342,7 +342,7 @@ def test_following_a_gateway_shows_its_backends_counters() -> None:
 
     from gateway import config as cfgmod
     from gateway.app import Gateway
-    from gateway.monitor_cmd import LiveFeed
+    from gateway.commands.monitor import LiveFeed
 
     endpoint = free_endpoint()
     watched = Gateway(cfgmod.parse({

@@ -36,7 +36,7 @@ from backends.mavlink.translate import AuroraVehicle
 from dialects import aurora_mavlink as aurora
 from dialects import states
 from dialects.states import SimpleState
-from gateway import cli
+from gateway.commands import cli
 from gateway.model import Battery, Position, Status
 
 WAIT = 60.0  # deadline for the whole session (a few seconds when the machine is idle)
@@ -135,7 +135,7 @@ def _watch_flight(home: Path) -> Session:
     return MAVProxy's output once it has shown the flight to LANDED (or the deadline passed).
     Both processes are stopped before returning, whatever happens."""
     installed = subprocess.run(
-        [sys.executable, "-m", "gateway.cli", "mavlink-modes", "--install"], env=_env(home),
+        [sys.executable, "-m", "gateway", "mavlink-modes", "--install"], env=_env(home),
         capture_output=True, text=True, timeout=60, check=False)
     assert installed.returncode == 0, installed.stderr
     port = _free_udp_port()
@@ -153,7 +153,7 @@ def _watch_flight(home: Path) -> Session:
         assert out.wait_for(r"Waiting for heartbeat", deadline), out.text
         with gateway_log.open("wb") as log:
             gateway = subprocess.Popen(
-                [sys.executable, "-m", "gateway.cli", "run", "--mavlink",
+                [sys.executable, "-m", "gateway", "run", "--mavlink",
                  f"udpout:127.0.0.1:{port}", "--sim-speed", str(SIM_SPEED),
                  "--disable", "zenoh", "--disable", "crsf", "--disable", "hc12",
                  "--disable", "console", "--status-interval", "0", "--duration", str(WAIT)],
@@ -268,7 +268,7 @@ def test_pymavlink_names_the_rocket_s_modes_from_the_installed_map(tmp_path: Pat
     """``mavutil`` (what MAVProxy and the other pymavlink tools name modes with) in a
     subprocess whose HOME has the map installed by the command."""
     env = _env(tmp_path)
-    done = subprocess.run([sys.executable, "-m", "gateway.cli", "mavlink-modes", "--install"],
+    done = subprocess.run([sys.executable, "-m", "gateway", "mavlink-modes", "--install"],
                           env=env, capture_output=True, text=True, timeout=60, check=False)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / ".pymavlink" / "custom_mode_map.json").exists()

@@ -22,13 +22,14 @@ from typing import Any
 import pytest
 from mavlink_peer import MavPeer
 
-from backends.mavlink import MavlinkBackend
+from backends.mavlink.backend import MavlinkBackend
 from backends.mavlink.translate import sm_update_from_mavlink, status_from_mavlink
 from dialects import aurora_mavlink as aurora
 from dialects.states import SimpleState as S
 from dialects.states import state_names
-from gateway import cli, config, registry
+from gateway import config, registry
 from gateway.backend import Backend, GatewayContext, Routes
+from gateway.commands import cli
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.model import RcChannels, SmUpdate, Status

@@ -3,7 +3,7 @@ types it: a pymavlink vehicle (ArduPilot-like, system 1) and a pymavlink ground 
 each other through the gateway's command line, and the gateway's own messages never use an id
 that a system routed through it uses.
 
-The gateway runs as its console command does (``python -m gateway.cli run …``, a process of
+The gateway runs as its console command does (``python -m gateway run …``, a process of
 its own); the vehicle and the ground station are :class:`mavlink_peer.MavPeer`s on loopback
 UDP, parsing with pymavlink's upstream dialect.
 """
@@ -84,7 +84,7 @@ def gateway(log: Path, *args: str) -> Iterator[subprocess.Popen[bytes]]:
     with SIGINT (as Ctrl-C)."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     with open(log, "wb") as err:
-        proc = subprocess.Popen([sys.executable, "-m", "gateway.cli", "run",
+        proc = subprocess.Popen([sys.executable, "-m", "gateway", "run",
                                  "--status-interval", "0", "--log-level", "info", *args],
                                 cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
     try:

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from mavlink_peer import MavPeer, running_backend, upstream_dialect
 
-from backends.mavlink import MavlinkBackend
+from backends.mavlink.backend import MavlinkBackend
 from backends.mavlink.frames import FramerStats, split_datagram
 from backends.mavlink.signing import (
     NEW_STREAM_WINDOW,

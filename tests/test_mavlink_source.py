@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 from mavlink_peer import MavPeer, upstream_dialect
 
-from backends.mavlink import MavlinkBackend, MavlinkSource
-from backends.mavlink.source import classic_mode_name
+from backends.mavlink.backend import MavlinkBackend
+from backends.mavlink.source import MavlinkSource, classic_mode_name
 from gateway import config
 from gateway.backend import Backend, Routes
 from gateway.dispatcher import Dispatcher

@@ -10,8 +10,8 @@ import pytest
 
 from gateway.backend import Backend, Outcome, Routes
 from gateway.dispatcher import Dispatcher
+from gateway.link_monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 from gateway.model import LinkEvent
-from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 
 DEADLINE_S = 5.0
 

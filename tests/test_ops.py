@@ -28,8 +28,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway import cli, config, registry
-from gateway.check_config import resolved_dict, toml_string, toml_value
+from gateway import config, registry
+from gateway.commands import cli
+from gateway.commands.check_config import resolved_dict, toml_string, toml_value
 from gateway.logjson import JsonFormatter, LineHandler
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -216,7 +217,7 @@ def test_a_line_handler_without_a_file_descriptor_writes_to_the_stream() -> None
 def test_run_with_log_format_json_logs_one_json_object_a_line(tmp_path: Path) -> None:
     """A serial source whose device does not exist: the port engine logs a warning."""
     device = f"/nonexistent/ttyAURORA-{uuid.uuid4().hex[:8]}"
-    r = subprocess.run([sys.executable, "-m", "gateway.cli", "run", "--duration", "0.3",
+    r = subprocess.run([sys.executable, "-m", "gateway", "run", "--duration", "0.3",
                         "--log-format", "json", "--only", "console", "--status-interval", "0",
                         "--source", device], capture_output=True, text=True,
                        timeout=TIMEOUT_S, cwd=ROOT)

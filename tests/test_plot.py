@@ -1,4 +1,4 @@
-"""``aurora-gateway plot`` (gateway/plot.py): a PNG of the requested size, with something drawn
+"""``aurora-gateway plot``: a PNG of the requested size, with something drawn
 in every panel, state bands, and the apogee of the simulated flight marked where it is."""
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from matplotlib.image import imread
 from matplotlib.text import Annotation
 
 from gateway import recording
-from gateway.cli import main
-from gateway.export import load
+from gateway.commands.cli import main
+from gateway.commands.export import load
+from gateway.commands.plot import build_figure, flight_window
 from gateway.flight import FlightModel
 from gateway.model import SmUpdate
-from gateway.plot import build_figure, flight_window
 from gateway.sources.sim import flight_messages
 from gateway.wire import encode
 
@@ -169,7 +169,7 @@ def test_bad_arguments_are_usage_errors(flight: tuple[Path, list[tuple[float, Sm
 def test_the_command_line_does_not_import_matplotlib_until_plot_runs() -> None:
     """`aurora-gateway --help` lists `plot` without paying for matplotlib's import."""
     code = ("import sys, contextlib, io\n"
-            "from gateway.cli import main\n"
+            "from gateway.commands.cli import main\n"
             "o = io.StringIO()\n"
             "with contextlib.suppress(SystemExit), contextlib.redirect_stdout(o):\n"
             "    main(['--help'])\n"

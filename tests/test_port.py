@@ -1,4 +1,4 @@
-"""The duplex port engine (:mod:`gateway.port`) against real ports.
+"""The duplex port engine (:mod:`gateway.io.port`) against real ports.
 
 One reopen test per transport kind, each through a :class:`PortEngine` with a small collecting
 (or echoing) protocol: a serial device path (a symlink to a pty), pyserial's ``socket://``, a
@@ -32,23 +32,23 @@ import pytest
 import serial
 from helpers import BlockingTransport, run_within, wait_for
 
-from gateway.backend import Outcome
-from gateway.backoff import Backoff
-from gateway.ioloop import IoLoop, Timer
-from gateway.port import (
+from gateway.io.backoff import Backoff
+from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.port import (
     DATAGRAM_BATCH,
     DEFAULT_QUEUE_DEPTH,
     PortEngine,
     PortNotReady,
     PortServer,
 )
-from gateway.transport import (
+from gateway.io.transport import (
     SocketPort,
     open_serial,
     open_tcp_client,
     open_tcp_listener,
     open_udp,
 )
+from gateway.outcome import Outcome
 
 DEADLINE_S = 5.0
 FLUSHED = "flushed"  # the event the collecting protocol's flush() yields
@@ -474,7 +474,7 @@ def echo_through(addr: Any, data: bytes, stack: contextlib.ExitStack) -> socket.
 def test_tcp_server_client_that_drops_and_reconnects_gets_a_fresh_engine(
         io_loop: IoLoop, engines: Any, stack: contextlib.ExitStack,
         caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.INFO, logger="gateway.port")
+    caplog.set_level(logging.INFO, logger="gateway.io.port")
     clients = ClientEngines(io_loop, engines)
     srv = PortServer(lambda: open_tcp_listener("127.0.0.1", 0), clients, loop=io_loop,
                      name="tcpin", backoff=fast_backoff())
@@ -844,7 +844,7 @@ def test_reconnect_while_the_port_is_down_is_ignored(engines: Any) -> None:
 
 def test_close_writes_what_is_queued_before_stopping(
         engines: Any, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="gateway.port")
+    caplog.set_level(logging.WARNING, logger="gateway.io.port")
     port = BlockingTransport()
     eng = started(engines, lambda: port, blocked=(port,), queue_depth=3)
     assert eng.submit(b"0") is Outcome.ACCEPTED
@@ -864,7 +864,7 @@ def test_close_writes_what_is_queued_before_stopping(
 
 def test_close_returns_within_its_bound_with_a_write_that_never_returns(
         engines: Any, caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="gateway.port")
+    caplog.set_level(logging.WARNING, logger="gateway.io.port")
     port = BlockingTransport()
     eng = started(engines, lambda: port, blocked=(port,))
     assert eng.submit(b"stuck") is Outcome.ACCEPTED

@@ -18,8 +18,9 @@ from typing import Any
 import pytest
 
 from dialects.states import SM_TYPE_SIMPLE, SimpleState
-from gateway import cli, config, recording
+from gateway import config, recording
 from gateway.app import Gateway
+from gateway.commands import cli
 from gateway.config import ConfigError, GatewayConfig
 from gateway.flight_summary import (
     FlightSummary,

@@ -221,7 +221,7 @@ def test_a_plugin_with_no_flags_entry_has_its_classmethods_used(
 ) -> None:
     """The flags entry point is optional: a third-party backend's classmethods still add
     its flags to ``run`` and turn them into its options."""
-    from gateway import cli
+    from gateway.commands import cli
 
     good, _, _ = plugin
     args = cli.build_parser().parse_args(["run", f"--{good}-level", "3", "--only", good])

@@ -190,7 +190,7 @@ def test_a_pty_whose_master_goes_away_is_a_counted_disconnect_not_a_crash() -> N
     src = SerialSource(os.ttyname(slave), name="pty", reconnect_max_s=0.2)
     sink = Sink()
     try:
-        with log_event("gateway.port", "read failed") as failed:
+        with log_event("gateway.io.port", "read failed") as failed:
             src.start(sink)
             wait_until_reading(master, sink)
             os.close(master)  # hang up: the source's reads fail from now on
@@ -289,7 +289,7 @@ def test_a_port_with_no_listener_yet_is_retried_not_fatal() -> None:
     src = SerialSource(f"socket://127.0.0.1:{port}", name="late", reconnect_max_s=0.2)
     sink = Sink()
     try:
-        with log_event("gateway.port", "retrying") as retrying:
+        with log_event("gateway.io.port", "retrying") as retrying:
             src.start(sink)
             assert retrying.wait(DEADLINE_S), "no failed open was reported"
         assert src.running
@@ -316,7 +316,7 @@ def test_stop_while_retrying_a_refused_port_is_quick() -> None:
     port = srv.getsockname()[1]
     src = SerialSource(f"socket://127.0.0.1:{port}", reconnect_max_s=5.0)
     try:
-        with log_event("gateway.port", "retrying") as retrying:
+        with log_event("gateway.io.port", "retrying") as retrying:
             src.start(Sink())
             assert retrying.wait(DEADLINE_S)
         assert stop_in_time(src) < 1.0

@@ -298,7 +298,7 @@ def test_endpoints_parse_and_bad_ones_are_refused() -> None:
 
 
 def test_run_flags_and_off_by_default() -> None:
-    from gateway.cli import build_parser, config_from_args
+    from gateway.commands.cli import build_parser, config_from_args
 
     assert UavtalkBackend.EMBEDDED_DEFAULT is None
     assert "uavtalk" not in {p.name for p in config.embedded_default().backends}

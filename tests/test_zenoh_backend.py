@@ -17,10 +17,11 @@ from zenoh_peer import (
 
 zenoh = pytest.importorskip("zenoh")
 
-from backends.zenoh import ZenohBackend, ZenohSource  # noqa: E402
 from backends.zenoh import encoding as enc  # noqa: E402
+from backends.zenoh.backend import ZenohBackend  # noqa: E402
 from backends.zenoh.keys import make_attachment  # noqa: E402
 from backends.zenoh.session import SessionOptions  # noqa: E402
+from backends.zenoh.source import ZenohSource  # noqa: E402
 from gateway import config, wire  # noqa: E402
 from gateway.app import Gateway  # noqa: E402
 from gateway.backend import Backend, Outcome, Routes  # noqa: E402

@@ -27,7 +27,7 @@ from zenoh_peer import (
 
 zenoh = pytest.importorskip("zenoh")
 
-from backends.zenoh import ZenohBackend  # noqa: E402
+from backends.zenoh.backend import ZenohBackend  # noqa: E402
 from backends.zenoh.session import SessionOptions  # noqa: E402
 from gateway import registry  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
@@ -47,7 +47,7 @@ def gateway_process(tmp_path: Path, vehicle: str, *flags: str) -> subprocess.Pop
                    f'rate_hz = {RATE_HZ}.0\nstatus_hz = 2.0\n\n[backends.zenoh]\n'
                    f'gateway_id = "gw-{vehicle}"\n')
     log = (tmp_path / f"{vehicle}.log").open("w")
-    cmd = [sys.executable, "-m", "gateway.cli", "run", "-c", str(cfg),
+    cmd = [sys.executable, "-m", "gateway", "run", "-c", str(cfg),
            "--zenoh-vehicle", vehicle, *flags]
     return subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=log)
 
@@ -192,7 +192,7 @@ def test_default_run_publishes_and_listen_shows_the_flight(tmp_path):
     ep = free_endpoint()
     others = [f"--disable={n}" for n in registry.backend_names() if n != "zenoh"]
     log = (tmp_path / "gateway.log").open("w")
-    gw = subprocess.Popen([sys.executable, "-m", "gateway.cli", "run", "--zenoh-listen", ep,
+    gw = subprocess.Popen([sys.executable, "-m", "gateway", "run", "--zenoh-listen", ep,
                            "--sim-speed", "5", "--status-interval", "0", *others],
                           cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=log)
     try:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway import registry
-from gateway.check_config import toml_value
+from gateway.commands.check_config import toml_value
 from gateway.config import GATEWAY_SCHEMA, REQUIRED, Key, Schema
 
 ROOT = Path(__file__).resolve().parents[1]

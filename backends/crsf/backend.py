@@ -1,7 +1,7 @@
 """CRSF / ExpressLRS backend: the rocket as telemetry sensors on an EdgeTX radio.
 
 Handlers turn each message into CRSF records and put them in per-frame-type mailboxes (never
-blocking).  One :class:`~gateway.port.PortEngine` owns the receiver's UART (a serial port or
+blocking).  One :class:`~gateway.io.port.PortEngine` owns the receiver's UART (a serial port or
 pyserial URL, or the pseudo-terminal this backend creates for ``url = "pty"``) and everything
 else runs on its thread, so the backend starts no thread of its own:
 
@@ -71,9 +71,9 @@ from backends.crsf.scheduler import CHANGE_RING_DEPTH, Scheduler
 from gateway import model
 from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.ioloop import Timer
-from gateway.port import PortEngine
-from gateway.transport import open_serial
+from gateway.io.ioloop import Timer
+from gateway.io.port import PortEngine
+from gateway.io.transport import open_serial
 
 log = logging.getLogger(__name__)
 

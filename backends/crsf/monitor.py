@@ -35,7 +35,7 @@ from backends.crsf.frames import (
     Voltages,
     encode,
 )
-from gateway.transport import TransportError, open_serial
+from gateway.io.transport import TransportError, open_serial
 
 
 def _trunc_div(a: int, b: int) -> int:

@@ -1,6 +1,6 @@
 """The CRSF backend's own pseudo-terminal (``url = "pty"``, the no-hardware default run).
 
-:class:`PtyPair` creates the pair: the backend's :class:`~gateway.port.PortEngine` owns the
+:class:`PtyPair` creates the pair: the backend's :class:`~gateway.io.port.PortEngine` owns the
 master end (through :meth:`PtyPair.port`) and a user, or a test, attaches a reader to
 :attr:`PtyPair.path`, as EdgeTX would read the receiver's UART.  What the reader writes back
 (link statistics, RC channels) is read from the master by the engine like any other port.
@@ -50,7 +50,7 @@ _READ_SIZE = 65536
 
 
 class PtyPort:
-    """The master end as a port for :class:`gateway.port.PortEngine`.
+    """The master end as a port for :class:`gateway.io.port.PortEngine`.
 
     Reads return what the reader wrote to the slave (``b""`` when nothing waits); writes go
     through the pair's backlog bound.  Closing it leaves the pty to its owner, so an engine

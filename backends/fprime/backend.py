@@ -6,7 +6,7 @@ Every gateway message the channel table knows (:mod:`.channels`) becomes channel
 ``DEADBEEF`` frames) and written to every connected peer.  ``aurora-gateway
 fprime-dictionary`` writes the JSON dictionary that lets ``fprime-gds`` decode them.
 
-Endpoints (``endpoints``, ``--fprime``, repeatable) are those of :mod:`gateway.links`:
+Endpoints (``endpoints``, ``--fprime``, repeatable) are those of :mod:`gateway.io.links`:
 ``tcpin:HOST:PORT`` is what ``fprime-gds --ip-client`` connects to (its default port 50000);
 ``tcp:HOST:PORT`` connects out to a ``fprime-gds`` acting as the server; a serial device or
 pyserial URL is a radio or UART (``fprime-gds --communication-selection uart``).
@@ -29,16 +29,16 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.ioloop import IoLoop
-from gateway.links import (
+from gateway.io.ioloop import IoLoop
+from gateway.io.links import (
     USAGE,
     LinkSet,
     StreamEndpoint,
     endpoints_validator,
     parse_stream_endpoint,
 )
+from gateway.io.port import PortEngine
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
-from gateway.port import PortEngine
 
 from .channels import DEFAULT_ID_BASE, ChannelCodec, Getter, check_id_base, codecs
 from .commands import NO_OP, CommandHandler
@@ -60,7 +60,7 @@ _NOT_READY = Outcome.NOT_READY
 
 
 def parse_endpoint(text: str) -> StreamEndpoint:
-    """Parse one endpoint (see :mod:`gateway.links`); raises ValueError naming it."""
+    """Parse one endpoint (see :mod:`gateway.io.links`); raises ValueError naming it."""
     return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
 
 

@@ -1,6 +1,6 @@
 """The HC-12 backend: relay or re-transmit Aurora frames within the air link's budget.
 
-Every frame goes through a :class:`gateway.port.PortEngine` (bounded queue, default 16; the
+Every frame goes through a :class:`gateway.io.port.PortEngine` (bounded queue, default 16; the
 engine's thread owns the port and reopens it with backoff; full → dropped and counted; the
 producer never blocks; optional minimum interval between accepted SM_UPDATEs, STATUS
 exempt).  In front of the engine an
@@ -19,7 +19,7 @@ Modes:
 
 Messages whose ``origin`` is this backend's port are never sent back to it.  The backend also
 serves provisioning (``aurora-gateway hc12 …``) through its control socket, on the engine's
-own thread: the exchange takes the port with :meth:`~gateway.port.PortEngine.exclusive` (the
+own thread: the exchange takes the port with :meth:`~gateway.io.port.PortEngine.exclusive` (the
 firmware's TX lock; frames queue meanwhile) and judges the vehicle's state from the frames
 the backend relayed (see ``control.py``).
 """
@@ -49,8 +49,8 @@ from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.port import PortEngine, PortNotReady
 from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
-from gateway.port import PortEngine, PortNotReady
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)

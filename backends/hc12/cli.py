@@ -3,9 +3,9 @@
 Against a running gateway (its HC-12 backend's control socket, found from the port URL or
 named with ``--gateway``) the exchange runs inside the gateway, on the port its engine owns
 and with its knowledge of the vehicle.  Otherwise the command opens the port itself
-(exclusively) and runs it the gateway's way: a :class:`~gateway.port.PortEngine` reads it
+(exclusively) and runs it the gateway's way: a :class:`~gateway.io.port.PortEngine` reads it
 into the wire decoder, whose SM_UPDATE/STATUS feed a :class:`VehicleWatch` for ``--listen``
-seconds; then the exchange takes the port with :meth:`~gateway.port.PortEngine.exclusive`.
+seconds; then the exchange takes the port with :meth:`~gateway.io.port.PortEngine.exclusive`.
 
 Exit status: 0 done, 1 failed (no answer, garbage, port trouble), 2 invalid arguments
 (nothing sent), 3 refused by a safety rule (nothing sent), 130 interrupted.
@@ -33,9 +33,9 @@ from backends.hc12.provision import (
 )
 from backends.hc12.setline import SetLine, SetLineSpec, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
+from gateway.io.port import PortEngine, PortNotReady
+from gateway.io.transport import TransportError
 from gateway.model import SmUpdate, Status
-from gateway.port import PortEngine, PortNotReady
-from gateway.transport import TransportError
 from gateway.wire import Decoder
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REFUSED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130

@@ -1,7 +1,7 @@
 """The control socket: how ``aurora-gateway hc12 …`` reaches a running gateway's HC-12 backend.
 
 A running gateway owns the port (opened exclusively) through its port engine.  An AT exchange
-must take the port from that engine (:meth:`gateway.port.PortEngine.exclusive`) and know the
+must take the port from that engine (:meth:`gateway.io.port.PortEngine.exclusive`) and know the
 vehicle's state, so the command-line tool does not open the port itself: it sends its request
 over a Unix socket that the backend serves, and the backend runs the exchange itself,
 applying its own knowledge of the vehicle (the latest SM_UPDATE/STATUS it relayed).
@@ -14,7 +14,7 @@ applying its own knowledge of the vehicle (the latest SM_UPDATE/STATUS it relaye
 * One request per connection: a JSON object on one line (``{"op": "channel", "arg": "5",
   "bench": false}``), answered by one JSON line (a :class:`~backends.hc12.provision.Result`).
   Both ends read with the one sans-I/O :class:`JsonLines` reader.
-* The server is a :class:`~gateway.port.PortServer` on an :class:`~gateway.ioloop.IoLoop` —
+* The server is a :class:`~gateway.io.port.PortServer` on an :class:`~gateway.io.ioloop.IoLoop` —
   the backend passes its port engine's, so a request runs on the thread that owns the port
   and connections need no threads of their own.  A client that sends nothing is dropped
   after ``REQUEST_TIMEOUT_S``.
@@ -38,8 +38,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from gateway.ioloop import IoLoop, Timer
-from gateway.port import PortServer
+from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.port import PortServer
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from typing import Any
 import serial
 
 from backends.hc12.setline import SetLineSpec, prepare_port
-from gateway.transport import TransportError
+from gateway.io.transport import TransportError
 
 READ_TIMEOUT_S = 0.05
 WRITE_TIMEOUT_S = 2.0

@@ -1,7 +1,7 @@
 """Provisioning the HC-12: one AT exchange with every safety rule of the firmware's shell.
 
 :class:`AtSession` runs one exchange on a port its caller owns for the whole exchange — the
-port engine's :meth:`~gateway.port.PortEngine.exclusive` (the firmware's TX lock), so
+port engine's :meth:`~gateway.io.port.PortEngine.exclusive` (the firmware's TX lock), so
 transparent-mode frame bytes can never interleave with AT commands; frames queue meanwhile
 and drain when the port is handed back.  The session:
 
@@ -333,7 +333,7 @@ def check_allowed(set_line: SetLine, watch: VehicleWatch, bench: bool) -> None:
 def run_request(port: Any, set_line: SetLine, op: str, arg: Any, *, host_baud: int,
                 at_baud: int = at.AT_BAUD, timing: Timing = Timing()) -> Result:
     """Validate, exchange and word one request on an open port the caller owns (from
-    :meth:`~gateway.port.PortEngine.exclusive`; checks done by the caller).
+    :meth:`~gateway.io.port.PortEngine.exclusive`; checks done by the caller).
 
     Failures come back as a :class:`Result` with ``ok`` False; KeyboardInterrupt propagates
     (after the session restored the port)."""

@@ -17,7 +17,7 @@ from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.ioloop import IoLoop, Timer
+from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import (
     Battery,
     LinkEvent,

@@ -12,8 +12,8 @@
                             ``rfc2217://…``, ``loop://``), with an optional ``,BAUD``
 ==========================  ==============================================================
 
-Every port belongs to a :class:`gateway.port.PortEngine`, and all the engines of one router
-share one :class:`gateway.ioloop.IoLoop` (one thread, passed to :meth:`Endpoint.start`).  A
+Every port belongs to a :class:`gateway.io.port.PortEngine`, and all the engines of one router
+share one :class:`gateway.io.ioloop.IoLoop` (one thread, passed to :meth:`Endpoint.start`).  A
 link is its engine's protocol object: what the port yields goes straight into
 :meth:`.Router.receive` (the router frames it); every :meth:`PortLink.send` is a non-blocking
 ``engine.submit`` (a full queue drops the frame, counted ``tx_dropped``; a port that is down
@@ -35,10 +35,9 @@ from typing import Any, NamedTuple
 
 from backends.mavlink.frames import StreamFramer
 from backends.mavlink.router import Link, Router
-from gateway.backend import Outcome
-from gateway.ioloop import IoLoop
-from gateway.port import PortEngine, PortServer
-from gateway.transport import (
+from gateway.io.ioloop import IoLoop
+from gateway.io.port import PortEngine, PortServer
+from gateway.io.transport import (
     SocketPort,
     TransportError,
     UdpPort,
@@ -47,6 +46,7 @@ from gateway.transport import (
     open_tcp_listener,
     open_udp,
 )
+from gateway.outcome import Outcome
 
 log = logging.getLogger(__name__)
 ACCEPTED = Outcome.ACCEPTED  # bound once: the router calls send() per frame
@@ -161,7 +161,7 @@ class Endpoint:
 # -- a link on a port engine -------------------------------------------------------------------
 
 class PortLink(Link):
-    """A :class:`~.router.Link` whose port is a :class:`~gateway.port.PortEngine`'s; the link is
+    """A :class:`~.router.Link` whose port is a :class:`~gateway.io.port.PortEngine`'s; the link is
     the engine's protocol object (it hands what the port yields to the router)."""
 
     def __init__(self, name: str, group: str = "") -> None:

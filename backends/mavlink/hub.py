@@ -18,7 +18,7 @@ from collections.abc import Sequence
 from backends.mavlink.endpoints import Endpoint, EndpointSpec, make_endpoint
 from backends.mavlink.router import LocalNode, Router
 from gateway.backend import GatewayContext
-from gateway.ioloop import IoLoop
+from gateway.io.ioloop import IoLoop
 
 log = logging.getLogger(__name__)
 

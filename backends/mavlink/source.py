@@ -39,7 +39,7 @@ from backends.mavlink.translate import (
 )
 from gateway.backend import GatewayContext
 from gateway.config import Key, Schema
-from gateway.ioloop import IoLoop, Timer
+from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
 from gateway.sources import Sink, Source
 

@@ -10,8 +10,8 @@ Endpoints (``endpoints``, ``--uavtalk``, repeatable):
                             ``/dev/…`` / ``COMn`` or a pyserial URL (``socket://…``)
 ==========================  ==============================================================
 
-Every port is a :class:`gateway.port.PortEngine` and all of them share one
-:class:`gateway.ioloop.IoLoop` (one thread).  A link is its engine's protocol object: bytes go
+Every port is a :class:`gateway.io.port.PortEngine` and all of them share one
+:class:`gateway.io.ioloop.IoLoop` (one thread).  A link is its engine's protocol object: bytes go
 through its :class:`~.codec.Decoder` into its session's ``receive``; its replies are written at
 once, and a timer (``tick_s``) calls every session's ``tick(now)`` then writes its
 ``outgoing()`` with ``engine.submit`` — never blocking: a client that does not read fills its
@@ -34,16 +34,16 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
-from gateway.ioloop import IoLoop, Timer
-from gateway.links import (
+from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.links import (
     USAGE,
     LinkSet,
     StreamEndpoint,
     endpoints_validator,
     parse_stream_endpoint,
 )
+from gateway.io.port import PortEngine
 from gateway.model import Battery, Position, SmUpdate, Status
-from gateway.port import PortEngine
 
 from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
@@ -61,7 +61,7 @@ _NOT_READY = Outcome.NOT_READY
 
 
 def parse_endpoint(text: str) -> StreamEndpoint:
-    """Parse one endpoint (see :mod:`gateway.links`); raises ValueError naming it."""
+    """Parse one endpoint (see :mod:`gateway.io.links`); raises ValueError naming it."""
     return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
 
 

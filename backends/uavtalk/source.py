@@ -2,7 +2,7 @@
 
 The gateway plays the ground station: a :class:`~.telemetry.GcsSession` (handshake every 2 s,
 the OBJ_REQ walk after connecting, 8 s silence timeout) runs on a
-:class:`gateway.port.PortEngine` around a TCP connection (``tcp:HOST:PORT``) or a serial
+:class:`gateway.io.port.PortEngine` around a TCP connection (``tcp:HOST:PORT``) or a serial
 port / pyserial URL (``DEVICE[,BAUD]``), reopened with backoff.  The source is the engine's
 protocol object: received bytes go through the :class:`~.codec.Decoder` into the session, and a
 timer on the engine ticks the session and writes its ``outgoing()``.
@@ -34,13 +34,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from gateway.backend import Outcome
-from gateway.backoff import Backoff
 from gateway.config import Key, Schema
+from gateway.io.backoff import Backoff
+from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.transport import open_serial, open_tcp_client
 from gateway.model import Battery, Position, VehicleState
-from gateway.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.outcome import Outcome
 from gateway.sources import Sink, Source, check_serial_url
-from gateway.transport import open_serial, open_tcp_client
 
 from .codec import Decoder
 from .objects import ObjectSet

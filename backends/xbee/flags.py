@@ -1,7 +1,7 @@
 """``aurora-gateway run``'s XBee flags, apart from the backend so that building the parser
 imports nothing of it (the ``aurora_gateway.backend_flags`` entry point; see
 :mod:`gateway.registry`).  ``--xbee-api`` sets the API mode here and of ``--source xbee:URL``
-(``gateway.cli.SOURCE_FLAGS``, which declares it: the source reads it too).  Imports
+(``gateway.commands.cli.SOURCE_FLAGS``, which declares it: the source reads it too).  Imports
 nothing but the standard library."""
 
 from __future__ import annotations

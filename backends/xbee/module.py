@@ -1,4 +1,4 @@
-"""One XBee module in API mode, driven from a :class:`gateway.port.PortEngine` (its protocol
+"""One XBee module in API mode, driven from a :class:`gateway.io.port.PortEngine` (its protocol
 object): API frames in and out (:mod:`.frames`), and what the link roles (:mod:`.link`) ask of
 the module.
 
@@ -24,9 +24,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from gateway.backend import Outcome
 from gateway.counters import Counters
-from gateway.port import PortEngine
+from gateway.io.port import PortEngine
+from gateway.outcome import Outcome
 
 from . import frames as f
 

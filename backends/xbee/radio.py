@@ -13,11 +13,11 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from gateway.backend import Outcome
-from gateway.backoff import Backoff
+from gateway.io.backoff import Backoff
+from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.transport import open_serial_nonblocking
 from gateway.model import RcChannels
-from gateway.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
-from gateway.transport import open_serial_nonblocking
+from gateway.outcome import Outcome
 
 from . import frames as f
 from .link import QueryRssi, RcCommand, Send

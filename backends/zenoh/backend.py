@@ -46,8 +46,8 @@ from backends.zenoh.keys import (
 )
 from backends.zenoh.session import SESSION_KEYS, SessionOptions, zerror_text
 from gateway.backend import Backend, GatewayContext, Outcome, Routes
-from gateway.backoff import Backoff
 from gateway.config import ConfigError, Key, Schema
+from gateway.io.backoff import Backoff
 from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
 
 log = logging.getLogger(__name__)

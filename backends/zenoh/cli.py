@@ -29,8 +29,8 @@ from backends.zenoh.keys import (
     parse_key,
 )
 from backends.zenoh.session import SessionOptions, zerror_text
-from gateway.backoff import Backoff
 from gateway.config import ConfigError
+from gateway.io.backoff import Backoff
 from gateway.wire import decode_all, to_wire_dict
 
 EXIT_USAGE = 2

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import json
 import math
-from typing import Any, NamedTuple
+from typing import Any
 
 import orjson
 
@@ -25,6 +25,7 @@ from gateway.model import (
     SM_UPDATE_F32_LEN,
     SM_UPDATE_F64_LEN,
     Battery,
+    GatewayStats,
     LinkEvent,
     LinkStats,
     Position,
@@ -241,17 +242,6 @@ def decode(kind: str, payload: bytes, encoding: str, origin: str = "") -> Any:
     except (ValueError, UnicodeDecodeError) as exc:
         raise PayloadError(f"not JSON: {exc}") from None
     return from_document(kind, doc, origin)
-
-
-class GatewayStats(NamedTuple):
-    """Another gateway's counters, as its Zenoh backend publishes them (``gateway_stats``):
-    ``backends`` and ``sources`` map each name to its ``stats()``."""
-
-    gateway: str
-    backends: dict[str, Any]
-    sources: dict[str, Any]
-    origin: str = ""
-    via: str = ""
 
 
 def stats_document(stats: dict[str, Any]) -> bytes:

@@ -46,8 +46,8 @@ from backends.zenoh.keys import (
     parse_key,
 )
 from backends.zenoh.session import SESSION_KEYS, SessionOptions, check_endpoints, zerror_text
-from gateway.backoff import Backoff
 from gateway.config import ConfigError, Key, Schema
+from gateway.io.backoff import Backoff
 from gateway.sources import Source
 from gateway.wire import Decoder
 

@@ -18,7 +18,7 @@ The contract, all of it public (the app uses nothing else):
 
 A subclass that needs a thread implements :meth:`Source.run` (loop until the ``stop`` event
 it is given is set) and hands messages to :meth:`Source.emit`; a source on a
-:class:`gateway.port.PortEngine` overrides ``start``/``stop`` instead.  Every message carries
+:class:`gateway.io.port.PortEngine` overrides ``start``/``stop`` instead.  Every message carries
 ``origin`` = the source's name.
 """
 

@@ -1,6 +1,6 @@
 """Serial wire source: Aurora frames from any pyserial port or URL.
 
-The port belongs to a :class:`gateway.port.PortEngine`: its thread reads whatever arrives
+The port belongs to a :class:`gateway.io.port.PortEngine`: its thread reads whatever arrives
 into the sans-I/O :class:`gateway.wire.Decoder` and hands every decoded message on.  When the
 port fails or vanishes the engine logs it once, counts it and reopens it with backoff until
 it is back (a device path that is not there yet is simply retried: hot-plug).
@@ -11,11 +11,11 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from gateway.backoff import Backoff
 from gateway.config import Key, Schema
-from gateway.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.backoff import Backoff
+from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.transport import open_serial
 from gateway.sources import Sink, Source, check_serial_url
-from gateway.transport import open_serial
 from gateway.wire import Decoder
 
 log = logging.getLogger(__name__)

@@ -80,7 +80,7 @@ def wire(framing: str, seconds: float, rate: float) -> dict[str, float]:
             f"[backends.fprime]\nendpoints = [\"tcpin:127.0.0.1:{port}\"]\n"
             f"framing = \"{framing}\"\n")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "gateway.cli", "run", "--config", str(cfg),
+            [sys.executable, "-m", "gateway", "run", "--config", str(cfg),
              "--only", "fprime"], cwd=ROOT, stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL)
         try:
@@ -138,7 +138,7 @@ def baseline(seconds: float, rate: float) -> float:
         cfg = Path(tmp) / "bench.toml"
         cfg.write_text("[gateway]\nstatus_interval_s = 0\n"
                        f"[[sources]]\ntype = \"sim\"\nrate_hz = {rate}\nstatus_hz = 1.0\n")
-        proc = subprocess.Popen([sys.executable, "-m", "gateway.cli", "run", "--config",
+        proc = subprocess.Popen([sys.executable, "-m", "gateway", "run", "--config",
                                  str(cfg)], cwd=ROOT, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL)
         try:

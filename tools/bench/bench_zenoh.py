@@ -63,8 +63,8 @@ from zenoh_peer import (  # noqa: E402
     wait_for_gateway,
 )
 
-from backends.zenoh import ZenohBackend  # noqa: E402
 from backends.zenoh import encoding as enc  # noqa: E402
+from backends.zenoh.backend import ZenohBackend  # noqa: E402
 from backends.zenoh.keys import SeqTracker, make_attachment, parse_attachment  # noqa: E402
 from gateway import wire  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
@@ -337,7 +337,7 @@ def latency(seconds: float, repeat: int, rate_hz: float = 100.0) -> None:
                    f'[backends.zenoh]\nlisten = ["{ep}"]\nvehicle = "{VEHICLE}"\n')
     gw_log = cfg.with_suffix(".log")
     with gw_log.open("w") as log:
-        gw = subprocess.Popen([sys.executable, "-m", "gateway.cli", "run", "-c", str(cfg)],
+        gw = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(cfg)],
                               cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=log)
     print(f"\n3. Latency: wire frame written into the gateway's serial input (a pty) → "
           f"subscriber callback, {rate_hz:.0f} Hz, {seconds:.0f} s per run ({repeat} runs)")

@@ -22,13 +22,13 @@ is a :class:`PortEngine` around a port and a sans-I/O protocol object:
   (an AT-command exchange, as the firmware's TX lock does); frames queue meanwhile.
 
 By default an engine runs a loop thread of its own.  Engines of non-blocking sockets may share
-one :class:`~gateway.ioloop.IoLoop` (``loop=``), as a MAVLink router's UDP and TCP links do.
+one :class:`~gateway.io.ioloop.IoLoop` (``loop=``), as a MAVLink router's UDP and TCP links do.
 
 What a port must offer: ``write(data) -> int | None`` (bytes written; None means all),
 ``read(size) -> bytes`` (returns ``b""`` when nothing is waiting once the engine has set a
 zero ``timeout``; raises when the port has failed), ``close()``; optionally ``fileno()``,
-``timeout`` and ``datagram``.  pyserial ports (:func:`gateway.transport.open_serial`) and the
-sockets of :mod:`gateway.transport` are such ports.
+``timeout`` and ``datagram``.  pyserial ports (:func:`gateway.io.transport.open_serial`) and the
+sockets of :mod:`gateway.io.transport` are such ports.
 """
 
 from __future__ import annotations
@@ -43,10 +43,10 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from gateway.backend import Outcome
-from gateway.backoff import Backoff
 from gateway.counters import Counters
-from gateway.ioloop import IoLoop, Timer
+from gateway.io.backoff import Backoff
+from gateway.io.ioloop import IoLoop, Timer
+from gateway.outcome import Outcome
 
 log = logging.getLogger(__name__)
 

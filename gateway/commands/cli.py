@@ -24,9 +24,9 @@ from typing import Any, NoReturn
 
 from gateway import __version__, config, logjson, recording, registry
 from gateway.app import Gateway
-from gateway.backoff import Backoff
 from gateway.config import ConfigError, GatewayConfig, Key, Schema
 from gateway.flight_summary import summary_lines
+from gateway.io.backoff import Backoff
 from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
@@ -81,14 +81,14 @@ def _source_key(type_name: str, key: str) -> Key:
     return cls.CONFIG.keys[key]
 
 
-def _gateway_key(key: str) -> Key:
+def gateway_key(key: str) -> Key:
     return config.GATEWAY_SCHEMA.keys[key]
 
 
-def _key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
+def key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
               dest: str | None = None, metavar: str | None = None,
               aliases: Sequence[str] = (), required: bool = False) -> None:
-    """A flag whose text becomes the value a file would hold; :func:`_checked` validates it
+    """A flag whose text becomes the value a file would hold; :func:`checked_flag` validates it
     with ``key`` (argparse converts nothing, so every error reads like a file's)."""
     kinds = key.kind if isinstance(key.kind, tuple) else (key.kind,)
     numeric = int in kinds or float in kinds
@@ -101,7 +101,7 @@ def _key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
     p.add_argument(flag, *aliases, **kwargs)
 
 
-def _checked(args: argparse.Namespace, dest: str, flag: str, key: Key,
+def checked_flag(args: argparse.Namespace, dest: str, flag: str, key: Key,
              sets: str = "") -> Any:
     """The flag's value checked by ``key``; None when the flag was not given."""
     value = getattr(args, dest, None)
@@ -134,10 +134,10 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
                    help="TOML configuration (default: the embedded one — the simulated "
                         "flight through every backend on loopback)")
     if sources:
-        _add_source_options(p)
-    _key_flag(p, "--record", _gateway_key("record"), "append every received frame to FILE",
+        add_source_options(p)
+    key_flag(p, "--record", gateway_key("record"), "append every received frame to FILE",
               metavar="FILE")
-    _key_flag(p, "--record-dir", _gateway_key("record_dir"),
+    key_flag(p, "--record-dir", gateway_key("record_dir"),
               "record into a new file in DIR (created) per run and per flight, named "
               "<UTC start>-<source>.aur; not with --record", metavar="DIR")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
@@ -146,7 +146,7 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
                    help="run only this backend (repeatable; with the configured or flag-set "
                         "options); the others are not even imported")
     _add_common_options(p)
-    _key_flag(p, "--link-timeout", _gateway_key("link_timeout_s"),
+    key_flag(p, "--link-timeout", gateway_key("link_timeout_s"),
               "silence after which a source's link is reported down (default 3)",
               metavar="S")
     if not backend_flags:
@@ -158,7 +158,7 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
     p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
 
 
-def _add_source_options(p: argparse.ArgumentParser) -> None:
+def add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", "-s", action="append", metavar="URL",
                    help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
                         "e.g. mavlink:udpin:0.0.0.0:14551), 'uavtalk:tcp:HOST:PORT' or "
@@ -167,9 +167,9 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                         "(another gateway's frames over Zenoh) or a pyserial URL "
                         "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
                         "repeatable; replaces the configured sources")
-    _key_flag(p, "--baud", _source_key("serial", "baudrate"), "baud rate of serial sources",
+    key_flag(p, "--baud", _source_key("serial", "baudrate"), "baud rate of serial sources",
               metavar="N")
-    _key_flag(p, "--sim-speed", _source_key("sim", "speed"),
+    key_flag(p, "--sim-speed", _source_key("sim", "speed"),
               "run the simulated flight N times faster (0 = flat out)", metavar="N")
     # checked (by the xbee source's key) only when given: its class is not imported otherwise
     p.add_argument("--xbee-api", type=config.flag_value, metavar="1|2",
@@ -178,11 +178,11 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 
 def _add_common_options(p: argparse.ArgumentParser) -> None:
-    _key_flag(p, "--status-interval", _gateway_key("status_interval_s"),
+    key_flag(p, "--status-interval", gateway_key("status_interval_s"),
               "seconds between status lines on stderr (0 = none)", metavar="S")
-    _key_flag(p, "--duration", CLI_KEYS.keys["duration"], "stop after S seconds", metavar="S")
-    _key_flag(p, "--log-level", _gateway_key("log_level"), "logging level", metavar="LEVEL")
-    _key_flag(p, "--log-format", CLI_KEYS.keys["log_format"],
+    key_flag(p, "--duration", CLI_KEYS.keys["duration"], "stop after S seconds", metavar="S")
+    key_flag(p, "--log-level", gateway_key("log_level"), "logging level", metavar="LEVEL")
+    key_flag(p, "--log-format", CLI_KEYS.keys["log_format"],
               "log lines as text (default), or one JSON object a line (journald)",
               metavar="FORMAT")
 
@@ -236,9 +236,9 @@ def build_parser(backend_flags: bool = True,
     dec.add_argument("file", nargs="?", default="-", help="raw capture or recording; - = stdin")
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
-    _key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
+    key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
               metavar="URL", aliases=("-o",), required=True)
-    _key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
+    key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
               metavar="N")
     sim_help = {"rate_hz": ("SM_UPDATE rate (default 10)", "HZ"),
                 "status_hz": ("STATUS rate; 0 = none (default 1)", "HZ"),
@@ -247,8 +247,8 @@ def build_parser(backend_flags: bool = True,
                 "cycles": ("flights; 0 = for ever (default)", "N")}
     for dest, flag, key in SIMULATE_FLAGS:
         text, metavar = sim_help[key]
-        _key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
-    _key_flag(sim, "--log-level", _gateway_key("log_level"), "logging level", metavar="LEVEL")
+        key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
+    key_flag(sim, "--log-level", gateway_key("log_level"), "logging level", metavar="LEVEL")
 
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
                          description="Record what the sources receive, with no backends. "
@@ -258,12 +258,12 @@ def build_parser(backend_flags: bool = True,
                          "MAVLink vehicle's state, position, battery) are counted, named in a "
                          "warning and in the stop report, and not recorded.")
     rec.add_argument("file", help="recording to append to")
-    _add_source_options(rec)
+    add_source_options(rec)
     _add_common_options(rec)
 
     rep = sub.add_parser("replay", help="run the gateway with a recording as its source")
     rep.add_argument("file", help="recording")
-    _key_flag(rep, "--speed", _source_key("replay", "speed"),
+    key_flag(rep, "--speed", _source_key("replay", "speed"),
               "N times real time; 0 = flat out (default 1)", metavar="N")
     rep.add_argument("--loop", action="store_true", help="start again at the end")
     _add_gateway_options(rep, sources=False, backend_flags=backend_flags)
@@ -312,21 +312,21 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
         raise ConfigError("--record, --record-dir: give one or the other")
     gateway_opts = {}
     for dest, flag, key in GATEWAY_FLAGS:
-        value = _checked(args, dest, flag, _gateway_key(key), f"gateway.{key}")
+        value = checked_flag(args, dest, flag, gateway_key(key), f"gateway.{key}")
         if value is not None:
             gateway_opts[key] = value
     source_opts = []
     for dest, flag, type_name, key in SOURCE_FLAGS:
         if getattr(args, dest, None) is None:
             continue  # not given: its source class need not be imported to check it
-        value = _checked(args, dest, flag, _source_key(type_name, key),
+        value = checked_flag(args, dest, flag, _source_key(type_name, key),
                          f"{key} of {type_name} sources")
         if value is not None:
             source_opts.append((type_name, key, value))
     if hasattr(args, "duration"):
-        args.duration = _checked(args, "duration", "--duration", CLI_KEYS.keys["duration"])
+        args.duration = checked_flag(args, "duration", "--duration", CLI_KEYS.keys["duration"])
     if hasattr(args, "log_format"):
-        args.log_format = _checked(args, "log_format", "--log-format",
+        args.log_format = checked_flag(args, "log_format", "--log-format",
                                    CLI_KEYS.keys["log_format"])
     keep, asked = _backend_filter(args, backends)
     cfg = config.load(args.config, keep) if getattr(args, "config", None) else None
@@ -379,7 +379,7 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
 
 # -- commands ----------------------------------------------------------------------------------
 
-class _Stopper:
+class Stopper:
     """SIGINT/SIGTERM set an event instead of raising in the middle of something."""
 
     def __init__(self, event: threading.Event) -> None:
@@ -387,7 +387,7 @@ class _Stopper:
         self.signal: int | None = None
         self._old: dict[int, Any] = {}
 
-    def __enter__(self) -> _Stopper:
+    def __enter__(self) -> Stopper:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old[sig] = signal.signal(sig, self._handle)
@@ -402,7 +402,7 @@ class _Stopper:
             signal.signal(sig, old)
 
 
-def _setup_logging(level: str | None, fmt: str | None = None) -> None:
+def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
@@ -449,7 +449,7 @@ def _report(summary: dict[str, Any]) -> None:
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
     """Start everything, run until a signal, the duration, or the sources' end; stop."""
     gw = Gateway(cfg)
-    with _Stopper(gw.stop_event):
+    with Stopper(gw.stop_event):
         failures = gw.start()
         for name, err in failures:
             print(f"aurora-gateway: backend {name} did not start: {err}", file=sys.stderr)
@@ -466,18 +466,18 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
-    _setup_logging(cfg.gateway["log_level"], args.log_format)
+    setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     speed_key = _source_key("replay", "speed")
-    speed = _checked(args, "speed", "--speed", speed_key)
+    speed = checked_flag(args, "speed", "--speed", speed_key)
     cfg = config_from_args(args)
     opts = {"path": args.file, "speed": speed_key.default if speed is None else speed,
             "loop": args.loop}
     cfg.sources = [config.make_source("replay", opts, None, "replay")]
-    _setup_logging(cfg.gateway["log_level"], args.log_format)
+    setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
@@ -485,7 +485,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     args.config = None
     cfg = config_from_args(args, backends=False)
     cfg.gateway["record"] = args.file
-    _setup_logging(cfg.gateway["log_level"], args.log_format)
+    setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
 
@@ -549,29 +549,29 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from gateway.flight import FlightModel, FlightProfile
+    from gateway.io.transport import TransportError, open_serial
     from gateway.pacing import paced
     from gateway.sources.sim import flight_frames
-    from gateway.transport import TransportError, open_serial
 
     sim: dict[str, Any] = {}
     for dest, flag, key in SIMULATE_FLAGS:
         k = _source_key("sim", key)
-        value = _checked(args, dest, flag, k, f"{key} of the sim source")
+        value = checked_flag(args, dest, flag, k, f"{key} of the sim source")
         sim[key] = k.default if value is None else value
-    out = _checked(args, "out", "--out", _source_key("serial", "url"))
+    out = checked_flag(args, "out", "--out", _source_key("serial", "url"))
     if out is None:
         raise ConfigError("--out: required (a pyserial port or URL)")
     baud_key = _source_key("serial", "baudrate")
-    baud = _checked(args, "baud", "--baud", baud_key, "baudrate of serial sources")
+    baud = checked_flag(args, "baud", "--baud", baud_key, "baudrate of serial sources")
     baud = baud_key.default if baud is None else baud
-    level = _checked(args, "log_level", "--log-level", _gateway_key("log_level"))
-    _setup_logging(level)
+    level = checked_flag(args, "log_level", "--log-level", gateway_key("log_level"))
+    setup_logging(level)
     model = FlightModel(FlightProfile(revision=sim["revision"]))
     stop = threading.Event()
     sent = errors = 0
     port = None
     backoff = Backoff(0.05, 2.0)
-    with _Stopper(stop):
+    with Stopper(stop):
         frames = paced(flight_frames(model, sim["rate_hz"], sim["status_hz"], sim["cycles"]),
                        sim["speed"], stop)
         for _, frame in frames:

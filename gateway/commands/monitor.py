@@ -11,7 +11,7 @@ dropped).
 On a terminal: a full-screen view (``rich``), refreshed every ``--refresh`` seconds (default
 0.25), q or Ctrl-C quits.  Otherwise (a pipe, a file): one ``key=value`` line every
 ``--refresh`` seconds (default 1), no escape codes.  ``--speak`` says state changes and the
-apogee altitude through ``espeak-ng`` (see :class:`gateway.live.Speaker`).
+apogee altitude through ``espeak-ng`` (see :class:`gateway.commands.live.Speaker`).
 """
 
 from __future__ import annotations
@@ -28,13 +28,13 @@ import time
 from collections.abc import Iterator
 from typing import Any, TextIO
 
-from backends.zenoh.encoding import GatewayStats
-from gateway import cli, config
+from gateway import config
 from gateway.app import Gateway
 from gateway.backend import Backend, Routes
+from gateway.commands import cli
+from gateway.commands.live import EndpointRow, LiveState, Speaker, endpoint_row, plain_line, render
 from gateway.config import ConfigError
-from gateway.live import EndpointRow, LiveState, Speaker, endpoint_row, plain_line, render
-from gateway.model import MESSAGE_TYPES
+from gateway.model import MESSAGE_TYPES, GatewayStats
 
 SPEECH_PROGRAM = "espeak-ng"
 TTY_REFRESH_S = 0.25
@@ -86,18 +86,18 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                     "sources run here; without, it follows the gateway running on this "
                     "machine over Zenoh (tcp/127.0.0.1:7450). On a terminal: full screen, q "
                     "or Ctrl-C quits; else one key=value line per --refresh seconds.")
-    cli._add_source_options(p)
+    cli.add_source_options(p)
     p.add_argument("--speak", action="store_true",
                    help=f"say state changes and the apogee altitude ({SPEECH_PROGRAM})")
-    cli._key_flag(p, "--refresh", cli.CLI_KEYS.keys["duration"],
+    cli.key_flag(p, "--refresh", cli.CLI_KEYS.keys["duration"],
                   f"seconds between redraws (default {TTY_REFRESH_S} on a terminal, "
                   f"{PLAIN_REFRESH_S} for status lines)", metavar="S")
-    cli._key_flag(p, "--duration", cli.CLI_KEYS.keys["duration"], "stop after S seconds",
+    cli.key_flag(p, "--duration", cli.CLI_KEYS.keys["duration"], "stop after S seconds",
                   metavar="S")
-    cli._key_flag(p, "--link-timeout", cli._gateway_key("link_timeout_s"),
+    cli.key_flag(p, "--link-timeout", cli.gateway_key("link_timeout_s"),
                   "silence after which a source's link is reported down (default 3)",
                   metavar="S")
-    cli._key_flag(p, "--log-level", cli._gateway_key("log_level"), "logging level",
+    cli.key_flag(p, "--log-level", cli.gateway_key("log_level"), "logging level",
                   metavar="LEVEL")
     p.set_defaults(handler=run_monitor)
     return p
@@ -181,7 +181,7 @@ def _quit_pressed(fd: int | None, timeout: float) -> bool:
 
 def run_monitor(args: argparse.Namespace) -> int:
     """The command: see the module docstring."""
-    refresh = cli._checked(args, "refresh", "--refresh", cli.CLI_KEYS.keys["duration"])
+    refresh = cli.checked_flag(args, "refresh", "--refresh", cli.CLI_KEYS.keys["duration"])
     if refresh is not None and refresh <= 0:
         raise ConfigError("--refresh: must be more than 0 seconds")
     cfg = _config(args)
@@ -205,13 +205,13 @@ def run_monitor(args: argparse.Namespace) -> int:
         logging.basicConfig(level=getattr(logging, str(level).upper(), logging.WARNING),
                             handlers=[_NoteHandler(state)], force=True)
     else:
-        cli._setup_logging(level)
+        cli.setup_logging(level)
     gw = Gateway(cfg, status_out=sys.stderr)
     gw.dispatcher.add(LiveFeed(state))
     srcs = ", ".join(s.name for s in gw.sources)
     state.title = f"aurora-gateway monitor · {srcs}"
     stop = gw.stop_event
-    with cli._Stopper(stop):
+    with cli.Stopper(stop):
         failures = gw.start()
         for name, err in failures:
             state.note(f"backend {name} did not start: {err}")

@@ -1,5 +1,5 @@
 """Byte-stream peers of a backend that plays the flight side to ground tools (UAVTalk, F´):
-one endpoint syntax and one set of links on one :class:`~gateway.ioloop.IoLoop`.
+one endpoint syntax and one set of links on one :class:`~gateway.io.ioloop.IoLoop`.
 
 ==========================  ==============================================================
 ``tcpin:HOST:PORT``         a TCP server (the ground tool connects as a client); every
@@ -24,9 +24,9 @@ import threading
 from collections.abc import Callable
 from typing import Any, Generic, NamedTuple, Protocol, TypeVar
 
-from gateway.ioloop import IoLoop
-from gateway.port import PortEngine, PortServer
-from gateway.transport import (
+from gateway.io.ioloop import IoLoop
+from gateway.io.port import PortEngine, PortServer
+from gateway.io.transport import (
     SocketPort,
     open_serial_nonblocking,
     open_tcp_client,

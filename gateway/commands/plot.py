@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dialects.states import is_in_flight
-from gateway.export import ExportError, load
+from gateway.commands.export import ExportError, load
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -108,7 +108,7 @@ def _colour(state: int) -> str:
 def build_figure(rows: list[dict[str, Any]], title: str,
                  size_px: tuple[int, int] = DEFAULT_SIZE) -> tuple[Figure, Apogee | None]:
     """The flight's figure (on an Agg canvas) and the apogee it marks.  ``rows`` are
-    :func:`gateway.export.load` rows, already cropped; at least one."""
+    :func:`gateway.commands.export.load` rows, already cropped; at least one."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch

@@ -31,7 +31,7 @@ channel                 from              fields
 ======================  ================  ==============================================
 
 A recording holds the wire frames only, so today's exports have the first five channels.
-``/aurora/link_events`` replays the gateway's link rule (:class:`gateway.monitor.LinkMonitor`)
+``/aurora/link_events`` replays the gateway's link rule (:class:`gateway.link_monitor.LinkMonitor`)
 on the receive times: up at the first valid frame, down ``timeout_s`` after the last one when
 the next comes later than that (``silence_s`` = the timeout), up again at the next frame.
 Each message's log time and publish time are its receive time in ns since the Unix epoch.
@@ -50,8 +50,8 @@ from mcap.writer import Writer
 
 from gateway import __version__
 from gateway.attitude import quaternion_xyzw
+from gateway.link_monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
-from gateway.monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
 
 STATE = "/aurora/state"
 ALTITUDE = "/aurora/altitude"

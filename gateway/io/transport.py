@@ -1,4 +1,4 @@
-"""Ports for :class:`gateway.port.PortEngine`.
+"""Ports for :class:`gateway.io.port.PortEngine`.
 
 Serial goes through pyserial's ``serial_for_url``, so ``/dev/ttyUSB0``, a pty's path,
 ``loop://``, ``socket://host:port``, ``rfc2217://host:port`` and ``spy://…`` all work with the
@@ -91,7 +91,7 @@ def open_serial_nonblocking(url: str, baudrate: int) -> NonBlockingSerial:
     return NonBlockingSerial(open_serial(url, baudrate, timeout=0, write_timeout=0))
 
 
-# -- sockets as ports (for gateway.port.PortEngine) ----------------------------------------------
+# -- sockets as ports (for gateway.io.port.PortEngine) ---------------------------------------
 
 TCP_OUT_CAP = 256 * 1024
 SOCKET_BUFFER = 4 * 1024 * 1024

@@ -9,7 +9,7 @@ One row per SM_UPDATE in the recording, in recording order, for spreadsheets and
 Or the decoded flight on the Foxglove backend's channels (``/aurora/state``, ``/aurora/altitude``,
 ``/aurora/attitude`` as a ``foxglove.FrameTransform``, ``/aurora/status``) and link up/down on
 ``/aurora/link_events``, JSON with JSON schemas, stamped with the receive times, for Foxglove
-or any MCAP tool (see :mod:`gateway.export_mcap`)::
+or any MCAP tool (see :mod:`gateway.commands.export_mcap`)::
 
     aurora-gateway export flight.aur -o flight.mcap
 
@@ -290,7 +290,7 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
 def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
     """Write ``flight`` as MCAP to ``args.output``; the exit status."""
     try:
-        from gateway import export_mcap  # the mcap library only when asked for
+        from gateway.commands import export_mcap  # the mcap library only when asked for
     except ModuleNotFoundError as exc:
         print(f"aurora-gateway export: MCAP needs the {exc.name} package "
               "(pip install 'aurora-gateway[mcap]')", file=sys.stderr)
