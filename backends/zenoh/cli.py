@@ -179,6 +179,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
     session = None
     tracker = SeqTracker()
     gateways: set[str] = set()
+    alive_tokens: dict[str, bool] = {}  # liveliness key → alive, as last printed
     count = 0
     compact = CompactView(out) if args.compact else None
     deadline = time.monotonic() + args.duration if args.duration else None
@@ -208,10 +209,20 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
                 stop.wait(backoff.next())
         if session is None:
             return 0
-        session.declare_subscriber(key, on_sample)
         if args.gateways:
-            session.liveliness().declare_subscriber(f"{prefix}/*/gateway/*", on_token,
-                                                    history=True)
+            # The gateways alive now are asked for (and queued) before any update can be:
+            # so they print first, whatever --count says.  A token that appears between the
+            # subscriber and the query is printed once, by whichever sees it first.
+            tokens = f"{prefix}/*/gateway/*"
+            session.liveliness().declare_subscriber(tokens, on_token)
+            try:
+                for reply in session.liveliness().get(tokens, timeout=QUERY_TIMEOUT_S):
+                    if reply.ok is not None:
+                        samples.put((None, str(reply.ok.key_expr), True, "", None))
+            except zenoh.ZError as exc:
+                print(f"aurora-gateway listen: liveliness query failed: {zerror_text(exc)}",
+                      file=err)
+        session.declare_subscriber(key, on_sample)
         print(f"aurora-gateway listen: {key} ({opts.describe()})", file=err)
         if args.query:
             try:
@@ -232,6 +243,9 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
                 continue
             from_query, k, payload, encoding, att = item
             if from_query is None:  # liveliness
+                if alive_tokens.get(k) == payload:
+                    continue  # the subscriber and the query both saw it
+                alive_tokens[k] = payload
                 line = {"gateway_token": k, "alive": payload}
                 if compact is None:
                     out.write(json.dumps(line) + "\n")
