@@ -36,15 +36,7 @@ from backends.hc12 import at, control
 from backends.hc12.budget import DEFAULT_PRIORITY_RESERVE, AirBudget, figures
 from backends.hc12.control import ControlServer
 from backends.hc12.port import open_port
-from backends.hc12.provision import (
-    ProvisionError,
-    Refused,
-    Result,
-    Timing,
-    check_allowed,
-    plan,
-    run_request,
-)
+from backends.hc12.provision import Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
@@ -249,14 +241,12 @@ class Hc12Backend(Backend):
         if self._set_line is None or getattr(self._set_line, "port", port) is not port:
             self._set_line = make_set_line(self.set_spec, port)
         set_line = self._set_line
-        try:
-            check_allowed(set_line, self.watch, bench)
-        except Refused as exc:
-            self.at_refused += 1
-            return Result(False, op, error=str(exc), kind="refused")
-        except ProvisionError as exc:
-            self.at_failures += 1
-            return Result(False, op, error=str(exc), kind="failed")
+        if stop := check_request(op, set_line, self.watch, bench):
+            if stop.kind == "refused":
+                self.at_refused += 1
+            else:
+                self.at_failures += 1
+            return stop
         result = run_request(port, set_line, op, arg, host_baud=self.baudrate,
                              at_baud=self.at_baud, timing=self.timing)
         self.at_exchanges += 1
