@@ -48,7 +48,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Container
+from collections.abc import Callable, Container, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -506,14 +506,7 @@ class Hc12Emulator:
             self.model.tick()
 
     def _accept_loop(self) -> None:
-        self._listener.settimeout(0.2)
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for sock in self._accepted(self._listener):
             if self._client is not None:  # busy, like an open tty
                 sock.close()
                 continue
@@ -521,6 +514,29 @@ class Hc12Emulator:
             t = threading.Thread(target=self._serve, args=(sock,), name="hc12-emu-client",
                                  daemon=True)
             t.start()
+
+    def _accepted(self, listener: socket.socket) -> Iterator[socket.socket]:
+        """The connections ``listener`` accepts until the emulator stops or it is closed."""
+        listener.settimeout(0.2)
+        while not self._stop.is_set():
+            try:
+                sock, _ = listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            yield sock
+
+    def _received(self, sock: socket.socket) -> Iterator[bytes]:
+        """What ``sock`` receives until the peer closes, the socket fails or the emulator stops."""
+        while not self._stop.is_set():
+            try:
+                data = sock.recv(4096)
+            except OSError:
+                return
+            if not data:
+                return
+            yield data
 
     def _serve(self, sock: socket.socket) -> None:
         model = self.model
@@ -532,13 +548,7 @@ class Hc12Emulator:
         manager = PortManager(_UartLines(model), conn)
         model.host_out = lambda data: conn.write(b"".join(manager.escape(data)))
         try:
-            while not self._stop.is_set():
-                try:
-                    data = sock.recv(4096)
-                except OSError:
-                    break
-                if not data:
-                    break
+            for data in self._received(sock):
                 # Byte by byte, so a baud or SET change between data bytes applies exactly there.
                 for byte in manager.filter(data):
                     model.uart_rx(byte)
@@ -551,27 +561,14 @@ class Hc12Emulator:
 
     def _air_loop(self) -> None:
         assert self._air_listener is not None
-        self._air_listener.settimeout(0.2)
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._air_listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for sock in self._accepted(self._air_listener):
             threading.Thread(target=self._serve_air, args=(sock,), daemon=True).start()
 
     def _serve_air(self, sock: socket.socket) -> None:
         conn = _Connection(sock)
         self.model.air_listeners.append(conn.write)
         try:
-            while not self._stop.is_set():
-                try:
-                    data = sock.recv(4096)
-                except OSError:
-                    break
-                if not data:
-                    break
+            for data in self._received(sock):
                 self.model.air_inject(data)
         finally:
             with contextlib.suppress(ValueError):
