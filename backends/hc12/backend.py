@@ -191,23 +191,22 @@ class Hc12Backend(Backend):
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         self.watch.observe(msg)
-        if self._loops_back(msg.origin):
-            self.skipped_loop += 1
-            return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=True, priority=False)
+        return self._forward(msg, rate_limited=True, priority=False)
 
     def send_status(self, msg: Status) -> Outcome:
         self.watch.observe(msg)
-        if self._loops_back(msg.origin):
-            self.skipped_loop += 1
-            return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=False, priority=True)
+        return self._forward(msg, rate_limited=False, priority=True)
 
     def send_raw(self, msg: RawFrame) -> Outcome:
+        return self._forward(msg, rate_limited=False, priority=False)
+
+    def _forward(self, msg: SmUpdate | Status | RawFrame, *, rate_limited: bool,
+                 priority: bool) -> Outcome:
+        """Frame and submit ``msg``, unless it came from this radio (it would loop back)."""
         if self._loops_back(msg.origin):
             self.skipped_loop += 1
             return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=False, priority=False)
+        return self._submit(self._frame(msg), rate_limited=rate_limited, priority=priority)
 
     # -- provisioning ----------------------------------------------------------------------------
 
