@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from gateway.counters import Counters
 from gateway.model import kind
 from gateway.wire import encode
 
@@ -61,7 +62,10 @@ class RecordingError(ValueError):
 
 
 @dataclass
-class ReadStats:
+class ReadStats(Counters):
+    """What reading a recording met: records returned, a torn last record, corrupt stretches
+    skipped (and their bytes)."""
+
     records: int = 0
     torn_tail_bytes: int = 0
     corrupt_skips: int = 0

@@ -23,6 +23,7 @@ from gateway.model import (
     SmUpdate,
     Status,
 )
+from gateway.resync import BufferedDecoder
 
 MAGIC = b"\xa5\x5a"
 TYPE_SM_UPDATE = 0x01
@@ -66,7 +67,7 @@ class DecoderStats(Counters):
 
 
 
-class Decoder:
+class Decoder(BufferedDecoder[SmUpdate | Status | RawFrame]):
     """Turns a byte stream into messages, resynchronising after any corruption.
 
     One resync rule: find the magic, wait for the claimed length, check the CRC; on failure
@@ -77,36 +78,18 @@ class Decoder:
     (261 bytes): everything before a pending sync is decided at once.
     """
 
-    __slots__ = ("_buf", "origin", "stats", "via")
+    __slots__ = ("origin", "stats", "via")
 
     def __init__(self, origin: str = "", via: str = "") -> None:
-        self._buf = b""
+        super().__init__()
         self.origin = origin
         self.via = via  # stamped on every message (see gateway.model)
         self.stats = DecoderStats()
 
-    @property
-    def pending(self) -> int:
-        """Bytes held back waiting for the rest of a frame."""
-        return len(self._buf)
-
-    def feed(self, data: bytes) -> list[SmUpdate | Status | RawFrame]:
-        """Add bytes; return every message completed by them, in stream order."""
-        self.stats.bytes_in += len(data)
-        buf = self._buf + bytes(data) if self._buf else bytes(data)
+    def _decode(self, buf: bytes, bytes_in: int, eof: bool) -> list[SmUpdate | Status | RawFrame]:
+        self.stats.bytes_in += bytes_in
         out: list[SmUpdate | Status | RawFrame] = []
-        self._buf = self._scan(buf, out, eof=False)
-        return out
-
-    def flush(self) -> list[SmUpdate | Status | RawFrame]:
-        """End of input: rescan what is held back as if no more bytes will come.
-
-        Frames that were waiting behind a false sync are returned; a truncated tail is
-        counted as skipped bytes.
-        """
-        out: list[SmUpdate | Status | RawFrame] = []
-        if self._buf:
-            self._buf = self._scan(self._buf, out, eof=True)
+        self._buf = self._scan(buf, out, eof)
         return out
 
     def _scan(self, buf: bytes, out: list, eof: bool) -> bytes:

@@ -48,7 +48,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -98,6 +98,36 @@ def garble(data: bytes) -> bytes:
     """What bytes sent at the wrong baud rate look like on the other side: not ASCII."""
     return bytes(0x80 | ((b * 37 + 11) & 0x7F) for b in data)
 
+
+#: The setting commands: AT+<letter><digits> → (the Settings field, its allowed values, the reply).
+_SETTERS: tuple[tuple[re.Pattern[str], str, Container[int], str], ...] = (
+    (re.compile(r"AT\+B(\d+)"), "baud", BAUD_RATES, "OK+B{}"),
+    (re.compile(r"AT\+C(\d{1,3})"), "channel", range(1, 128), "OK+C{:03d}"),
+    (re.compile(r"AT\+P(\d)"), "power", POWER_DBM.keys(), "OK+P{}"),
+    (re.compile(r"AT\+FU(\d)"), "mode", range(1, 5), "OK+FU{}"),
+)
+
+
+def _baud_in_mode(mode: int, baud: int) -> int:
+    """The UART rate after switching to FU``mode``: FU2 allows at most 4800, FU4 only 1200."""
+    if mode == 2:
+        return min(baud, 4800)
+    return 1200 if mode == 4 else baud
+
+
+def _power_reply(s: Settings) -> str:
+    return f"OK+RP:{POWER_DBM[s.power]:+d}dBm"
+
+
+#: The query commands and their replies.
+_QUERIES: dict[str, Callable[[Settings], list[str]]] = {
+    "AT+RX": lambda s: [f"OK+FU{s.mode}", f"OK+B{s.baud}", f"OK+C{s.channel:03d}",
+                        _power_reply(s)],
+    "AT+RB": lambda s: [f"OK+B{s.baud}"],
+    "AT+RC": lambda s: [f"OK+C{s.channel:03d}"],
+    "AT+RF": lambda s: [f"OK+FU{s.mode}"],
+    "AT+RP": lambda s: [_power_reply(s)],
+}
 
 class Hc12Model:
     """The module: SET pin, host UART, AT parser, transmit buffer, air side.  Thread-safe; tests
@@ -289,51 +319,20 @@ class Hc12Model:
 
     def _execute(self, cmd: str) -> list[str]:
         s = self.settings
+        for pattern, field, allowed, reply in _SETTERS:
+            if m := pattern.fullmatch(cmd):
+                value = int(m[1])
+                if value not in allowed:
+                    return ["ERROR"]
+                setattr(s, field, value)
+                if field == "mode":
+                    s.baud = _baud_in_mode(value, s.baud)
+                self._save()
+                return [reply.format(value)]
+        if query := _QUERIES.get(cmd):
+            return query(s)
         if cmd == "AT":
             return ["OK"]
-        if m := re.fullmatch(r"AT\+B(\d+)", cmd):
-            rate = int(m[1])
-            if rate not in BAUD_RATES:
-                return ["ERROR"]
-            s.baud = rate
-            self._save()
-            return [f"OK+B{rate}"]
-        if m := re.fullmatch(r"AT\+C(\d{1,3})", cmd):
-            ch = int(m[1])
-            if not 1 <= ch <= 127:
-                return ["ERROR"]
-            s.channel = ch
-            self._save()
-            return [f"OK+C{ch:03d}"]
-        if m := re.fullmatch(r"AT\+P(\d)", cmd):
-            p = int(m[1])
-            if p not in POWER_DBM:
-                return ["ERROR"]
-            s.power = p
-            self._save()
-            return [f"OK+P{p}"]
-        if m := re.fullmatch(r"AT\+FU(\d)", cmd):
-            fu = int(m[1])
-            if not 1 <= fu <= 4:
-                return ["ERROR"]
-            s.mode = fu
-            if fu == 2:
-                s.baud = min(s.baud, 4800)
-            elif fu == 4:
-                s.baud = 1200
-            self._save()
-            return [f"OK+FU{fu}"]
-        if cmd == "AT+RX":
-            return [f"OK+FU{s.mode}", f"OK+B{s.baud}", f"OK+C{s.channel:03d}",
-                    f"OK+RP:{POWER_DBM[s.power]:+d}dBm"]
-        if cmd == "AT+RB":
-            return [f"OK+B{s.baud}"]
-        if cmd == "AT+RC":
-            return [f"OK+C{s.channel:03d}"]
-        if cmd == "AT+RF":
-            return [f"OK+FU{s.mode}"]
-        if cmd == "AT+RP":
-            return [f"OK+RP:{POWER_DBM[s.power]:+d}dBm"]
         if cmd == "AT+V":
             return [VERSION]
         if cmd == "AT+DEFAULT":
@@ -507,14 +506,7 @@ class Hc12Emulator:
             self.model.tick()
 
     def _accept_loop(self) -> None:
-        self._listener.settimeout(0.2)
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for sock in self._accepted(self._listener):
             if self._client is not None:  # busy, like an open tty
                 sock.close()
                 continue
@@ -522,6 +514,29 @@ class Hc12Emulator:
             t = threading.Thread(target=self._serve, args=(sock,), name="hc12-emu-client",
                                  daemon=True)
             t.start()
+
+    def _accepted(self, listener: socket.socket) -> Iterator[socket.socket]:
+        """The connections ``listener`` accepts until the emulator stops or it is closed."""
+        listener.settimeout(0.2)
+        while not self._stop.is_set():
+            try:
+                sock, _ = listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            yield sock
+
+    def _received(self, sock: socket.socket) -> Iterator[bytes]:
+        """What ``sock`` receives until the peer closes, the socket fails or the emulator stops."""
+        while not self._stop.is_set():
+            try:
+                data = sock.recv(4096)
+            except OSError:
+                return
+            if not data:
+                return
+            yield data
 
     def _serve(self, sock: socket.socket) -> None:
         model = self.model
@@ -533,13 +548,7 @@ class Hc12Emulator:
         manager = PortManager(_UartLines(model), conn)
         model.host_out = lambda data: conn.write(b"".join(manager.escape(data)))
         try:
-            while not self._stop.is_set():
-                try:
-                    data = sock.recv(4096)
-                except OSError:
-                    break
-                if not data:
-                    break
+            for data in self._received(sock):
                 # Byte by byte, so a baud or SET change between data bytes applies exactly there.
                 for byte in manager.filter(data):
                     model.uart_rx(byte)
@@ -552,27 +561,14 @@ class Hc12Emulator:
 
     def _air_loop(self) -> None:
         assert self._air_listener is not None
-        self._air_listener.settimeout(0.2)
-        while not self._stop.is_set():
-            try:
-                sock, _ = self._air_listener.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for sock in self._accepted(self._air_listener):
             threading.Thread(target=self._serve_air, args=(sock,), daemon=True).start()
 
     def _serve_air(self, sock: socket.socket) -> None:
         conn = _Connection(sock)
         self.model.air_listeners.append(conn.write)
         try:
-            while not self._stop.is_set():
-                try:
-                    data = sock.recv(4096)
-                except OSError:
-                    break
-                if not data:
-                    break
+            for data in self._received(sock):
                 self.model.air_inject(data)
         finally:
             with contextlib.suppress(ValueError):

@@ -48,6 +48,13 @@ def _q(x: float, scale: float) -> int:
     return math.floor(x * scale + 0.5) if x >= 0 else -math.floor(-x * scale + 0.5)
 
 
+
+def _known(*sensors: tuple[str, float | None, str]) -> Iterator[tuple[str, float, str]]:
+    """The (name, value, unit) sensors whose value is known (not None)."""
+    for name, value, unit in sensors:
+        if value is not None:
+            yield name, value, unit
+
 def edgetx_sensors(rec: Record) -> Iterator[tuple[str, float | str, str]]:
     """(sensor name, value, unit) as EdgeTX displays the fields of ``rec`` (fields that are
     unknown on the wire, all-0xFF, are skipped as EdgeTX skips them)."""
@@ -58,35 +65,18 @@ def edgetx_sensors(rec: Record) -> Iterator[tuple[str, float | str, str]]:
             if v is not None:  # wire: 100 µrad; EdgeTX: value / 10 → mrad, shown as rad
                 yield name, _trunc_div(_q(v, 10000), 10) / 1000, "rad"
     elif isinstance(rec, BaroAltitude):
-        if rec.altitude_m is not None:
-            yield "Alt", rec.altitude_m, "m"
-        if rec.vspeed_mps is not None:
-            yield "VSpd", rec.vspeed_mps, "m/s"
+        yield from _known(("Alt", rec.altitude_m, "m"), ("VSpd", rec.vspeed_mps, "m/s"))
     elif isinstance(rec, Vario):
-        if rec.vspeed_mps is not None:
-            yield "VSpd", rec.vspeed_mps, "m/s"
+        yield from _known(("VSpd", rec.vspeed_mps, "m/s"))
     elif isinstance(rec, Gps):
-        if rec.lat_deg is not None:
-            yield "GPS lat", rec.lat_deg, "deg"
-        if rec.lon_deg is not None:
-            yield "GPS lon", rec.lon_deg, "deg"
-        if rec.groundspeed_kmh is not None:
-            yield "GSpd", rec.groundspeed_kmh, "km/h"
-        if rec.heading_deg is not None:
-            yield "Hdg", rec.heading_deg, "°"
-        if rec.altitude_m is not None:
-            yield "GAlt", rec.altitude_m, "m"
-        if rec.satellites is not None:
-            yield "Sats", rec.satellites, ""
+        yield from _known(("GPS lat", rec.lat_deg, "deg"), ("GPS lon", rec.lon_deg, "deg"),
+                          ("GSpd", rec.groundspeed_kmh, "km/h"), ("Hdg", rec.heading_deg, "°"),
+                          ("GAlt", rec.altitude_m, "m"), ("Sats", rec.satellites, ""))
     elif isinstance(rec, Battery):
-        for name, v, unit in (("RxBt", rec.voltage_v, "V"), ("Curr", rec.current_a, "A"),
-                              ("Capa", rec.capacity_mah, "mAh"),
-                              ("Bat%", rec.remaining_pct, "%")):
-            if v is not None:
-                yield name, v, unit
+        yield from _known(("RxBt", rec.voltage_v, "V"), ("Curr", rec.current_a, "A"),
+                          ("Capa", rec.capacity_mah, "mAh"), ("Bat%", rec.remaining_pct, "%"))
     elif isinstance(rec, Airspeed):
-        if rec.speed_kmh is not None:
-            yield "ASpd", rec.speed_kmh, "km/h"
+        yield from _known(("ASpd", rec.speed_kmh, "km/h"))
     elif isinstance(rec, Voltages):
         for i, v in enumerate(rec.volts):
             if v is not None:

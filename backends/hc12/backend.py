@@ -36,15 +36,7 @@ from backends.hc12 import at, control
 from backends.hc12.budget import DEFAULT_PRIORITY_RESERVE, AirBudget, figures
 from backends.hc12.control import ControlServer
 from backends.hc12.port import open_port
-from backends.hc12.provision import (
-    ProvisionError,
-    Refused,
-    Result,
-    Timing,
-    check_allowed,
-    plan,
-    run_request,
-)
+from backends.hc12.provision import Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
@@ -199,23 +191,22 @@ class Hc12Backend(Backend):
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
         self.watch.observe(msg)
-        if self._loops_back(msg.origin):
-            self.skipped_loop += 1
-            return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=True, priority=False)
+        return self._forward(msg, rate_limited=True, priority=False)
 
     def send_status(self, msg: Status) -> Outcome:
         self.watch.observe(msg)
-        if self._loops_back(msg.origin):
-            self.skipped_loop += 1
-            return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=False, priority=True)
+        return self._forward(msg, rate_limited=False, priority=True)
 
     def send_raw(self, msg: RawFrame) -> Outcome:
+        return self._forward(msg, rate_limited=False, priority=False)
+
+    def _forward(self, msg: SmUpdate | Status | RawFrame, *, rate_limited: bool,
+                 priority: bool) -> Outcome:
+        """Frame and submit ``msg``, unless it came from this radio (it would loop back)."""
         if self._loops_back(msg.origin):
             self.skipped_loop += 1
             return Outcome.ACCEPTED
-        return self._submit(self._frame(msg), rate_limited=False, priority=False)
+        return self._submit(self._frame(msg), rate_limited=rate_limited, priority=priority)
 
     # -- provisioning ----------------------------------------------------------------------------
 
@@ -249,14 +240,12 @@ class Hc12Backend(Backend):
         if self._set_line is None or getattr(self._set_line, "port", port) is not port:
             self._set_line = make_set_line(self.set_spec, port)
         set_line = self._set_line
-        try:
-            check_allowed(set_line, self.watch, bench)
-        except Refused as exc:
-            self.at_refused += 1
-            return Result(False, op, error=str(exc), kind="refused")
-        except ProvisionError as exc:
-            self.at_failures += 1
-            return Result(False, op, error=str(exc), kind="failed")
+        if stop := check_request(op, set_line, self.watch, bench):
+            if stop.kind == "refused":
+                self.at_refused += 1
+            else:
+                self.at_failures += 1
+            return stop
         result = run_request(port, set_line, op, arg, host_baud=self.baudrate,
                              at_baud=self.at_baud, timing=self.timing)
         self.at_exchanges += 1

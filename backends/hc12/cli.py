@@ -21,16 +21,7 @@ from typing import Any
 
 from backends.hc12 import at, control
 from backends.hc12.port import open_port
-from backends.hc12.provision import (
-    OPERATIONS,
-    ProvisionError,
-    Refused,
-    Result,
-    Timing,
-    check_allowed,
-    plan,
-    run_request,
-)
+from backends.hc12.provision import OPERATIONS, Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, SetLineSpec, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.io.port import PortEngine, PortNotReady
@@ -181,12 +172,9 @@ def _standalone(s: dict[str, Any], args: argparse.Namespace) -> Result:
     op, arg = args.command, args.argument
     spec: SetLineSpec = s["spec"]
     url = s["url"]
-    try:  # before touching the port: SET wired at all, GPIO bindings present
-        check_allowed(make_set_line(spec, None), VehicleWatch(), bench=True)
-    except Refused as exc:
-        return Result(False, op, kind="refused", error=str(exc))
-    except ProvisionError as exc:
-        return Result(False, op, kind="failed", error=str(exc))
+    # before touching the port: SET wired at all, GPIO bindings present
+    if stop := check_request(op, make_set_line(spec, None), VehicleWatch(), bench=True):
+        return stop
     watch = VehicleWatch(s["max_age"])
     if s["listen"] == 0 and not args.bench:
         return Result(False, op, kind="refused", error=watch.refusal(False) or "")
@@ -207,12 +195,8 @@ def _standalone(s: dict[str, Any], args: argparse.Namespace) -> Result:
                           error=f"{url} failed while listening for the vehicle")
         with engine.exclusive(ENGINE_DEADLINE_S) as lent:
             set_line = make_set_line(spec, lent)
-            try:
-                check_allowed(set_line, watch, bool(args.bench))
-            except Refused as exc:
-                return Result(False, op, kind="refused", error=str(exc))
-            except ProvisionError as exc:
-                return Result(False, op, kind="failed", error=str(exc))
+            if stop := check_request(op, set_line, watch, bool(args.bench)):
+                return stop
             return run_request(lent, set_line, op, arg, host_baud=s["baud"],
                                at_baud=s["at_baud"],
                                timing=Timing(reply_timeout_s=s["timeout"]))

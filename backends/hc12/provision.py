@@ -330,6 +330,18 @@ def check_allowed(set_line: SetLine, watch: VehicleWatch, bench: bool) -> None:
         raise Refused(reason)
 
 
+
+def check_request(op: str, set_line: SetLine, watch: VehicleWatch, bench: bool) -> Result | None:
+    """:func:`check_allowed` for request ``op``: None when it may go ahead, else the
+    :class:`Result` that refuses it (kind "refused") or fails it (kind "failed")."""
+    try:
+        check_allowed(set_line, watch, bench)
+    except Refused as exc:
+        return Result(False, op, kind="refused", error=str(exc))
+    except ProvisionError as exc:
+        return Result(False, op, kind="failed", error=str(exc))
+    return None
+
 def run_request(port: Any, set_line: SetLine, op: str, arg: Any, *, host_baud: int,
                 at_baud: int = at.AT_BAUD, timing: Timing = Timing()) -> Result:
     """Validate, exchange and word one request on an open port the caller owns (from

@@ -26,6 +26,7 @@ from typing import Any
 
 from backends.mavlink.dialect import mav
 from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_name, state_names
+from gateway.counters import Counters
 from gateway.model import (
     Battery,
     LinkStats,
@@ -222,7 +223,11 @@ def system_status(sm_type: int, state: int, armed: bool, stale: bool) -> int:
 
 
 @dataclass
-class VehicleStats:
+class VehicleStats(Counters):
+    """What the vehicle saw: gateway messages taken in, state changes, and what a GCS sent
+    (commands, unsupported ones apart; parameter requests ignored; mission requests; RC
+    overrides)."""
+
     updates: int = 0
     state_changes: int = 0
     commands: int = 0

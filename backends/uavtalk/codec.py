@@ -27,6 +27,7 @@ from typing import NamedTuple
 
 from gateway import crc as _crc
 from gateway.counters import Counters
+from gateway.resync import BAD, WAIT, ResyncDecoder
 
 SYNC = 0x3C
 HEADER_LENGTH = 10  # sync, type, size, object id, instance id
@@ -146,7 +147,7 @@ class DecoderStats(Counters):
     timestamped: int = 0
 
 
-class Decoder:
+class Decoder(ResyncDecoder[Packet]):
     """Turns a UAVTalk byte stream into :class:`Packet` s, resynchronising after any corruption.
 
     ``data_length(object_id)`` gives a known object's data length (None: unknown object); without
@@ -154,91 +155,61 @@ class Decoder:
     pass the CRC are returned (and counted) so that a session can NACK them.
     """
 
-    __slots__ = ("_buf", "_data_length", "stats")
+    __slots__ = ("_data_length", "stats")
 
     def __init__(self, data_length: Callable[[int], int | None] | None = None) -> None:
+        super().__init__()
         self._data_length = data_length
-        self._buf = b""
         self.stats = DecoderStats()
 
-    @property
-    def pending(self) -> int:
-        """Bytes held back waiting for the rest of a packet (at most 266)."""
-        return len(self._buf)
+    def _find_start(self, buf: bytes, pos: int) -> int:
+        return buf.find(_SYNC_BYTE, pos)
 
-    def feed(self, data: bytes) -> list[Packet]:
-        """Add bytes; return every packet they complete, in stream order (any split of a stream
-        gives the same packets)."""
-        buf = self._buf + bytes(data) if self._buf else bytes(data)
-        out: list[Packet] = []
-        self._buf = self._scan(buf, out)
-        return out
-
-    def _scan(self, buf: bytes, out: list[Packet]) -> bytes:
+    def _frame_at(self, buf: bytes, i: int, out: list[Packet]) -> int:
         st = self.stats
-        data_length = self._data_length
-        n = len(buf)
-        pos = 0
-        while True:
-            i = buf.find(_SYNC_BYTE, pos)
-            if i < 0:
-                st.bytes_skipped += n - pos
-                return b""
-            avail = n - i
-            if avail < 2:
-                st.bytes_skipped += i - pos
-                return buf[i:]
-            info = _TYPES[buf[i + 1]]
-            if info is None:  # not a packet start: skip the sync byte
-                st.bytes_skipped += i + 1 - pos
-                pos = i + 1
-                continue
-            ptype, hlen, has_data = info
-            if avail < 4:
-                st.bytes_skipped += i - pos
-                return buf[i:]
-            size = buf[i + 2] | buf[i + 3] << 8
-            if not hlen <= size <= MAX_SIZE:
-                st.bad_size += 1
-                st.bytes_skipped += i + 1 - pos
-                pos = i + 1
-                continue
-            if not has_data and size != hlen:
+        avail = len(buf) - i
+        if avail < 2:
+            return WAIT
+        info = _TYPES[buf[i + 1]]
+        if info is None:  # not a packet start: skip the sync byte
+            return BAD
+        ptype, hlen, has_data = info
+        if avail < 4:
+            return WAIT
+        size = buf[i + 2] | buf[i + 3] << 8
+        if not hlen <= size <= MAX_SIZE:
+            st.bad_size += 1
+            return BAD
+        if not has_data and size != hlen:
+            st.bad_length += 1
+            return BAD
+        if avail < HEADER_LENGTH:
+            return WAIT
+        _, _, _, object_id, instance_id = _HEADER.unpack_from(buf, i)
+        known = True
+        if self._data_length is not None:
+            expected = self._data_length(object_id)
+            if expected is None:
+                known = False
+            elif has_data and size - hlen != expected:
                 st.bad_length += 1
-                st.bytes_skipped += i + 1 - pos
-                pos = i + 1
-                continue
-            if avail < HEADER_LENGTH:
-                st.bytes_skipped += i - pos
-                return buf[i:]
-            _, _, _, object_id, instance_id = _HEADER.unpack_from(buf, i)
-            known = True
-            if data_length is not None:
-                expected = data_length(object_id)
-                if expected is None:
-                    known = False
-                elif has_data and size - hlen != expected:
-                    st.bad_length += 1
-                    st.bytes_skipped += i + 1 - pos
-                    pos = i + 1
-                    continue
-            end = i + size + 1
-            if end > n:
-                st.bytes_skipped += i - pos
-                return buf[i:]
-            if _crc8(buf[i:end]):  # no reflection, no xorout: a good packet leaves residue 0
-                st.bad_crc += 1
-                st.bytes_skipped += i + 1 - pos
-                pos = i + 1
-                continue
-            st.bytes_skipped += i - pos
-            pos = end
-            st.packets += 1
-            if not known:
-                st.unknown_object += 1
-            if hlen == HEADER_LENGTH:
-                out.append(Packet(ptype, object_id, instance_id, buf[i + HEADER_LENGTH:end - 1]))
-            else:
-                st.timestamped += 1
-                (stamp,) = _TIMESTAMP.unpack_from(buf, i + HEADER_LENGTH)
-                out.append(Packet(ptype, object_id, instance_id, buf[i + hlen:end - 1], stamp))
+                return BAD
+        end = i + size + 1
+        if end > len(buf):
+            return WAIT
+        if _crc8(buf[i:end]):  # no reflection, no xorout: a good packet leaves residue 0
+            st.bad_crc += 1
+            return BAD
+        st.packets += 1
+        if not known:
+            st.unknown_object += 1
+        if hlen == HEADER_LENGTH:
+            out.append(Packet(ptype, object_id, instance_id, buf[i + HEADER_LENGTH:end - 1]))
+        else:
+            st.timestamped += 1
+            (stamp,) = _TIMESTAMP.unpack_from(buf, i + HEADER_LENGTH)
+            out.append(Packet(ptype, object_id, instance_id, buf[i + hlen:end - 1], stamp))
+        return end
+
+    def _count(self, bytes_in: int, skipped: int) -> None:
+        self.stats.bytes_skipped += skipped  # the bytes fed are not counted here

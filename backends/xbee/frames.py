@@ -54,6 +54,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from gateway.counters import Counters
+from gateway.resync import BAD, WAIT, ResyncDecoder
 
 START = 0x7E
 ESCAPE = 0x7D
@@ -489,81 +490,55 @@ _WAIT, _OK, _BAD_LENGTH, _BAD_ESCAPE, _BAD_CHECKSUM = range(5)
 _ESCAPED_VALUES = frozenset(b ^ ESCAPE_XOR for b in ESCAPED_BYTES)
 
 
-class FrameDecoder:
+class FrameDecoder(ResyncDecoder[Frame]):
     """Turns a byte stream from a module in ``api_mode`` (1 or 2) into frame records.
 
     :meth:`feed` keeps a partial frame for the next call; corruption is counted in
     :attr:`stats`, never raised (see the module docstring for the rules).
     """
 
-    __slots__ = ("_buf", "api_mode", "max_length", "stats")
+    __slots__ = ("api_mode", "max_length", "stats")
 
     def __init__(self, api_mode: int = 1, max_length: int = MAX_FRAME_DATA) -> None:
         _check_mode(api_mode)
         if not 1 <= max_length <= MAX_LENGTH_FIELD:
             raise ValueError(f"max_length {max_length}: must be 1..{MAX_LENGTH_FIELD}")
+        super().__init__()
         self.api_mode = api_mode
         self.max_length = max_length
         self.stats = FrameDecoderStats()
-        self._buf = b""
 
-    @property
-    def pending(self) -> int:
-        """Bytes held back waiting for the rest of a frame."""
-        return len(self._buf)
+    def _find_start(self, buf: bytes, pos: int) -> int:
+        return buf.find(START, pos)
 
-    def feed(self, data: bytes) -> list[Frame]:
-        """Add bytes; return every frame completed by them, in stream order."""
-        self.stats.bytes_in += len(data)
-        buf = self._buf + bytes(data) if self._buf else bytes(data)
-        out: list[Frame] = []
-        self._buf = self._scan(buf, out, eof=False)
-        return out
-
-    def flush(self) -> list[Frame]:
-        """End of input: rescan what is held back; an incomplete tail counts as garbage."""
-        out: list[Frame] = []
-        if self._buf:
-            self._buf = self._scan(self._buf, out, eof=True)
-        return out
-
-    def _scan(self, buf: bytes, out: list[Frame], eof: bool) -> bytes:
+    def _frame_at(self, buf: bytes, i: int, out: list[Frame]) -> int:
         st = self.stats
-        n = len(buf)
-        pos = 0
         read = self._read_escaped if self.api_mode == 2 else self._read_plain
-        while True:
-            i = buf.find(START, pos)
-            if i < 0:
-                st.garbage_bytes += n - pos
-                return b""
-            verdict, data, end = read(buf, i)
-            if verdict == _WAIT:
-                if not eof:
-                    st.garbage_bytes += i - pos
-                    return buf[i:]
-                verdict = -1  # can never complete: drop one byte, rescan
-            if verdict != _OK:
-                if verdict == _BAD_LENGTH:
-                    st.bad_length += 1
-                elif verdict == _BAD_ESCAPE:
-                    st.bad_escape += 1
-                elif verdict == _BAD_CHECKSUM:
-                    st.bad_checksum += 1
-                st.garbage_bytes += i + 1 - pos
-                pos = i + 1
-                continue
-            st.garbage_bytes += i - pos
-            pos = end
-            try:
-                frame = decode_frame_data(data)
-            except FrameError:
+        verdict, data, end = read(buf, i)
+        if verdict == _WAIT:
+            return WAIT
+        if verdict != _OK:
+            if verdict == _BAD_LENGTH:
                 st.bad_length += 1
-                continue
-            st.frames += 1
-            if type(frame) is UnknownFrame:
-                st.unknown_type += 1
-            out.append(frame)
+            elif verdict == _BAD_ESCAPE:
+                st.bad_escape += 1
+            elif verdict == _BAD_CHECKSUM:
+                st.bad_checksum += 1
+            return BAD
+        try:
+            frame = decode_frame_data(data)
+        except FrameError:
+            st.bad_length += 1
+            return end  # a whole frame whose data does not decode: consumed, counted
+        st.frames += 1
+        if type(frame) is UnknownFrame:
+            st.unknown_type += 1
+        out.append(frame)
+        return end
+
+    def _count(self, bytes_in: int, skipped: int) -> None:
+        self.stats.bytes_in += bytes_in
+        self.stats.garbage_bytes += skipped
 
     def _read_plain(self, buf: bytes, i: int) -> tuple[int, bytes, int]:
         n = len(buf)
