@@ -21,12 +21,15 @@ from typing import Any
 
 from backends.zenoh.keys import DEFAULT_ENDPOINT
 from gateway.config import ConfigError, Key
+from gateway.io.endpoints import EndpointError, parse_address
 
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
              "vsock")
+#: The protocols whose address is HOST:PORT (IPv6 as [::1]:PORT, as Zenoh writes it).
+HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 RETRY_INIT_MS = 100
 
 #: The session keys, shared by every Schema in this package.  ``None`` = not given.
@@ -59,6 +62,22 @@ def zerror_text(exc: BaseException) -> str:
     return _RS_LOCATION.sub("", str(exc)).strip()
 
 
+def check_locator(text: str) -> None:
+    """A Zenoh locator, ``<protocol>/<address>`` (Zenoh's own grammar); for tcp, udp, tls,
+    quic and ws the address is HOST:PORT as :mod:`gateway.io.endpoints` reads it (IPv6 as
+    ``[::1]:7447``).  ValueError saying what is wrong."""
+    proto, slash, addr = text.partition("/")
+    if not slash or not addr:
+        raise ValueError(f"{text!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {proto!r}; one of {', '.join(PROTOCOLS)}")
+    if proto in HOST_PORT_PROTOCOLS:
+        try:  # what follows ? or # is Zenoh's metadata and configuration
+            parse_address(re.split(r"[?#]", addr, maxsplit=1)[0], default_host=None)
+        except EndpointError as exc:
+            raise ValueError(f"{text!r}: {exc}") from None
+
+
 def check_endpoints(value: Any, key: str) -> list[str]:
     """A list of ``<protocol>/<address>`` strings (one string is a list of one); ConfigError
     naming the item otherwise."""
@@ -70,13 +89,10 @@ def check_endpoints(value: Any, key: str) -> list[str]:
     for i, ep in enumerate(value):
         if not isinstance(ep, str):
             raise ConfigError(f"{key}[{i}]: expected a string, got {ep!r}")
-        proto, slash, addr = ep.partition("/")
-        if not slash or not addr:
-            raise ConfigError(f"{key}[{i}]: {ep!r} is not <protocol>/<address>, e.g. "
-                              "tcp/127.0.0.1:7447")
-        if proto not in PROTOCOLS:
-            raise ConfigError(f"{key}[{i}]: unknown protocol {proto!r}; one of "
-                              f"{', '.join(PROTOCOLS)}")
+        try:
+            check_locator(ep)
+        except ValueError as exc:
+            raise ConfigError(f"{key}[{i}]: {exc}") from None
         out.append(ep)
     return out
 
