@@ -157,7 +157,9 @@ def _address(text: str, default_host: str | None, lowest: int) -> tuple[str, int
         if not rest.startswith(":"):
             raise _Mistake("expected :PORT after ']'")
         return host, _port(rest[1:], lowest)
-    host, _, port_text = text.rpartition(":")
+    host, sep, port_text = text.rpartition(":")
+    if not sep and default_host is None:
+        raise _Mistake("no port")  # HOST alone
     if ":" in host:
         if _is_v6(host) or _is_v6(text):
             raise _Mistake("an IPv6 address needs brackets: [::1]:PORT")
