@@ -26,7 +26,6 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
-from backends.foxglove import flags
 from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
 from gateway import config, registry
 from gateway.backend import GatewayContext, Outcome
