@@ -157,7 +157,8 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
             cls = registry.load(registry.SOURCE_GROUP, head)
         except registry.RegistryError as exc:
             raise ValueError(str(exc)) from None
-        return head, cls.url_options(rest if sep else None)
+        url_options = getattr(cls, "url_options", None) or Source.url_options
+        return head, url_options(rest if sep else None)
     if "://" in text or is_device(text.partition(",")[0]):
         return "serial", {"url": text}  # checked by the url key (check_serial_url)
     raise ValueError(f"{text!r}: no source {head!r}; expected {_url_forms(names)}")
