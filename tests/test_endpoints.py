@@ -356,15 +356,34 @@ def test_udpin_on_v6_loopback_binds_there() -> None:
     port = open_udp(ep.host, ep.port, listen=True)
     try:
         host, bound = port.address()[:2]
-        assert host == "::1"
+        assert (port.sock.family, host) == (socket.AF_INET6, "::1")
         with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as peer:
             peer.sendto(b"ping", ("::1", bound))
-            sock = port.sock if hasattr(port, "sock") else None
-            if sock is not None:
-                sock.settimeout(5)
-                assert sock.recvfrom(16)[0] == b"ping"
+            port.sock.settimeout(5)
+            assert port.sock.recvfrom(16)[0] == b"ping"
     finally:
         port.close()
+
+
+@needs_v6
+def test_a_backend_given_a_v6_tcpin_endpoint_serves_on_it() -> None:
+    """--uavtalk tcpin:[::1]:0 end to end: the backend's listener is on ::1 and takes a GCS."""
+    from backends.uavtalk.backend import UavtalkBackend
+    from gateway.backend import GatewayContext
+    from gateway.dispatcher import Dispatcher
+
+    d = Dispatcher()
+    b = UavtalkBackend(endpoints=["tcpin:[::1]:0"])
+    b.attach(GatewayContext(emit=d.dispatch))
+    d.add(b)
+    d.start()
+    try:
+        host, port = b.address()[:2]
+        assert host == "::1"
+        with socket.create_connection(("::1", port), timeout=5) as gcs:
+            assert gcs.family == socket.AF_INET6
+    finally:
+        d.close()
 
 
 # -- source URLs: the prefixes are the installed entry points --------------------------------------
