@@ -398,7 +398,7 @@ def test_source_urls_built_in() -> None:
     assert parse_source_url("/dev/ttyUSB0") == ("serial", {"url": "/dev/ttyUSB0"})
     assert parse_source_url("loop://") == ("serial", {"url": "loop://"})
     assert parse_source_url("COM3") == ("serial", {"url": "COM3"})
-    with pytest.raises(ValueError, match=r"^'warp:9': no source 'warp'; expected NAME\[:…\] "
+    with pytest.raises(ValueError, match=r"^no source 'warp'; expected NAME\[:…\] "
                                          r"for a source \(mavlink, replay, serial, sim"):
         parse_source_url("warp:9")
     with pytest.raises(ValueError, match=r"^empty source URL"):

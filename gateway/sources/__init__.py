@@ -161,7 +161,7 @@ def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
         return head, url_options(rest if sep else None)
     if "://" in text or is_device(text.partition(",")[0]):
         return "serial", {"url": text}  # checked by the url key (check_serial_url)
-    raise ValueError(f"{text!r}: no source {head!r}; expected {_url_forms(names)}")
+    raise ValueError(f"no source {head!r}; expected {_url_forms(names)}")
 
 
 class SourceInbox(Backend):
