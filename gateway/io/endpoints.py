@@ -269,7 +269,7 @@ def _parse(t: str, kinds: Collection[str], bare: str | None, listen_host: str,
     kind = ALIASES.get(kind, kind)
     if sep and rest.startswith("//"):  # a pyserial URL
         if SERIAL not in kinds:
-            raise _Mistake("a serial port is not allowed here")
+            raise _Mistake(f"{SERIAL} is not allowed here")
         return _serial(t, default_baud, baud_suffix, any_path=False)
     if sep and kind in KINDS:
         if kind not in kinds:
@@ -279,7 +279,7 @@ def _parse(t: str, kinds: Collection[str], bare: str | None, listen_host: str,
         return _network(kind, rest, t, listen_host, connect_host)
     if is_device(t.partition(",")[0].strip()):
         if SERIAL not in kinds:
-            raise _Mistake("a serial port is not allowed here")
+            raise _Mistake(f"{SERIAL} is not allowed here")
         return _serial(t, default_baud, baud_suffix, any_path=False)
     if bare is not None:
         return _network(bare, t, t, listen_host, connect_host)
