@@ -186,7 +186,7 @@ def test_a_serial_key_with_its_own_baud_rate_refuses_one_in_the_url() -> None:
 def test_a_list_needs_at_least_one_and_every_item_is_checked() -> None:
     check = list_validator(STREAM)
     check(["tcpin:0", "loop://"])
-    with pytest.raises(EndpointError, match=r"^at least 1 endpoint needed; expected tcpin:"):
+    with pytest.raises(EndpointError, match=r"^at least one endpoint is needed; expected tcpin:"):
         check([])
     with pytest.raises(EndpointError, match=r"^5 is not a string; expected tcpin:"):
         check(["tcpin:0", 5])

@@ -362,9 +362,10 @@ def list_validator(kinds: Collection[str] = KINDS, *, minimum: int = 1,
     """A config key's validator for a list of endpoints, at least ``minimum`` of them."""
 
     def check(value: Any) -> None:
-        if not isinstance(value, list) or len(value) < minimum:
-            raise EndpointError(f"at least {minimum} endpoint{'s' if minimum > 1 else ''} "
-                                f"needed; expected {usage(kinds, options.get('bare'))}")
+        if not isinstance(value, list | tuple) or len(value) < minimum:
+            count = "one endpoint is" if minimum == 1 else f"{minimum} endpoints are"
+            raise EndpointError(f"at least {count} needed; expected "
+                                f"{usage(kinds, options.get('bare'))}")
         for item in value:
             parse_endpoint(item, kinds, **options)
 
