@@ -31,6 +31,7 @@ from gateway.io.endpoints import (
     Endpoint,
     EndpointError,
     check_host,
+    check_port,
     check_serial_port,
     list_validator,
     parse_address,
@@ -204,6 +205,13 @@ def test_a_host_key_and_a_bare_address() -> None:
         with pytest.raises(EndpointError) as info:
             check_host(bad)
         assert str(info.value) == f"{problem}; expected a host name or an IP address"
+    check_port(0)
+    check_port(65535)
+    for bad, problem in ((70000, "port 70000 is out of range (0 to 65535)"),
+                         (-1, "port '-1' is not a number"), ("80", "port '80' is not a number")):
+        with pytest.raises(EndpointError) as info:
+            check_port(bad)
+        assert str(info.value) == problem
     assert parse_address("[::1]:7447", default_host=None) == ("::1", 7447)
     with pytest.raises(EndpointError, match=r"^':7447': no host; expected HOST:PORT "):
         parse_address(":7447", default_host=None)
@@ -294,20 +302,23 @@ def test_the_same_mistake_in_a_file_names_the_key(tmp_path: Path, toml: str, key
         assert expected in lines[0], lines[0]
 
 
-def test_every_endpoint_flag_uses_the_grammar() -> None:
+def test_every_endpoint_flag_uses_the_grammar(capsys: pytest.CaptureFixture[str]) -> None:
     """The same mistake gives the same words through every flag that takes an address."""
     from gateway.commands.cli import build_parser
 
     parser = build_parser()
-    for flag in ("--http", "--foxglove", "--mavlink", "--uavtalk", "--fprime"):
-        with pytest.raises(SystemExit):
-            parser.parse_args(["run", flag, "tcpin:h:x"])
-    for flag in ("--hc12", "--xbee", "--crsf"):
-        with pytest.raises(SystemExit):
-            parser.parse_args(["run", flag, "nosuch://x"])
-    for flag in ("--zenoh-connect", "--zenoh-listen"):
-        with pytest.raises(SystemExit):
-            parser.parse_args(["run", flag, "tcp/h:x"])
+    cases = [(flag, "tcpin:h:x", "'tcpin:h:x': port 'x' is not a number; expected ")
+             for flag in ("--http", "--foxglove", "--mavlink", "--uavtalk", "--fprime")]
+    cases += [(flag, "nosuch://x", "'nosuch://x': unknown URL scheme 'nosuch' (pyserial knows ")
+              for flag in ("--hc12", "--xbee", "--crsf")]
+    cases += [(flag, "tcp/h:x", "'tcp/h:x': 'h:x': port 'x' is not a number; expected ")
+              for flag in ("--zenoh-connect", "--zenoh-listen")]
+    for flag, value, words in cases:
+        with pytest.raises(SystemExit) as info:
+            parser.parse_args(["run", flag, value])
+        assert info.value.code == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"argument {flag}: {words}" in err, err
     args = parser.parse_args(["run", "--crsf", "pty", "--hc12", "loop://", "--http", "[::1]:0",
                               "--mavlink", "udp:[::1]:0", "--zenoh-listen", "tcp/[::1]:0"])
     assert (args.crsf, args.hc12.device, args.http.host, args.mavlink[0].kind) == (

@@ -318,6 +318,17 @@ def parse_address(text: str, *, default_host: str | None = DEFAULT_CONNECT_HOST,
                             "(IPv6 as [::1]:PORT)") from None
 
 
+def check_port(value: Any) -> None:
+    """A port key's value (0 to 65535; 0: the system picks), refused in the words an endpoint's
+    port is.  Raises :class:`EndpointError`."""
+    if not isinstance(value, int) or isinstance(value, bool):
+        raise EndpointError(f"port {value!r} is not a number")
+    try:
+        _port(str(value), 0)
+    except _Mistake as exc:
+        raise EndpointError(str(exc)) from None
+
+
 def check_host(value: Any) -> None:
     """A host key's value (no port): a host name, an IPv4 address or an IPv6 address, written
     without brackets since no port follows.  Raises :class:`EndpointError`."""
