@@ -179,6 +179,9 @@ def test_the_accepted_forms_are_named() -> None:
 def test_a_serial_key_with_its_own_baud_rate_refuses_one_in_the_url() -> None:
     check_serial_port("/dev/ttyUSB0")
     check_serial_port("socket://127.0.0.1:7777")
+    with pytest.raises(EndpointError, match=r"^'localhost:5760': not an endpoint; expected "
+                                            r"\[serial:\]DEVICE .*socket://HOST:PORT"):
+        check_serial_port("localhost:5760")
     with pytest.raises(EndpointError, match=r"^'/dev/ttyUSB0,9600': no ,BAUD here: the baud "
                                             r"rate has its own key; expected \[serial:\]DEVICE "):
         check_serial_port("/dev/ttyUSB0,9600")

@@ -291,6 +291,8 @@ def _parse(t: str, kinds: Collection[str], bare: str | None, listen_host: str,
         if sep and _WORD.fullmatch(head):
             raise _Mistake(f"unknown kind {head!r}") from None
         raise _Mistake("not an endpoint") from None
+    if not NETWORK & set(kinds):
+        raise _Mistake("not an endpoint")  # an address where only a serial port will do
     raise _Mistake("no kind given")
 
 
