@@ -22,8 +22,16 @@ IPv6 is written one way everywhere: in brackets, ``tcpin:[::1]:5760`` (a zone is
 IPv4 address (``300.1.1.1`` is refused here, not at start); anything else must be a host
 name (letters, digits, ``-``, ``_``, dots).  An empty HOST (``tcpin::5760``) is the default.
 
+A key that holds a host alone (``[backends.http] host``, :func:`check_host`) takes an IPv6
+address without brackets (no port follows it, so there is nothing to confuse).
+
 Every caller states which kinds it accepts; the same mistake gives the same words whoever
-calls (``port 'x' is not a number``), followed by the forms that caller accepts.  Standard
+calls, followed by the forms that caller accepts: ``empty endpoint``, ``unclosed '['``,
+``expected :PORT after ']'``, ``an IPv6 address needs brackets``, ``invalid IPv6 address``,
+``invalid IP address``, ``invalid host name``, ``no host``, ``no port``, ``port 'x' is not a
+number``, ``port N is out of range (L to 65535)``, ``unknown kind``, ``K is not allowed
+here``, ``no kind given``, ``not an endpoint``, ``no serial device``, ``baud rate 'x' is not a
+whole number ≥ 50``, ``no ,BAUD here``, ``unknown URL scheme``, ``S:// needs HOST:PORT``.  Standard
 library only (pyserial is imported to list its URL schemes when a URL is checked), so the
 ``run`` flags can use it without importing a backend.
 """
