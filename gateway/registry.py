@@ -15,6 +15,7 @@ entry there has its class's classmethods of the same names used instead (:func:`
 
 from __future__ import annotations
 
+import functools
 import importlib
 from importlib.metadata import entry_points
 from typing import Any
@@ -33,7 +34,15 @@ class RegistryError(LookupError):
 
 def names(group: str) -> dict[str, str]:
     """Every name installed in ``group`` → its ``module:attr`` target, sorted by name."""
-    return dict(sorted((ep.name, ep.value) for ep in entry_points(group=group)))
+    return dict(_installed(group))
+
+
+@functools.cache
+def _installed(group: str) -> tuple[tuple[str, str], ...]:
+    """``group``'s entry points, read once: scanning the installed distributions is slow
+    (every ``names`` call was a scan), and they do not change while the gateway runs.  A test
+    that installs a plug-in mid-run calls ``_installed.cache_clear()``."""
+    return tuple(sorted((ep.name, ep.value) for ep in entry_points(group=group)))
 
 
 def load(group: str, name: str) -> Any:

@@ -231,8 +231,8 @@ def test_load_of_a_valid_file_with_a_bad_value_names_the_key(tmp_path: Path) -> 
 def test_a_serial_url_with_a_scheme_pyserial_does_not_know_is_refused(url: str) -> None:
     message = config_error(f'[[sources]]\ntype = "serial"\nurl = "{url}"\n')
     scheme = url.split("://")[0]
-    assert message.startswith(f"sources[0].url: unknown URL scheme '{scheme}'"), message
-    for known in ("loop://", "socket://", "rfc2217://", "a device path"):
+    assert message.startswith(f"sources[0].url: '{url}': unknown URL scheme '{scheme}'"), message
+    for known in ("loop://", "socket://", "rfc2217://", "/dev/…"):
         assert known in message
 
 
@@ -241,7 +241,7 @@ def test_a_serial_url_with_a_scheme_pyserial_does_not_know_is_refused(url: str) 
 def test_a_socket_or_rfc2217_url_without_host_and_port_is_refused(url: str) -> None:
     """pyserial would fail every reopen of these the same way: retrying cannot help."""
     message = config_error(f'[[sources]]\ntype = "serial"\nurl = "{url}"\n')
-    assert message.startswith("sources[0].url: expected "), message
+    assert message.startswith(f"sources[0].url: {url!r}: "), message
     assert "://HOST:PORT" in message and repr(url) in message
 
 

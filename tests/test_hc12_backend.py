@@ -222,7 +222,7 @@ def test_config_table_is_validated_naming_the_key() -> None:
                             ("utilisation_pct", 120, "backends.hc12.utilisation_pct"),
                             ("speed", 1, "backends.hc12.speed: unknown key")]:
         with pytest.raises(ConfigError, match=re.escape(words)):
-            config.parse({"backends": {"hc12": {"url": "x", key: bad}}})
+            config.parse({"backends": {"hc12": {"url": "/dev/ttyUSB0", key: bad}}})
     with pytest.raises(ConfigError, match=re.escape("backends.hc12.url: required")):
         config.parse({"backends": {"hc12": {}}})
 

@@ -196,7 +196,7 @@ def test_config_and_mode_names() -> None:
     part = config.make_source("mavlink", {"url": "udpin:0.0.0.0:14551"}, None, "sources[0]")
     assert part.cls is MavlinkSource and part.options["sysid"] == 0  # automatic
     assert part.name == "mavlink:udpin:0.0.0.0:14551"
-    with pytest.raises(ValueError, match="not a MAVLink endpoint"):
+    with pytest.raises(ValueError, match="'bogus': not an endpoint; expected tcpin:"):
         MavlinkSource(url="bogus")
     custom = dev.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert classic_mode_name(dev.MAV_AUTOPILOT_ARDUPILOTMEGA, dev.MAV_TYPE_FIXED_WING, custom,

@@ -180,7 +180,9 @@ def plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     importlib.invalidate_caches()
+    registry._installed.cache_clear()  # the entry points are read once a run: read them again
     yield good, broken, missing
+    registry._installed.cache_clear()
     for mod in (f"{good}_mod", f"{broken}_mod"):
         sys.modules.pop(mod, None)
 

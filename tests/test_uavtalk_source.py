@@ -18,6 +18,7 @@ from backends.uavtalk.objects import ObjectSet
 from backends.uavtalk.source import UavtalkSource, parse_url
 from backends.uavtalk.telemetry import Status
 from gateway import config
+from gateway.config import ConfigError
 from gateway.model import Battery, Position, VehicleState
 from gateway.sources import parse_source_url
 
@@ -344,16 +345,22 @@ def test_objects_become_messages_and_a_bad_one_is_counted() -> None:
 
 
 def test_url_parsing_and_config() -> None:
-    assert parse_url("tcp:127.0.0.1:5760") == ("tcp", 5760, "127.0.0.1")
-    assert parse_url("/dev/ttyACM0,115200") == ("serial", 115200, "/dev/ttyACM0")
-    assert parse_url("loop://") == ("serial", 0, "loop://")
-    assert parse_url("serial:/dev/ttyUSB1,57600") == ("serial", 57600, "/dev/ttyUSB1")
-    for bad in ("tcp:host", "tcp::5760", "tcp:h:99999", "/dev/x,fast", "nosuch://x", ""):
+    def fields(url: str) -> tuple[str, int, str]:
+        e = parse_url(url)
+        return e.kind, e.port or e.baudrate, e.host or e.device
+
+    assert fields("tcp:127.0.0.1:5760") == ("tcp", 5760, "127.0.0.1")
+    assert fields("/dev/ttyACM0,115200") == ("serial", 115200, "/dev/ttyACM0")
+    assert fields("loop://") == ("serial", 0, "loop://")
+    assert fields("serial:/dev/ttyUSB1,57600") == ("serial", 57600, "/dev/ttyUSB1")
+    assert fields("tcp::5760") == ("tcp", 5760, "127.0.0.1")  # no HOST: the grammar's default
+    for bad in ("tcp:host", "tcp:h:99999", "/dev/x,fast", "nosuch://x", ""):
         with pytest.raises(ValueError):
             parse_url(bad)
     assert parse_source_url("uavtalk:tcp:h:1") == ("uavtalk", {"url": "tcp:h:1"})
-    with pytest.raises(ValueError):
-        parse_source_url("uavtalk:")
+    kind, opts = parse_source_url("uavtalk:")  # the url key refuses the empty endpoint
+    with pytest.raises(ConfigError, match=r"--source\[0\]\.url: empty endpoint; expected tcp:"):
+        config.make_source(kind, opts, None, "--source[0]")
     opts = UavtalkSource.CONFIG.validate({"url": "/dev/ttyUSB0,57600"}, "sources[0]")
     assert opts["rate_hz"] == 10.0
     src = UavtalkSource(**opts)

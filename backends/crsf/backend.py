@@ -71,6 +71,7 @@ from backends.crsf.scheduler import CHANGE_RING_DEPTH, Scheduler
 from gateway import model
 from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import check_serial_port
 from gateway.io.ioloop import Timer
 from gateway.io.port import PortEngine
 from gateway.io.transport import open_serial
@@ -111,8 +112,8 @@ def _check_suffix(text: str) -> None:
 
 
 def _check_url(url: str) -> None:
-    if not url:
-        raise ValueError("expected a serial port, a pyserial URL or 'pty'")
+    if url != PTY_URL:
+        check_serial_port(url)
 
 
 class CrsfBackend(Backend):

@@ -39,6 +39,7 @@ from backends.foxglove.flags import DEFAULT_HOST, DEFAULT_PORT
 from gateway.attitude import quaternion_xyzw
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import check_host
 from gateway.model import LinkStats, Position, SmUpdate, Status
 
 log = logging.getLogger(__name__)
@@ -144,7 +145,7 @@ class FoxgloveBackend(Backend):
     NAME = "foxglove"
     CONFIG = Schema(
         host=Key(str, DEFAULT_HOST, "address to listen on (loopback by default; 0.0.0.0 for "
-                 "the field network)"),
+                 "the field network)", validator=check_host),
         port=Key(int, DEFAULT_PORT, "TCP port of the WebSocket server (0: any free port)",
                  minimum=0, maximum=65535),
         queue_depth=Key(int, 1024, "updates waiting for the worker before new ones are dropped",

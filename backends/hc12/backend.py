@@ -41,6 +41,7 @@ from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import check_serial_port
 from gateway.io.port import PortEngine, PortNotReady
 from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
 from gateway.wire import encode
@@ -50,18 +51,13 @@ log = logging.getLogger(__name__)
 MODES = ("relay", "generate")
 
 
-def _require_port(url: str) -> None:
-    if not url:
-        raise ValueError("the HC-12's port is required")
-
-
 class Hc12Backend(Backend):
     """Drives an HC-12 433 MHz UART radio (see the module docstring)."""
 
     NAME = "hc12"
     CONFIG = Schema(
         url=Key(str, help="the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
-                "rfc2217://host:port", validator=_require_port),
+                "rfc2217://host:port", validator=check_serial_port),
         baudrate=Key(int, 9600, "host UART rate; must equal the module's (AT+B)",
                      choices=at.BAUD_RATES),
         mode=Key(str, "relay", "relay: pass frames on byte-identical; generate: encode "

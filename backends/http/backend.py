@@ -45,6 +45,7 @@ from typing import Any, ClassVar
 
 from gateway.backend import STATS_KEYS, Backend, BackendError, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import check_host
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -70,7 +71,8 @@ class HttpBackend(Backend):
 
     NAME = "http"
     CONFIG = Schema(
-        host=Key(str, DEFAULT_HOST, "address to listen on (0.0.0.0: every interface)"),
+        host=Key(str, DEFAULT_HOST, "address to listen on (0.0.0.0: every interface)",
+                 validator=check_host),
         port=Key(int, DEFAULT_PORT, "TCP port (0: any free port)", minimum=0, maximum=65535),
         max_clients=Key(int, 16, "event streams (/events) served at once; more get 503",
                         minimum=1, maximum=256),

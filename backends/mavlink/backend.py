@@ -17,6 +17,7 @@ from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import KINDS, list_validator
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import (
     Battery,
@@ -39,12 +40,12 @@ POLL_S = 0.02
 CLAIM_GRACE_S = 1.5
 
 
+_CHECK_ENDPOINTS = list_validator(KINDS)
+
+
 def check_endpoints(endpoints: Any) -> list[EndpointSpec]:
-    """The parsed endpoints; ValueError naming the first bad one."""
-    if not endpoints:
-        raise ValueError("give at least one MAVLink endpoint")
-    if not isinstance(endpoints, list | tuple) or not all(isinstance(e, str) for e in endpoints):
-        raise ValueError(f"expected a list of strings, got {endpoints!r}")
+    """The parsed endpoints (at least one); EndpointError naming the first bad one."""
+    _CHECK_ENDPOINTS(endpoints)
     return [parse_endpoint(e) for e in endpoints]
 
 

@@ -1,16 +1,19 @@
 """MAVLink endpoints in the vocabulary MAVLink users know, each a :class:`~.router.Link`.
 
 ==========================  ==============================================================
-``udpout:HOST:PORT``        send to HOST:PORT (QGroundControl listens on 14550); replies to
+``udpout:[HOST:]PORT``      send to HOST:PORT (QGroundControl listens on 14550); replies to
                             our socket are received and routed
-``udpin:HOST:PORT``         listen on HOST:PORT (``udp:`` is the same, as in MAVProxy);
+``udpin:[HOST:]PORT``       listen on HOST:PORT (``udp:`` is the same, as in MAVProxy);
                             send to every peer that has sent to us (the last 16)
-``tcpin:HOST:PORT``         TCP server; every client is a link of its own
-``tcp:HOST:PORT``           TCP client, reconnecting with backoff
+``tcpin:[HOST:]PORT``       TCP server; every client is a link of its own
+``tcp:[HOST:]PORT``         TCP client, reconnecting with backoff
 ``serial:DEVICE[,BAUD]``    a serial port or telemetry radio (default 57600 baud); also a
                             bare ``/dev/…``/``COMn`` or a pyserial URL (``socket://…``,
                             ``rfc2217://…``, ``loop://``), with an optional ``,BAUD``
 ==========================  ==============================================================
+
+The grammar (a HOST left out, IPv6 as ``[::1]:PORT``, the error texts) is
+:mod:`gateway.io.endpoints`'s, the same for every backend and source.
 
 Every port belongs to a :class:`gateway.io.port.PortEngine`, and all the engines of one router
 share one :class:`gateway.io.ioloop.IoLoop` (one thread, passed to :meth:`Endpoint.start`).  A
@@ -29,12 +32,14 @@ be bound fails the start at once, with the endpoint's name in the message.
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any
 
 from backends.mavlink.frames import StreamFramer
 from backends.mavlink.router import Link, Router
+from gateway.io.endpoints import KINDS, usage
+from gateway.io.endpoints import Endpoint as EndpointSpec
+from gateway.io.endpoints import parse_endpoint as _parse
 from gateway.io.ioloop import IoLoop
 from gateway.io.port import PortEngine, PortServer
 from gateway.io.transport import (
@@ -56,73 +61,13 @@ DEFAULT_SERIAL_BAUD = 57600
 DEFAULT_QUEUE_DEPTH = 256
 START_WAIT_S = 2.0  # for the engine to take a socket opened in start()
 CLOSE_TIMEOUT_S = 0.5
-_COM = re.compile(r"^COM\d+$", re.IGNORECASE)
-
-KINDS = ("udpout", "udpin", "tcpin", "tcp", "serial")
-USAGE = ("use udpout:HOST:PORT, udpin:HOST:PORT, tcpin:HOST:PORT, tcp:HOST:PORT or "
-         "serial:DEVICE[,BAUD]")
-
-
-class EndpointSpec(NamedTuple):
-    kind: str
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baudrate: int = 0
-    text: str = ""
-
-
-def _host_port(rest: str, text: str, kind: str) -> tuple[str, int]:
-    host, sep, port_s = rest.rpartition(":")
-    if not sep:
-        raise ValueError(f"{text!r}: expected {kind}:HOST:PORT")
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    if not host:
-        host = "0.0.0.0" if kind in ("udpin", "tcpin") else "127.0.0.1"
-    try:
-        port = int(port_s)
-    except ValueError:
-        raise ValueError(f"{text!r}: port {port_s!r} is not a number") from None
-    lowest = 0 if kind in ("udpin", "tcpin") else 1  # 0: let the system pick (tests)
-    if not lowest <= port <= 65535:
-        raise ValueError(f"{text!r}: port must be {lowest}..65535")
-    return host, port
-
-
-def _device_baud(rest: str, text: str) -> tuple[str, int]:
-    device, sep, baud_s = rest.rpartition(",")
-    if not sep:
-        return rest, DEFAULT_SERIAL_BAUD
-    try:
-        baud = int(baud_s)
-    except ValueError:
-        raise ValueError(f"{text!r}: baud rate {baud_s!r} is not a number") from None
-    if baud < 50:
-        raise ValueError(f"{text!r}: baud rate must be at least 50")
-    return device, baud
+USAGE = usage(KINDS)
 
 
 def parse_endpoint(text: str) -> EndpointSpec:
-    """Parse an endpoint string; raises ValueError naming it and the accepted forms."""
-    t = text.strip()
-    if not t:
-        raise ValueError(f"empty MAVLink endpoint; {USAGE}")
-    scheme, sep, rest = t.partition(":")
-    s = scheme.lower()
-    if sep and s in ("udpout", "udpin", "udp", "tcpin", "tcp") and not rest.startswith("//"):
-        kind = "udpin" if s == "udp" else s
-        host, port = _host_port(rest, t, kind)
-        return EndpointSpec(kind, host, port, text=t)
-    if sep and s == "serial":
-        device, baud = _device_baud(rest, t)
-    elif t.startswith("/dev/") or _COM.match(t.partition(",")[0]) or "://" in t:
-        device, baud = _device_baud(t, t)
-    else:
-        raise ValueError(f"{text!r}: not a MAVLink endpoint; {USAGE}")
-    if not device:
-        raise ValueError(f"{text!r}: no serial device; {USAGE}")
-    return EndpointSpec("serial", device=device, baudrate=baud, text=t)
+    """Parse a MAVLink endpoint (every kind of :mod:`gateway.io.endpoints`, ``udp:`` as
+    ``udpin:``); raises its EndpointError naming the mistake and the accepted forms."""
+    return _parse(text, KINDS, default_baud=DEFAULT_SERIAL_BAUD)
 
 
 def _add_ints(total: dict[str, Any], more: dict[str, Any]) -> None:

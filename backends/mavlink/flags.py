@@ -1,21 +1,27 @@
 """``aurora-gateway run``'s MAVLink flags, apart from the backend so that building the parser
 imports neither pymavlink nor the dialect (found through the ``aurora_gateway.backend_flags``
-entry point; see :mod:`gateway.registry`).  Imports nothing but the standard library."""
+entry point; see :mod:`gateway.registry`).  Imports nothing but the standard library and the
+endpoint grammar (:mod:`gateway.io.endpoints`)."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
+from gateway.io.endpoints import KINDS, argument
+
 #: The default endpoint: QGroundControl on this machine (the backend's ``QGC_UDP``).
 QGC_UDP = "udpout:127.0.0.1:14550"
+#: ``--mavlink ENDPOINT``, checked as the flag is read (every kind; a serial port's default
+#: baud rate is the backend's, 57600).
+ENDPOINT = argument(KINDS)
 
 
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--mavlink", action="append", metavar="ENDPOINT",
+    parser.add_argument("--mavlink", action="append", type=ENDPOINT, metavar="ENDPOINT",
                         help="MAVLink endpoint (repeatable; replaces the configured ones): "
                              "udpout:HOST:PORT, udpin:HOST:PORT, tcpin:HOST:PORT, "
-                             "tcp:HOST:PORT, serial:DEVICE[,BAUD] "
+                             "tcp:HOST:PORT (IPv6 as [::1]:PORT), serial:DEVICE[,BAUD] "
                              f"(default {QGC_UDP}, QGroundControl on this machine); "
                              "with --source mavlink:ENDPOINT, the vehicle is routed to and "
                              "from them, as by mavlink-router")
@@ -31,7 +37,7 @@ def cli_options(args: argparse.Namespace) -> dict[str, Any] | None:
     """The ``[backends.mavlink]`` options the flags set; None when none was given."""
     opts: dict[str, Any] = {}
     if getattr(args, "mavlink", None):
-        opts["endpoints"] = list(args.mavlink)
+        opts["endpoints"] = [e.text for e in args.mavlink]
     if getattr(args, "mavlink_sysid", None) is not None:
         opts["sysid"] = args.mavlink_sysid
     if getattr(args, "mavlink_signing_key", None):

@@ -305,9 +305,10 @@ class MavlinkSource(Source):
     NAME = "mavlink"
     CONFIG = Schema(
         url=Key(str, help="the vehicle's endpoint: udpin:0.0.0.0:14551, "
-                "serial:/dev/ttyACM0,115200, tcp:HOST:5760 …"),
+                "serial:/dev/ttyACM0,115200, tcp:HOST:5760 …", validator=parse_endpoint),
         endpoints=Key(list, [], "more endpoints routed to and from the vehicle (a ground "
-                      "station sharing the link)"),
+                      "station sharing the link)",
+                      validator=lambda v: [parse_endpoint(e) for e in v]),
         sysid=Key(int, 0, "our system id towards the vehicle; 0 = automatic: 250, or the "
                   "next lower one nobody on the links uses", minimum=0, maximum=254),
         compid=Key(int, MAV_COMP_ID_ONBOARD_COMPUTER, "our component id", minimum=1,

@@ -34,11 +34,11 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.links import (
     USAGE,
     LinkSet,
-    StreamEndpoint,
     endpoints_validator,
     parse_stream_endpoint,
 )
@@ -60,8 +60,8 @@ _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
 
-def parse_endpoint(text: str) -> StreamEndpoint:
-    """Parse one endpoint (see :mod:`gateway.io.links`); raises ValueError naming it."""
+def parse_endpoint(text: str) -> Endpoint:
+    """Parse one endpoint (:mod:`gateway.io.endpoints`); raises its EndpointError."""
     return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
 
 

@@ -36,11 +36,12 @@ from typing import Any
 
 from gateway.config import Key, Schema
 from gateway.io.backoff import Backoff
+from gateway.io.endpoints import SERIAL, TCP, Endpoint, parse_endpoint, validator
 from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.io.transport import open_serial, open_tcp_client
 from gateway.model import Battery, Position, VehicleState
 from gateway.outcome import Outcome
-from gateway.sources import Sink, Source, check_serial_url
+from gateway.sources import Sink, Source
 
 from .codec import Decoder
 from .objects import ObjectSet
@@ -56,27 +57,14 @@ ARMED = 2  # FlightStatus.Armed: Disarmed, Arming, Armed
 MIN_FIX = 2  # GPSPositionSensor.Status: NoGPS, NoFix, Fix2D, Fix3D
 
 
-def parse_url(url: str) -> tuple[str, int, str]:
-    """``tcp:HOST:PORT`` → ("tcp", PORT, HOST); ``[serial:]DEVICE[,BAUD]`` → ("serial",
-    BAUD or 0, DEVICE).  ValueError naming what is wrong."""
-    if url.startswith("tcp:"):
-        host, sep, port = url[len("tcp:"):].rpartition(":")
-        host = host.strip("[]")
-        if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
-            raise ValueError(f"expected tcp:HOST:PORT, got {url!r}")
-        return "tcp", int(port), host
-    target = url[len("serial:"):] if url.startswith("serial:") else url
-    device, sep, baud = target.rpartition(",") if "," in target else (target, "", "")
-    if not device:
-        raise ValueError("expected tcp:HOST:PORT or a serial device/URL[,BAUD], got an empty one")
-    if sep and (not baud.isdigit() or int(baud) < 50):
-        raise ValueError(f"bad baud rate {baud!r} in {url!r}")
-    check_serial_url(device)
-    return "serial", int(baud) if sep else 0, device
+#: What the flight controller may be reached by (the grammar: :mod:`gateway.io.endpoints`).
+URL_KINDS = (TCP, SERIAL)
 
 
-def _check_url(url: str) -> None:
-    parse_url(url)
+def parse_url(url: str) -> Endpoint:
+    """``tcp:[HOST:]PORT`` or ``[serial:]DEVICE[,BAUD]`` (baudrate 0: none given); raises
+    :class:`~gateway.io.endpoints.EndpointError` naming the mistake."""
+    return parse_endpoint(url, URL_KINDS)
 
 
 class _Gate:
@@ -101,7 +89,7 @@ class UavtalkSource(Source):
     NAME = "uavtalk"
     CONFIG = Schema(
         url=Key(str, help="the flight controller: tcp:HOST:PORT, or a serial device / pyserial "
-                "URL with an optional ,BAUD (/dev/ttyACM0,57600)", validator=_check_url),
+                "URL with an optional ,BAUD (/dev/ttyACM0,57600)", validator=validator(URL_KINDS)),
         baudrate=Key(int, DEFAULT_BAUD, "serial speed when the url gives none", minimum=50),
         rate_hz=Key(float, 10.0, "most vehicle-state and position messages per second",
                     minimum=0.1, maximum=1000),
@@ -119,9 +107,11 @@ class UavtalkSource(Source):
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name or f"uavtalk:{url}")
         self.url = url
-        self.kind, port_or_baud, self.device = parse_url(url)
-        self.port_number = port_or_baud if self.kind == "tcp" else 0
-        self.baudrate = (port_or_baud or baudrate) if self.kind == "serial" else baudrate
+        spec = parse_url(url)
+        self.kind = spec.kind
+        self.host, self.port_number = spec.host, spec.port
+        self.device = spec.device
+        self.baudrate = spec.baudrate or baudrate
         self.rate_hz = rate_hz
         self.objects = objects or ObjectSet.load()
         self.clock = clock
@@ -153,7 +143,7 @@ class UavtalkSource(Source):
 
     def _open(self) -> Any:
         if self.kind == "tcp":
-            return open_tcp_client(self.device, self.port_number)
+            return open_tcp_client(self.host, self.port_number)
         return open_serial(self.device, self.baudrate, timeout=0)
 
     # -- the engine's protocol (its thread) -----------------------------------------------------

@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, Outcome, Routes
 from gateway.config import Key, Schema
+from gateway.io.endpoints import check_serial_port
 from gateway.model import SmUpdate, Status
 
 from .link import AirLink, RcCommand, Send
@@ -33,7 +34,7 @@ class XbeeBackend(Backend):
     NAME = "xbee"
     CONFIG = Schema(
         url=Key(str, help="the XBee module: a serial device or pyserial URL "
-                "(socket://HOST:PORT)"),
+                "(socket://HOST:PORT)", validator=check_serial_port),
         baudrate=Key(int, DEFAULT_BAUD, "the module's UART rate (its BD)", minimum=50),
         api_mode=Key(int, 1, "the module's API mode (AP): 1, or 2 (escaped)", choices=(1, 2)),
         dest=Key(str, "", "64-bit destination in hex; empty: broadcast",

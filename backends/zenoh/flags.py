@@ -1,6 +1,7 @@
 """``aurora-gateway run``'s Zenoh flags, apart from the backend so that building the parser
 imports neither the backend nor Zenoh (the ``aurora_gateway.backend_flags`` entry point; see
-:mod:`gateway.registry`).  Imports only :mod:`backends.zenoh.keys` (standard library)."""
+:mod:`gateway.registry`).  Imports only :mod:`backends.zenoh.keys` and
+:mod:`backends.zenoh.session` (no Zenoh: the locator check)."""
 
 from __future__ import annotations
 
@@ -8,17 +9,27 @@ import argparse
 from typing import Any
 
 from backends.zenoh.keys import DEFAULT_PREFIX, DEFAULT_VEHICLE
+from backends.zenoh.session import check_locator
 
 #: Zenoh's session modes (``backends.zenoh.session.MODES``).
 MODES = ("peer", "client", "router")
 
 
+def _locator(text: str) -> str:
+    """``--zenoh-connect``/``--zenoh-listen``: a Zenoh locator, checked as the flag is read."""
+    try:
+        check_locator(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def add_cli_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("zenoh backend")
-    g.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT",
+    g.add_argument("--zenoh-connect", action="append", type=_locator, metavar="ENDPOINT",
                    help="connect to this Zenoh router or peer, e.g. tcp/10.0.0.5:7447 "
                         "(repeatable; then nothing listens unless --zenoh-listen)")
-    g.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT",
+    g.add_argument("--zenoh-listen", action="append", type=_locator, metavar="ENDPOINT",
                    help="listen on this endpoint (repeatable; default tcp/127.0.0.1:7450)")
     g.add_argument("--zenoh-mode", choices=MODES, help="Zenoh mode (default peer)")
     g.add_argument("--zenoh-vehicle", metavar="ID",

@@ -21,21 +21,48 @@ from typing import Any
 
 from backends.zenoh.keys import DEFAULT_ENDPOINT
 from gateway.config import ConfigError, Key
+from gateway.io.endpoints import EndpointError, parse_address
 
 log = logging.getLogger(__name__)
 
 MODES = ("peer", "client", "router")
 PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
              "vsock")
+#: The protocols whose address is HOST:PORT (IPv6 as [::1]:PORT, as Zenoh writes it).
+HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 RETRY_INIT_MS = 100
+
+def check_locator(text: str) -> None:
+    """A Zenoh locator, ``<protocol>/<address>`` (Zenoh's own grammar); for tcp, udp, tls,
+    quic and ws the address is HOST:PORT as :mod:`gateway.io.endpoints` reads it (IPv6 as
+    ``[::1]:7447``).  ValueError saying what is wrong."""
+    proto, slash, addr = text.partition("/")
+    if not slash or not addr:
+        raise ValueError(f"{text!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {proto!r}; one of {', '.join(PROTOCOLS)}")
+    if proto in HOST_PORT_PROTOCOLS:
+        try:  # what follows ? or # is Zenoh's metadata and configuration
+            parse_address(re.split(r"[?#]", addr, maxsplit=1)[0], default_host=None)
+        except EndpointError as exc:
+            raise ValueError(f"{text!r}: {exc}") from None
+
+
+def check_locators(value: Any) -> None:
+    """A ``connect``/``listen`` key's value: every locator checked (:func:`check_locator`)."""
+    for item in [value] if isinstance(value, str) else value:
+        if not isinstance(item, str):
+            raise ValueError(f"{item!r} is not a string")
+        check_locator(item)
+
 
 #: The session keys, shared by every Schema in this package.  ``None`` = not given.
 SESSION_KEYS: dict[str, Key] = {
     "mode": Key(str, None, "Zenoh mode", choices=MODES, nullable=True),
     "connect": Key((list, str), None, "endpoints to connect to, e.g. "
-                   "['tcp/192.168.1.10:7447']", nullable=True),
+                   "['tcp/192.168.1.10:7447']", nullable=True, validator=check_locators),
     "listen": Key((list, str), None, f"endpoints to listen on (default {DEFAULT_ENDPOINT}, or none "
-                  "when connect is given)", nullable=True),
+                  "when connect is given)", nullable=True, validator=check_locators),
     "multicast_scouting": Key(bool, None, "find peers and routers by UDP multicast (default "
                               "off)", nullable=True),
     "tls_root_ca": Key(str, "", "CA certificate (PEM) that signs the peers' certificates"),
@@ -70,13 +97,10 @@ def check_endpoints(value: Any, key: str) -> list[str]:
     for i, ep in enumerate(value):
         if not isinstance(ep, str):
             raise ConfigError(f"{key}[{i}]: expected a string, got {ep!r}")
-        proto, slash, addr = ep.partition("/")
-        if not slash or not addr:
-            raise ConfigError(f"{key}[{i}]: {ep!r} is not <protocol>/<address>, e.g. "
-                              "tcp/127.0.0.1:7447")
-        if proto not in PROTOCOLS:
-            raise ConfigError(f"{key}[{i}]: unknown protocol {proto!r}; one of "
-                              f"{', '.join(PROTOCOLS)}")
+        try:
+            check_locator(ep)
+        except ValueError as exc:
+            raise ConfigError(f"{key}[{i}]: {exc}") from None
         out.append(ep)
     return out
 

@@ -83,7 +83,8 @@ class ZenohSource(Source):
 
     NAME = "zenoh"
     CONFIG = Schema(
-        url=Key(str, "", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)"),
+        url=Key(str, "", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)",
+                validator=lambda v: parse_url(v) if v else None),
         prefix=Key(str, DEFAULT_PREFIX, "key prefix of the publishing gateways"),
         vehicle=Key(str, "*", "vehicle to follow; '*' = every vehicle (their messages are "
                     "merged: use one source per vehicle to keep them apart)"),
@@ -97,6 +98,11 @@ class ZenohSource(Source):
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return options.get("url") or URL_SCHEME
+
+    @classmethod
+    def url_options(cls, rest: str | None) -> dict[str, Any]:
+        """``--source zenoh[:VEHICLE@ENDPOINT,…]``: the url key keeps the whole text."""
+        return {} if rest is None else {"url": f"{URL_SCHEME}:{rest}"}
 
     def __init__(self, name: str | None = None, *, url: str = "",
                  prefix: str = DEFAULT_PREFIX, vehicle: str = "*", keys: str = "raw",

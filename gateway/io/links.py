@@ -2,12 +2,14 @@
 one endpoint syntax and one set of links on one :class:`~gateway.io.ioloop.IoLoop`.
 
 ==========================  ==============================================================
-``tcpin:HOST:PORT``         a TCP server (the ground tool connects as a client); every
+``tcpin:[HOST:]PORT``       a TCP server (the ground tool connects as a client); every
                             accepted client is a link of its own, with its own engine
-``tcp:HOST:PORT``           a TCP client, reconnected with backoff
+``tcp:[HOST:]PORT``         a TCP client, reconnected with backoff
 ``serial:DEVICE[,BAUD]``    a serial port or radio; also a bare ``/dev/…`` / ``COMn`` or a
                             pyserial URL (``socket://…``, ``loop://``)
 ==========================  ==============================================================
+
+The grammar (IPv6 in brackets, the error texts) is :mod:`gateway.io.endpoints`.
 
 A link is the backend's own object (its engine's protocol: ``feed(data)`` returns events,
 optionally ``flush()``; ``on_link(up)`` is called when a stream's port goes up or down) with an
@@ -19,11 +21,19 @@ its counters.
 from __future__ import annotations
 
 import logging
-import re
 import threading
 from collections.abc import Callable
-from typing import Any, Generic, NamedTuple, Protocol, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
+from gateway.io.endpoints import (
+    SERIAL,
+    TCP,
+    TCPIN,
+    Endpoint,
+    list_validator,
+    parse_endpoint,
+    usage,
+)
 from gateway.io.ioloop import IoLoop
 from gateway.io.port import PortEngine, PortServer
 from gateway.io.transport import (
@@ -36,69 +46,20 @@ from gateway.io.transport import (
 log = logging.getLogger(__name__)
 
 CLOSE_TIMEOUT_S = 0.5
+#: The kinds of endpoint a link set serves (the grammar: :mod:`gateway.io.endpoints`).
+STREAM_KINDS = (TCPIN, TCP, SERIAL)
 #: The accepted forms, for error messages.
-USAGE = "use tcpin:HOST:PORT, tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL"
-_COM = re.compile(r"^COM\d+$", re.IGNORECASE)
+USAGE = usage(STREAM_KINDS)
 
 
-class StreamEndpoint(NamedTuple):
-    kind: str  # tcpin | tcp | serial
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baudrate: int = 0
-    text: str = ""
+def parse_stream_endpoint(text: str, *, default_baud: int) -> Endpoint:
+    """One ``tcpin:``/``tcp:``/serial endpoint; raises ``EndpointError``."""
+    return parse_endpoint(text, STREAM_KINDS, default_baud=default_baud)
 
 
-def parse_stream_endpoint(text: str, *, default_baud: int, usage: str = USAGE) -> StreamEndpoint:
-    """Parse one endpoint; raises ValueError naming it and ``usage`` (the accepted forms)."""
-    t = text.strip()
-    scheme, sep, rest = t.partition(":")
-    kind = scheme.lower()
-    if sep and kind in ("tcpin", "tcp") and not rest.startswith("//"):
-        host, sep2, port_s = rest.rpartition(":")
-        if not sep2:
-            raise ValueError(f"{text!r}: expected {kind}:HOST:PORT")
-        host = host.strip("[]") or ("0.0.0.0" if kind == "tcpin" else "127.0.0.1")
-        try:
-            port = int(port_s)
-        except ValueError:
-            raise ValueError(f"{text!r}: port {port_s!r} is not a number") from None
-        lowest = 0 if kind == "tcpin" else 1  # 0: the system picks (tests)
-        if not lowest <= port <= 65535:
-            raise ValueError(f"{text!r}: port must be {lowest}..65535")
-        return StreamEndpoint(kind, host, port, text=t)
-    if sep and kind == "serial":
-        t_dev = rest
-    elif t.startswith("/dev/") or _COM.match(t.partition(",")[0]) or "://" in t:
-        t_dev = t
-    else:
-        raise ValueError(f"{text!r}: not an endpoint; {usage}")
-    device, sep3, baud_s = t_dev.rpartition(",")
-    if not sep3:
-        device, baud_s = t_dev, str(default_baud)
-    try:
-        baud = int(baud_s)
-    except ValueError:
-        raise ValueError(f"{text!r}: baud rate {baud_s!r} is not a number") from None
-    if not device or baud < 50:
-        raise ValueError(f"{text!r}: a device and a baud rate ≥ 50 are needed; {usage}")
-    return StreamEndpoint("serial", device=device, baudrate=baud, text=t)
-
-
-def endpoints_validator(default_baud: int,
-                        usage: str = USAGE) -> Callable[[list[Any]], None]:
-    """A config validator for a list of endpoints (at least one)."""
-
-    def check(value: list[Any]) -> None:
-        if not value:
-            raise ValueError(f"at least one endpoint is needed; {usage}")
-        for item in value:
-            if not isinstance(item, str):
-                raise ValueError(f"{item!r} is not a string; {usage}")
-            parse_stream_endpoint(item, default_baud=default_baud, usage=usage)
-
-    return check
+def endpoints_validator(default_baud: int) -> Callable[[Any], None]:
+    """A config validator for a list of stream endpoints (at least one)."""
+    return list_validator(STREAM_KINDS, default_baud=default_baud)
 
 
 class StreamLink(Protocol):
@@ -115,8 +76,8 @@ class LinkSet(Generic[L]):
     """The links of ``specs``: listeners bound by :meth:`bind` (so a busy port refuses the
     start), everything served from :meth:`start` on ``loop`` (already running)."""
 
-    def __init__(self, name: str, specs: list[StreamEndpoint], *, loop: IoLoop,
-                 new_link: Callable[[str, StreamEndpoint], L], queue_depth: int,
+    def __init__(self, name: str, specs: list[Endpoint], *, loop: IoLoop,
+                 new_link: Callable[[str, Endpoint], L], queue_depth: int,
                  on_closed: Callable[[L], Any] | None = None,
                  label: str = "client") -> None:
         self.name = name
@@ -127,9 +88,9 @@ class LinkSet(Generic[L]):
         self.on_closed = on_closed
         self.label = label
         self.links: list[L] = []  # mutated on the loop thread only; read anywhere as a copy
-        self.servers: list[tuple[StreamEndpoint, PortServer]] = []
+        self.servers: list[tuple[Endpoint, PortServer]] = []
         self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
-        self._listeners: list[tuple[StreamEndpoint, Any]] = []
+        self._listeners: list[tuple[Endpoint, Any]] = []
         self._running = False
 
     def bind(self) -> None:
@@ -161,7 +122,7 @@ class LinkSet(Generic[L]):
             return next(iter(self.addresses.values()), None)
         return self.addresses.get(endpoint)
 
-    def _serve(self, spec: StreamEndpoint, first: Any) -> None:
+    def _serve(self, spec: Endpoint, first: Any) -> None:
         pending = [first]
         address = self.addresses[spec.text]
 
@@ -173,7 +134,7 @@ class LinkSet(Generic[L]):
         self.servers.append((spec, server))
         server.start()
 
-    def _on_client(self, spec: StreamEndpoint, sock: Any, addr: Any) -> None:  # loop thread
+    def _on_client(self, spec: Endpoint, sock: Any, addr: Any) -> None:  # loop thread
         name = f"{spec.text}<{addr[0]}:{addr[1]}>"
         if not self._running:
             sock.close()
@@ -203,7 +164,7 @@ class LinkSet(Generic[L]):
             self.on_closed(link)
         log.info("%s: %s left", self.name, link.name)
 
-    def _stream(self, spec: StreamEndpoint) -> None:
+    def _stream(self, spec: Endpoint) -> None:
         link = self.new_link(spec.text, spec)
 
         def opener() -> Any:

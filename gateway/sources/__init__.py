@@ -24,15 +24,14 @@ it is given is set) and hands messages to :meth:`Source.emit`; a source on a
 
 from __future__ import annotations
 
-import importlib
 import logging
-import pkgutil
 import threading
 from collections.abc import Callable
 from typing import Any, ClassVar
-from urllib.parse import urlsplit
 
+from gateway import registry
 from gateway.backend import Backend, GatewayContext, Routes
+from gateway.io.endpoints import check_serial_port, is_device
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +56,12 @@ class Source:
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:
         """An instance from options the class's ``CONFIG`` has already validated."""
         return cls(name=name, **options)
+
+    @classmethod
+    def url_options(cls, rest: str | None) -> dict[str, Any]:
+        """The options of ``--source NAME:REST`` (``rest`` None: the name alone), for the
+        ``CONFIG`` to check: by default REST is the ``url`` key."""
+        return {} if rest is None else {"url": rest}
 
     def routes(self) -> Routes:
         """Gateway messages this source takes (none by default): a source that also sends
@@ -123,92 +128,40 @@ class Source:
         return {}
 
 
-def serial_url_schemes() -> list[str]:
-    """The URL schemes pyserial's ``serial_for_url`` has a handler module for."""
-    import serial
-
-    found: set[str] = set()
-    for package in serial.protocol_handler_packages:
-        try:
-            path = importlib.import_module(package).__path__
-        except (ImportError, AttributeError):
-            continue
-        found.update(m.name[len("protocol_"):] for m in pkgutil.iter_modules(path)
-                     if m.name.startswith("protocol_"))
-    return sorted(found)
+def check_serial_url(url: Any) -> None:
+    """A serial port key's value: a device path (``/dev/…``, ``COMn``, any absolute path; not
+    checked for existence: it may appear later, and the source retries it) or a pyserial URL
+    of a scheme pyserial has a handler for (``socket://`` and ``rfc2217://`` with HOST:PORT).
+    The baud rate has its own key.  Raises :class:`~gateway.io.endpoints.EndpointError`."""
+    check_serial_port(url)
 
 
-_HOST_PORT_SCHEMES = ("socket", "rfc2217")
-
-
-def _check_host_port(url: str, scheme: str) -> None:
-    """``socket://`` and ``rfc2217://`` need HOST:PORT, or every reopen fails the same way."""
-    parts = urlsplit(url)
-    try:
-        port = parts.port
-    except ValueError:
-        port = None
-    if not parts.hostname or port is None:
-        raise ValueError(f"expected {scheme}://HOST:PORT, got {url!r}")
-
-
-def check_serial_url(url: str) -> None:
-    """ValueError unless ``url`` is a device path or has a scheme pyserial handles, looked up
-    the way ``serial.serial_for_url`` does (and, for ``socket://`` and ``rfc2217://``, unless
-    it names HOST:PORT).  A device path is not checked: it may appear later (hot-plug), and
-    the source retries it."""
-    if "://" not in url:
-        return
-    scheme = url.split("://", 1)[0].lower()
-    import serial
-
-    for package in serial.protocol_handler_packages:
-        try:
-            importlib.import_module(package)
-            importlib.import_module(f".protocol_{scheme}", package)
-        except ImportError:
-            continue
-        if scheme in _HOST_PORT_SCHEMES:
-            _check_host_port(url, scheme)
-        return
-    raise ValueError(f"unknown URL scheme {scheme!r}; known: "
-                     f"{', '.join(s + '://' for s in serial_url_schemes())} or a device path")
+def _url_forms(names: list[str]) -> str:
+    return (f"NAME[:…] for a source ({', '.join(names)}), a serial device (/dev/…, COMn) or "
+            "a pyserial URL (loop://, socket://HOST:PORT …)")
 
 
 def parse_source_url(url: str) -> tuple[str, dict[str, Any]]:
-    """``sim``, ``replay:FILE``, ``mavlink:ENDPOINT``, ``uavtalk:TARGET``, ``xbee:URL``,
-    ``zenoh:[VEHICLE@][ENDPOINT,…]`` or a
-    pyserial URL → (source type, options); ValueError for a malformed one.  The options go
-    through the source's ``CONFIG`` like a file's (a serial URL's scheme is checked there)."""
-    if url in ("sim", "sim:"):
-        return "sim", {}
-    if url.startswith("replay:"):
-        path = url[len("replay:"):]
-        if not path:
-            raise ValueError("replay: needs a file, e.g. replay:flight.aur")
-        return "replay", {"path": path}
-    if url.startswith("mavlink:"):
-        endpoint = url[len("mavlink:"):]
-        if not endpoint:
-            raise ValueError("mavlink: needs an endpoint, e.g. mavlink:udpin:0.0.0.0:14551")
-        return "mavlink", {"url": endpoint}
-    if url.startswith("uavtalk:"):
-        target = url[len("uavtalk:"):]
-        if not target:
-            raise ValueError("uavtalk: needs a flight controller, e.g. uavtalk:tcp:HOST:PORT "
-                             "or uavtalk:/dev/ttyACM0,57600")
-        return "uavtalk", {"url": target}
-    if url.startswith("xbee:"):
-        target = url[len("xbee:"):]
-        if not target:
-            raise ValueError("xbee: needs the ground module's port, e.g. xbee:/dev/ttyUSB0 "
-                             "or xbee:socket://HOST:PORT")
-        return "xbee", {"url": target}
-    if url == "zenoh" or url.startswith("zenoh:"):
-        return "zenoh", {"url": url}  # zenoh:[VEHICLE@][ENDPOINT,…], parsed by the source
-    if not url:
-        raise ValueError("empty source URL")
-    return "serial", {"url": url}  # its scheme is checked with the url key (check_serial_url)
+    """``NAME[:REST]`` → (source type, options), NAME one of the installed sources' entry-point
+    names (``sim``, ``replay:FILE``, ``mavlink:ENDPOINT`` …; each source's
+    :meth:`Source.url_options` turns REST into options); a device path or a pyserial URL →
+    the serial source.  ValueError for an empty or unknown one.  The options go through the
+    source's ``CONFIG`` like a file's, which checks them."""
+    text = url.strip()
+    names = registry.source_names()
+    if not text:
+        raise ValueError(f"empty source URL; expected {_url_forms(names)}")
+    head, sep, rest = text.partition(":")
+    if head in names and not rest.startswith("//"):
+        try:
+            cls = registry.load(registry.SOURCE_GROUP, head)
+        except registry.RegistryError as exc:
+            raise ValueError(str(exc)) from None
+        url_options = getattr(cls, "url_options", None) or Source.url_options
+        return head, url_options(rest if sep else None)
+    if "://" in text or is_device(text.partition(",")[0]):
+        return "serial", {"url": text}  # checked by the url key (check_serial_url)
+    raise ValueError(f"no source {head!r}; expected {_url_forms(names)}")
 
 
 class SourceInbox(Backend):

@@ -29,6 +29,13 @@ class ReplaySource(Source):
     def default_name(options: dict[str, Any]) -> str:
         return f"replay:{Path(options['path']).name}"
 
+    @classmethod
+    def url_options(cls, rest: str | None) -> dict[str, Any]:
+        """``replay:FILE``."""
+        if not rest:
+            raise ValueError("replay: needs a file, e.g. replay:flight.aur")
+        return {"path": rest}
+
     def __init__(self, path: str, speed: float = 1.0, loop: bool = False,
                  name: str | None = None) -> None:
         super().__init__(name or f"replay:{Path(path).name}")

@@ -69,6 +69,13 @@ class SimSource(Source):
         pad_armed_s=Key(float, 10.0, "seconds ARMED on the pad before launch", minimum=0.1),
     )
 
+    @classmethod
+    def url_options(cls, rest: str | None) -> dict[str, Any]:
+        """``sim`` (or ``sim:``): the options come from the flags or a file."""
+        if rest:
+            raise ValueError(f"sim takes nothing after 'sim:', got {rest!r}")
+        return {}
+
     def __init__(self, rate_hz: float = 10.0, status_hz: float = 1.0, speed: float = 1.0,
                  revision: int = 64, cycles: int = 0, pad_idle_s: float = 5.0,
                  pad_armed_s: float = 10.0, name: str | None = None) -> None:
