@@ -101,14 +101,14 @@ def log_event(logger: str, text: str) -> Iterator[threading.Event]:
 
 
 def stop_in_time(src: Any, budget: float = 1.0) -> float:
-    """Stop ``src``; assert its thread ended within ``budget``; return how long it took."""
+    """Stop ``src``; assert it wound down (``done``; a blocking ``run`` returned) and the loop
+    of its own ended within ``budget``; return how long it took."""
     t0 = time.monotonic()
     src.stop(budget)
     took = time.monotonic() - t0
-    engine = getattr(src, "engine", None)  # a port source: its engine's thread
-    alive = engine.loop.alive if engine is not None else (
-        src._thread is None or src._thread.is_alive())
-    assert not alive, "source thread still alive"
+    assert src.done.is_set(), "source not done after stop"
+    loop = src.io_loop  # started alone: a loop of its own, which stop() ends
+    assert loop is None or not loop.alive, "source thread still alive"
     return took
 
 

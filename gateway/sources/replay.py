@@ -1,15 +1,16 @@
-"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed."""
+"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed, paced on the
+source's I/O loop (:class:`gateway.pacing.Pacer`)."""
 
 from __future__ import annotations
 
 import logging
-import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from gateway import recording
 from gateway.config import Key, Schema
-from gateway.pacing import paced
+from gateway.pacing import Pacer
 from gateway.sources import Source
 from gateway.wire import Decoder
 
@@ -38,20 +39,36 @@ class ReplaySource(Source):
         self.decoder = Decoder(origin=self.name)
         self.read_stats = recording.ReadStats()
         self.frames_sent = 0
+        self._pacer: Pacer[bytes] | None = None
 
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
+    def begin(self) -> None:
+        loop = self.io_loop
+        assert loop is not None
+        self._pacer = Pacer(loop, self._passes(), self.speed, self._deliver,
+                            on_end=self.finish)
+        self._pacer.start()
+
+    def _passes(self) -> Iterator[tuple[float, bytes]]:
+        """The recording's records, once or (``loop``) again and again; each pass is paced
+        from its own first record."""
+        while not self.stop_requested:
             self.read_stats = recording.ReadStats()
-            records = recording.read(self.path, self.read_stats)
-            for _, frame in paced(records, self.speed, stop):
-                for msg in self.decoder.feed(frame):
-                    self.frames_sent += 1
-                    self.emit(msg)
+            yield from recording.read(self.path, self.read_stats)
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
                          self.read_stats.torn_tail_bytes)
             if not self.loop:
                 return
+
+    def _deliver(self, t: float, frame: bytes) -> None:
+        for msg in self.decoder.feed(frame):
+            self.frames_sent += 1
+            self.emit(msg)
+
+    def halt(self) -> None:
+        if self._pacer is not None:
+            self._pacer.cancel()
+        self.finish()
 
     def stats(self) -> dict[str, Any]:
         st = self.read_stats
