@@ -89,7 +89,8 @@ class Gateway:
             if new_flight and self.cfg.gateway.get("record_dir"):
                 rec = self._next_recording(msg.origin) or rec
             # never waits on disk: a bounded queue to the writer thread.  Refused by a file
-            # another source's thread just closed for the next flight: the current one takes it
+            # another thread (a source on a library's) just closed for the next flight: the
+            # current one takes it
             if not rec.submit(msg) and rec.closed:
                 current = self.recorder
                 if current is not None and current is not rec:

@@ -36,7 +36,9 @@ LOGGED_ERRORS = 5
 #: does not answer (pyserial's ``socket://``: up to 5 s) are the longest; more of them than
 #: this wait their turn in a queue (counted) instead of adding threads.
 BLOCKING_WORKERS = 4
-BLOCKING_IDLE_S = 5.0
+#: A worker with nothing to do for this long ends: the burst of opens at start-up shares
+#: one or two workers, and a gateway at rest keeps none.
+BLOCKING_IDLE_S = 1.0
 
 
 class Timer:
