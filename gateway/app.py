@@ -210,8 +210,8 @@ class Gateway:
                 "sources": {s.name: s.stats() for s in self.sources}}
 
     def summary(self) -> dict[str, Any]:
-        """What the run did (counters per source, link, backend and recording) and what it
-        saw of each vehicle (``flights``: :class:`FlightSummary`)."""
+        """What the run did (counters per source, link, backend, recording and blocking call)
+        and what it saw of each vehicle (``flights``: :class:`FlightSummary`)."""
         sources = {s.name: s.stats() for s in self.sources}
         return {
             "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
@@ -224,6 +224,8 @@ class Gateway:
             "recordings": [str(r.path) for r in self.recorders],
             "flights": self.flights.as_dict(),
             "crc_errors": crc_errors(sources),
+            # the process's pool of blocking calls (opens, closes): bounded, counted
+            "blocking_calls": self.loop.blocking.stats(),
         }
 
     def status_line(self) -> str:

@@ -185,6 +185,10 @@ class ZenohSource(Source):
 
     def _opened(self, session: Any, error: BaseException | None) -> None:
         self._opening = False
+        if error is not None:  # (the expected failures are counted and logged by _open)
+            self.open_failures += 1
+            log.warning("source %s: opening the Zenoh session failed: %s; retrying",
+                        self.name, error)
         if self.stop_requested:  # halted meanwhile: it waited for this attempt
             self._close(session)
             return
