@@ -1,5 +1,6 @@
-"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed, paced on the
-source's I/O loop (:class:`gateway.pacing.Pacer`)."""
+"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed: the file is
+read once on the loop's blocking calls, then paced on the source's I/O loop
+(:class:`gateway.pacing.Pacer`)."""
 
 from __future__ import annotations
 
@@ -44,16 +45,33 @@ class ReplaySource(Source):
     def begin(self) -> None:
         loop = self.io_loop
         assert loop is not None
-        self._pacer = Pacer(loop, self._passes(), self.speed, self._deliver,
+        # the file is read once, off the loop (a long recording takes a while), then paced
+        loop.run_blocking(self._read, self._loaded, name=f"read {self.path.name}")
+
+    def _read(self) -> bytes:
+        data = self.path.read_bytes()
+        recording.check_header(data, self.path)
+        return data
+
+    def _loaded(self, data: bytes | None, error: BaseException | None) -> None:
+        loop = self.io_loop
+        if self.stop_requested or loop is None:  # halted meanwhile (and finished)
+            return
+        if error is not None or data is None:
+            log.error("replay %s: cannot read it: %s", self.path, error)
+            self.finish()
+            return
+        self._pacer = Pacer(loop, self._passes(data), self.speed, self._deliver,
                             on_end=self.finish)
         self._pacer.start()
 
-    def _passes(self) -> Iterator[tuple[float, bytes]]:
+    def _passes(self, data: bytes) -> Iterator[tuple[float, bytes]]:
         """The recording's records, once or (``loop``) again and again; each pass is paced
         from its own first record."""
         while not self.stop_requested:
             self.read_stats = recording.ReadStats()
-            yield from recording.read(self.path, self.read_stats)
+            for _, t, frame in recording.scan(data, self.read_stats):
+                yield t, frame
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
                          self.read_stats.torn_tail_bytes)
