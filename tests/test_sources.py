@@ -30,6 +30,7 @@ from gateway.config import ConfigError, GatewayConfig, Part, parse
 from gateway.flight import FlightModel, FlightProfile
 from gateway.io.ioloop import BLOCKING_WORKERS, BlockingCalls, IoLoop
 from gateway.model import RawFrame, RcChannels, SmUpdate, Status
+from gateway.pacing import BATCH, Pacer
 from gateway.recording import Recorder
 from gateway.sources import Source
 from gateway.sources.replay import ReplaySource
@@ -762,3 +763,48 @@ def test_the_default_runs_threads_are_bounded_and_do_not_grow_with_its_sources()
         assert len(names) - len(ours) <= 2, names
         assert pool <= BLOCKING_WORKERS
     assert len(four) == len(one), (one, four)
+
+
+def test_a_pacer_at_speed_0_lets_the_loop_serve_others_between_batches() -> None:
+    loop = IoLoop("pacer")
+    loop.start()
+    got: list[int] = []
+    seen_at: list[int] = []
+    ended = threading.Event()
+    n = 10 * BATCH
+
+    def deliver(t: float, i: int) -> None:
+        got.append(i)
+        if i == 0:  # other work handed to the loop while the pacer has thousands to go
+            loop.call_soon(lambda: seen_at.append(len(got)))
+
+    try:
+        Pacer(loop, ((float(i), i) for i in range(n)), 0.0, deliver, on_end=ended.set).start()
+        assert ended.wait(DEADLINE_S)
+        assert got == list(range(n))
+        assert seen_at and seen_at[0] <= BATCH  # served after the first batch, not the last
+    finally:
+        loop.stop(1.0)
+        loop.close()
+
+
+def test_a_cancelled_pacer_delivers_nothing_more() -> None:
+    loop = IoLoop("pacer")
+    loop.start()
+    got: list[int] = []
+    first = threading.Event()
+    try:
+        pacer = Pacer(loop, ((i * 0.05, i) for i in range(1000)), 1.0,
+                      lambda t, i: (got.append(i), first.set()))
+        pacer.start()
+        assert first.wait(DEADLINE_S)
+        stopped = threading.Event()
+        loop.call_soon(lambda: (pacer.cancel(), stopped.set()))
+        assert stopped.wait(DEADLINE_S)
+        n = len(got)
+        later = threading.Event()
+        loop.call_later(0.2, later.set)  # four items' worth of schedule
+        assert later.wait(DEADLINE_S) and len(got) == n and n < 1000
+    finally:
+        loop.stop(1.0)
+        loop.close()
