@@ -13,7 +13,7 @@ The contract, all of it public (the app uses nothing else):
   one runs a loop of its own);
 * ``start(sink)`` returns at once; the work happens on that loop (timers, a
   :class:`~gateway.io.port.PortEngine`, callbacks handed over with ``call_soon``) — a source
-  starts no thread of its own;
+  starts no thread itself;
 * ``request_stop()`` asks it to stop and returns at once (so many sources wind down
   together); ``stop(timeout)`` stops it and returns within about ``timeout``; both safe twice;
 * ``done``, a ``threading.Event`` set once the source has nothing more to send (a replay's
@@ -25,10 +25,13 @@ A subclass of :class:`Source` implements (the "must / might" list for source aut
 * **must**, one of: :meth:`Source.begin` — on the loop's thread, once: schedule timers
   (:class:`gateway.pacing.Pacer`, ``io_loop.call_every``) or start an engine on
   :attr:`Source.io_loop`, hand messages to :meth:`Source.emit` from the loop's thread, and
-  call :meth:`Source.finish` when there is nothing more to send; or, for code that can only
-  block, :meth:`Source.run` — loop until the ``stop`` event it is given is set.  Such a
-  ``run`` is a *long* blocking call of the loop (:meth:`IoLoop.run_blocking`): it gets a
-  thread of the pool's, counted in its ``long_running``, and ``emit`` is called from it;
+  call :meth:`Source.finish` when there is nothing more to send; what blocks (an open, a
+  file read, a library's close) goes to ``io_loop.run_blocking`` and its result comes back on
+  the loop.  Or, for code that can only block (a third-party source written for a thread of
+  its own), :meth:`Source.run` — loop until the ``stop`` event it is given is set.  Such a
+  ``run`` is a *long* blocking call of the loop (:meth:`IoLoop.run_blocking`): the loop's
+  pool gives it a thread of its own, counted in the pool's ``long_running``, and ``emit`` is
+  called from that thread;
 * **might**: :meth:`Source.halt` — on the loop's thread, once, after ``request_stop``: cancel
   timers, close engines, then :meth:`Source.finish` (the default finishes at once, or, for a
   ``run`` source, when ``run`` returns); ``stats``, ``routes`` (messages it takes, through a
