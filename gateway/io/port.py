@@ -21,8 +21,10 @@ is a :class:`PortEngine` around a port and a sans-I/O protocol object:
 * **exclusive use**: :meth:`exclusive` parks the engine and hands the raw port to the caller
   (an AT-command exchange, as the firmware's TX lock does); frames queue meanwhile.
 
-By default an engine runs a loop thread of its own.  Engines of non-blocking sockets may share
-one :class:`~gateway.io.ioloop.IoLoop` (``loop=``), as a MAVLink router's UDP and TCP links do.
+By default an engine runs a loop thread of its own.  Engines of non-blocking ports may share
+one :class:`~gateway.io.ioloop.IoLoop` (``loop=``, or :meth:`PortEngine.use_loop` before
+start), as a MAVLink router's UDP and TCP links and a gateway's sources do.  Opens run on the
+loop's bounded pool of blocking calls, never on its thread.
 
 What a port must offer: ``write(data) -> int | None`` (bytes written; None means all),
 ``read(size) -> bytes`` (returns ``b""`` when nothing is waiting once the engine has set a
