@@ -9,6 +9,7 @@ own (with its own thread names), so the process-wide pool other tests use does n
 from __future__ import annotations
 
 import itertools
+import os
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -178,3 +179,25 @@ def test_an_open_that_hangs_does_not_stall_the_other_engines_or_timers_of_the_lo
         release.set()
         stuck.close(1.0)
         fine.close(1.0)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
+def test_a_forked_child_starts_workers_of_its_own(pool: BlockingCalls) -> None:
+    """A child forked while the parent's workers are busy has none of them: its calls must
+    not wait for threads that do not exist there."""
+    release = threading.Event()
+    busy = [pool.submit(lambda: release.wait(DEADLINE_S)) for _ in range(pool.workers)]
+    assert wait_for(lambda: pool.stats()["workers"] == pool.workers)
+    pid = os.fork()
+    if pid == 0:  # the child: exit 0 only if its call ran
+        code = 1
+        try:
+            code = 0 if pool.submit(lambda: 5).wait(5.0) else 3
+        finally:
+            os._exit(code)
+    try:
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+    finally:
+        release.set()
+        assert all(c.wait(DEADLINE_S) for c in busy)

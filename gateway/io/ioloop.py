@@ -19,11 +19,13 @@ import contextlib
 import heapq
 import itertools
 import logging
+import os
 import select
 import selectors
 import socket
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -180,6 +182,15 @@ class BlockingCalls:
         self.workers_peak = 0
         self.long_running = 0  # long calls running now
         self.long_calls = 0
+        if hasattr(os, "register_at_fork"):  # a forked child has none of these threads
+            after = weakref.WeakMethod(self._after_fork)
+            os.register_at_fork(after_in_child=lambda: (m := after()) and m())
+
+    def _after_fork(self) -> None:
+        self._lock = threading.Lock()
+        self._ready = threading.Condition(self._lock)
+        self._threads = self._idle = 0
+        self.long_running = 0
 
     def submit(self, fn: Callable[[], Any], *, name: str = "call",
                long: bool = False) -> BlockingCall:
