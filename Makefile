@@ -52,6 +52,7 @@ bench: bytecode
 	$(BIN)/python tools/bench/bench_uavtalk.py
 	$(BIN)/python tools/bench/bench_fprime.py
 	$(BIN)/python tools/bench/bench_xbee.py
+	$(BIN)/python tools/bench/bench_threads.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info

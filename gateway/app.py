@@ -13,6 +13,7 @@ from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
 from gateway.flight_summary import FlightSummary, crc_errors, new_recording
+from gateway.io.ioloop import BlockingCall, IoLoop
 from gateway.link_monitor import LinkMonitor
 from gateway.model import kind
 from gateway.recording import Recorder, RecordingError
@@ -63,7 +64,9 @@ class Gateway:
         #: every recording this run opened, the one being written last (``record_dir``: one
         #: per flight)
         self.recorders: list[Recorder] = []
-        self._retired: list[threading.Thread] = []  # closing a previous flight's recording
+        self._retired: list[BlockingCall] = []  # closing a previous flight's recording
+        #: the loop the sources share (their timers, ports and callbacks)
+        self.loop = IoLoop("sources")
         self._rotate_lock = threading.Lock()
         self.flights = FlightSummary()
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
@@ -78,14 +81,16 @@ class Gateway:
     # -- the hot path ------------------------------------------------------------------------
 
     def ingest(self, msg: Any) -> None:
-        """Everything a source produces comes through here (from the source's thread)."""
+        """Everything a source produces comes through here (from the sources' loop, or the
+        thread a source's library calls back on)."""
         new_flight = self.flights.feed(msg)
         rec = self.recorder
         if rec is not None:
             if new_flight and self.cfg.gateway.get("record_dir"):
                 rec = self._next_recording(msg.origin) or rec
             # never waits on disk: a bounded queue to the writer thread.  Refused by a file
-            # another source's thread just closed for the next flight: the current one takes it
+            # another thread (a source on a library's) just closed for the next flight: the
+            # current one takes it
             if not rec.submit(msg) and rec.closed:
                 current = self.recorder
                 if current is not None and current is not rec:
@@ -127,7 +132,11 @@ class Gateway:
             backend.attach(self.context)
         for src in self.sources:  # every plugin knows the others' shared services first
             src.attach(self.context)
+            use_loop = getattr(src, "use_loop", None)  # (optional in the contract)
+            if use_loop is not None:
+                use_loop(self.loop)
         failures = self.dispatcher.start()
+        self.loop.start()
         for src in self.sources:
             src.start(self.ingest)
         return failures
@@ -164,13 +173,16 @@ class Gateway:
             rec = self.recorder
         if rec is not None:
             rec.close(max(0.1, deadline - time.monotonic()))
-        for t in self._retired:
-            t.join(max(0.05, deadline - time.monotonic()))
+        for call in self._retired:
+            call.wait(max(0.05, deadline - time.monotonic()))
+        if self.loop.stop(max(0.05, deadline - time.monotonic())):
+            self.loop.close()
         return self.summary()
 
     def _next_recording(self, origin: str) -> Recorder | None:
         """Open the next flight's recording in ``record_dir`` (a vehicle armed again after a
-        flight) and close the previous one off this thread; on failure keep the old one.
+        flight) and close the previous one (its writer's last fsync) on the loop's blocking
+        calls, off this thread; on failure keep the old one.
         Once per flight, on the pad: the file's creation is the only disk access here."""
         with self._rotate_lock:
             old = self.recorder
@@ -185,10 +197,8 @@ class Gateway:
             self.recorders.append(rec)
             log.info("new flight of %s: recording into %s", origin or "the vehicle", rec.path)
             if old is not None:
-                t = threading.Thread(target=old.close, name=f"close {old.path.name}",
-                                     daemon=True)
-                t.start()
-                self._retired.append(t)
+                self._retired.append(self.loop.run_blocking(old.close,
+                                                            name=f"close {old.path.name}"))
             return rec
 
     # -- reporting ---------------------------------------------------------------------------
@@ -200,8 +210,8 @@ class Gateway:
                 "sources": {s.name: s.stats() for s in self.sources}}
 
     def summary(self) -> dict[str, Any]:
-        """What the run did (counters per source, link, backend and recording) and what it
-        saw of each vehicle (``flights``: :class:`FlightSummary`)."""
+        """What the run did (counters per source, link, backend, recording and blocking call)
+        and what it saw of each vehicle (``flights``: :class:`FlightSummary`)."""
         sources = {s.name: s.stats() for s in self.sources}
         return {
             "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
@@ -214,6 +224,8 @@ class Gateway:
             "recordings": [str(r.path) for r in self.recorders],
             "flights": self.flights.as_dict(),
             "crc_errors": crc_errors(sources),
+            # the process's pool of blocking calls (opens, closes): bounded, counted
+            "blocking_calls": self.loop.blocking.stats(),
         }
 
     def status_line(self) -> str:

@@ -448,7 +448,8 @@ def test_the_gateways_own_stop_path_is_bounded_by_its_budget() -> None:
         took = time.monotonic() - t0
     assert took <= max(1.0, STOP_BUDGET_S), took
     assert summary["messages_in"]["sm_update"] >= 1
-    assert all(not s._thread.is_alive() for s in g.sources)
+    assert all(s.done.is_set() for s in g.sources)
+    assert not g.loop.alive  # the sources' loop ended with them
 
 
 def test_the_embedded_default_prints_status_lines_and_console_lines() -> None:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from helpers import run_within
+from helpers import run_within, wait_for
 
 from dialects.states import SimpleState as S
 from gateway import recording
@@ -28,7 +28,9 @@ from gateway.app import Gateway
 from gateway.backend import Routes
 from gateway.config import ConfigError, GatewayConfig, Part, parse
 from gateway.flight import FlightModel, FlightProfile
+from gateway.io.ioloop import BLOCKING_WORKERS, BlockingCalls, IoLoop
 from gateway.model import RawFrame, RcChannels, SmUpdate, Status
+from gateway.pacing import BATCH, Pacer
 from gateway.recording import Recorder
 from gateway.sources import Source
 from gateway.sources.replay import ReplaySource
@@ -100,15 +102,16 @@ def log_event(logger: str, text: str) -> Iterator[threading.Event]:
         lg.setLevel(old)
 
 
-def stop_in_time(src: Any, budget: float = 1.0) -> float:
-    """Stop ``src``; assert its thread ended within ``budget``; return how long it took."""
+def stop_in_time(src: Any, budget: float = 1.0, shared: bool = False) -> float:
+    """Stop ``src``; assert it wound down (``done``; a blocking ``run`` returned) and the loop
+    of its own (unless ``shared``: its owner's) ended within ``budget``; return how long it
+    took."""
     t0 = time.monotonic()
     src.stop(budget)
     took = time.monotonic() - t0
-    engine = getattr(src, "engine", None)  # a port source: its engine's thread
-    alive = engine.loop.alive if engine is not None else (
-        src._thread is None or src._thread.is_alive())
-    assert not alive, "source thread still alive"
+    assert src.done.is_set(), "source not done after stop"
+    loop = src.io_loop  # started alone: a loop of its own, which stop() ends
+    assert shared or loop is None or not loop.alive, "source thread still alive"
     return took
 
 
@@ -651,3 +654,157 @@ def test_a_source_with_routes_gets_the_gateways_messages() -> None:
         assert gw.dispatcher.stats()["up (in)"]["taken"] == 1
     finally:
         gw.stop()
+
+
+# -- sources on the gateway's loop ---------------------------------------------------------------
+
+def test_sources_sharing_one_loop_deliver_on_its_thread_and_each_stops_within_1s(
+        pty_pair: tuple[int, str], tmp_path: Path) -> None:
+    """A simulation, a replay and a serial port on one loop: no thread of their own, every
+    message handed on from the loop's thread, each stopped within a second."""
+    master, slave_path = pty_pair
+    frames = sample_frames()
+    make_recording(tmp_path / "f.agrec", frames, span_s=3600.0)
+    loop = IoLoop("shared-sources")
+    loop.start()
+    before = set(threading.enumerate())
+    sink = Sink()
+    threads: set[str] = set()
+
+    def on_loop(msg: Any) -> None:
+        threads.add(threading.current_thread().name)
+        sink(msg)
+
+    sim = SimSource(speed=1.0, name="sim-a")
+    replay = ReplaySource(str(tmp_path / "f.agrec"), speed=0, name="again")
+    port = SerialSource(slave_path, baudrate=9600, name="rocket")
+    sources: list[Source] = [sim, replay, port]
+    try:
+        for s in sources:
+            s.use_loop(loop)
+            s.start(on_loop)
+        wait_until_reading(master, sink)
+        write_all(master, b"".join(frames))
+        assert sink.wait_count(len(frames), keep=lambda m: m.origin == "again")
+        assert replay.done.wait(DEADLINE_S)  # a replay that ends ends on the loop too
+        assert sink.wait_count(2, keep=lambda m: m.origin == "sim-a")
+        assert sink.wait_count(len(frames), keep=lambda m: m.origin == "rocket" and not_probe(m))
+        assert threads == {"io-shared-sources"}
+        new = {t.name for t in threading.enumerate() if t not in before}
+        assert {n for n in new if not n.startswith("blocking-")} == set(), new  # the open's
+        for s in sources:
+            assert stop_in_time(s, shared=True) < 1.0
+        assert loop.alive  # the loop is its owner's to stop
+        n = len(sink.msgs)
+        ran = threading.Event()
+        loop.call_later(0.2, ran.set)  # nothing more comes once they have stopped
+        assert ran.wait(DEADLINE_S) and len(sink.msgs) == n
+    finally:
+        for s in sources:
+            s.stop(1.0)
+        loop.stop(1.0)
+        loop.close()
+
+
+def test_a_blocking_run_source_runs_on_a_counted_long_call_of_the_loop() -> None:
+    """A third-party source that still implements a blocking ``run(stop)``: it works, on a
+    thread of the loop's blocking calls counted as ``long_running``, and stops within 1 s."""
+    pool = BlockingCalls(workers=1, idle_s=0.05, name="legacy-pool")
+    loop = IoLoop("legacy", blocking=pool)
+    loop.start()
+    src = _Counting()
+    sink = Sink()
+    try:
+        src.use_loop(loop)
+        src.start(sink)
+        assert sink.wait_count(3)
+        assert pool.stats()["long_running"] == 1 and pool.stats()["long_calls"] == 1
+        src.release.set()
+        assert stop_in_time(src, shared=True) < 1.0
+        assert pool.stats()["long_running"] == 0  # run() returned: done is set after it
+    finally:
+        src.release.set()
+        src.stop(1.0)
+        loop.stop(1.0)
+        loop.close()
+
+
+def _gateway_threads(args: list[str]) -> tuple[set[str], int, int]:
+    """Run an in-process gateway from ``run`` flags until 5 messages are in; return the names
+    of the threads it added (pool workers apart), how many were pool workers, and how many
+    backends it has."""
+    from gateway.commands import cli
+
+    cfg = cli.config_from_args(cli.build_parser().parse_args(["run", *args]))
+    g = Gateway(cfg, status_out=io.StringIO())
+    before = set(threading.enumerate())
+    g.start()
+    try:
+        assert wait_for(lambda: sum(g.counts.values()) >= 5)
+        new = [t.name for t in threading.enumerate() if t not in before]
+    finally:
+        g.stop()
+    pool = [n for n in new if n.startswith("blocking-")]
+    ours = {n for n in new if not n.startswith("blocking-")}
+    return ours, len(pool), len(g.dispatcher.backends())
+
+
+def test_the_default_runs_threads_are_bounded_and_do_not_grow_with_its_sources() -> None:
+    """The embedded default (the simulation through every default backend): one loop for
+    the sources, at most one thread of ours per backend (its loop or worker), what the
+    libraries start themselves (Zenoh's and foxglove-sdk's callback threads), and at most
+    BLOCKING_WORKERS pool workers for the opens.  Four sources instead of one add none."""
+    one, pool_one, backends = _gateway_threads(["--sim-speed", "10"])
+    four, pool_four, _ = _gateway_threads(["--sim-speed", "10", *["--source", "sim"] * 4])
+    for names, pool in ((one, pool_one), (four, pool_four)):
+        ours = {n for n in names if "pyo3" not in n}  # (named by the Rust bindings)
+        assert "io-sources" in ours and not any(n.startswith("source") for n in ours), ours
+        assert len(ours) <= 1 + backends, ours
+        assert len(names) - len(ours) <= 2, names
+        assert pool <= BLOCKING_WORKERS
+    assert len(four) == len(one), (one, four)
+
+
+def test_a_pacer_at_speed_0_lets_the_loop_serve_others_between_batches() -> None:
+    loop = IoLoop("pacer")
+    loop.start()
+    got: list[int] = []
+    seen_at: list[int] = []
+    ended = threading.Event()
+    n = 10 * BATCH
+
+    def deliver(t: float, i: int) -> None:
+        got.append(i)
+        if i == 0:  # other work handed to the loop while the pacer has thousands to go
+            loop.call_soon(lambda: seen_at.append(len(got)))
+
+    try:
+        Pacer(loop, ((float(i), i) for i in range(n)), 0.0, deliver, on_end=ended.set).start()
+        assert ended.wait(DEADLINE_S)
+        assert got == list(range(n))
+        assert seen_at and seen_at[0] <= BATCH  # served after the first batch, not the last
+    finally:
+        loop.stop(1.0)
+        loop.close()
+
+
+def test_a_cancelled_pacer_delivers_nothing_more() -> None:
+    loop = IoLoop("pacer")
+    loop.start()
+    got: list[int] = []
+    first = threading.Event()
+    try:
+        pacer = Pacer(loop, ((i * 0.05, i) for i in range(1000)), 1.0,
+                      lambda t, i: (got.append(i), first.set()))
+        pacer.start()
+        assert first.wait(DEADLINE_S)
+        stopped = threading.Event()
+        loop.call_soon(lambda: (pacer.cancel(), stopped.set()))
+        assert stopped.wait(DEADLINE_S)
+        n = len(got)
+        later = threading.Event()
+        loop.call_later(0.2, later.set)  # four items' worth of schedule
+        assert later.wait(DEADLINE_S) and len(got) == n and n < 1000
+    finally:
+        loop.stop(1.0)
+        loop.close()

@@ -429,6 +429,9 @@ class MavlinkSource(Source):
         self._stop.set()
         self._shut_down(timeout)
 
+    def halt(self) -> None:
+        """(request_stop) Nothing here: the endpoints live on the hub's loop; stop() leaves."""
+
     def _shut_down(self, timeout: float = 1.0) -> None:
         hub, self.hub = self.hub, None
         self.loop = None

@@ -41,7 +41,7 @@ from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.io.transport import open_serial, open_tcp_client
 from gateway.model import Battery, Position, VehicleState
 from gateway.outcome import Outcome
-from gateway.sources import Sink, Source
+from gateway.sources import Source
 
 from .codec import Decoder
 from .objects import ObjectSet
@@ -281,20 +281,19 @@ class UavtalkSource(Source):
 
     # -- life cycle -------------------------------------------------------------------------------
 
-    def start(self, sink: Sink) -> None:
-        if self._sink is not None:
-            return
-        self._sink = sink
+    def begin(self) -> None:  # the source's loop: the engine and its tick run on it
+        loop = self.io_loop
+        assert loop is not None
+        self.engine.use_loop(loop)
         self.engine.start()
         self._timer = self.engine.call_every(TICK_S, self._tick, first=TICK_S)
 
-    def stop(self, timeout: float = 1.0) -> None:
-        self._stop.set()
+    def halt(self) -> None:
         timer, self._timer = self._timer, None
         if timer is not None:
             timer.cancel()
-        self.engine.close(timeout)
-        self.done.set()
+        self.engine.close(0.0)  # on the loop's thread: closes at once
+        self.finish()
 
     @property
     def state(self) -> Status:

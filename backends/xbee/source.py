@@ -20,7 +20,7 @@ from typing import Any
 from gateway.backend import Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.model import LinkStats, RcChannels, SmUpdate, Status
-from gateway.sources import Sink, Source, check_serial_url
+from gateway.sources import Source, check_serial_url
 
 from . import frames as f
 from .link import GroundLink, QueryRssi, Send
@@ -103,16 +103,15 @@ class XbeeSource(Source):
 
     # -- life cycle --------------------------------------------------------------------------
 
-    def start(self, sink: Sink) -> None:
-        if self._sink is not None:
-            return
-        self._sink = sink
+    def begin(self) -> None:  # the radio's engine and timers run on the source's loop
+        loop = self.io_loop
+        assert loop is not None
+        self.radio.engine.use_loop(loop)
         self.radio.start()
 
-    def stop(self, timeout: float = 1.0) -> None:
-        self._stop.set()
-        self.radio.close(timeout)
-        self.done.set()
+    def halt(self) -> None:
+        self.radio.close(0.0)  # on the loop's thread: closes at once
+        self.finish()
 
     def stats(self) -> dict[str, Any]:
         g = self.link

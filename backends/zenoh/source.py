@@ -19,7 +19,8 @@ The URL form (``--source``) is ``zenoh:[VEHICLE@][ENDPOINT[,ENDPOINT...]]``::
     zenoh:tcp/10.0.0.5:7447                 every vehicle, via that router or gateway
     zenoh:rocket1@tcp/10.0.0.5:7447         only rocket1
 
-Samples are handed from Zenoh's callback thread to the source's thread through a bounded
+The session is opened (and retried with backoff, and closed) on the source's I/O loop's
+blocking calls; samples are handed from Zenoh's callback thread to the loop through a bounded
 queue (``queue_depth``; overflow counted as ``dropped_queue_full``); gaps in the publishers'
 sequence numbers are counted as ``lost``.
 """
@@ -48,6 +49,7 @@ from backends.zenoh.keys import (
 from backends.zenoh.session import SESSION_KEYS, SessionOptions, check_endpoints, zerror_text
 from gateway.config import ConfigError, Key, Schema
 from gateway.io.backoff import Backoff
+from gateway.io.ioloop import Timer
 from gateway.sources import Source
 from gateway.wire import Decoder
 
@@ -55,7 +57,7 @@ log = logging.getLogger(__name__)
 
 URL_SCHEME = "zenoh"
 KEY_SETS = ("raw", "json")
-_STOP = object()
+DRAIN_BATCH = 256  # samples handled per turn of the loop
 
 
 def parse_url(url: str) -> dict[str, Any]:
@@ -141,6 +143,10 @@ class ZenohSource(Source):
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
         self.ready = threading.Event()
+        self._session: Any = None
+        self._opening = False
+        self._retry: Timer | None = None
+        self._drain_scheduled = False
         self.received = 0
         self.emitted = 0
         self.ignored_own = 0
@@ -166,38 +172,83 @@ class ZenohSource(Source):
             self.dropped_queue_full += 1
             return
         q.put((key, sample.payload.to_bytes(), str(sample.encoding), gw or "?"))
+        self._schedule_drain()
 
-    # -- the source's thread ------------------------------------------------------------------
+    # -- the source's loop ------------------------------------------------------------------------
 
-    def run(self, stop: threading.Event) -> None:
-        session = None
-        try:
-            while not stop.is_set():
-                session = self._open()
-                if session is not None:
-                    break
-                stop.wait(self._backoff.next())
-            if session is None:
+    def begin(self) -> None:
+        self._try_open()
+
+    def _try_open(self) -> None:
+        """One attempt to open the session, on the loop's blocking calls (an open waits for
+        its endpoints); retried with backoff."""
+        self._retry = None
+        loop = self.io_loop
+        if self.stop_requested or loop is None:
+            return
+        self._opening = True
+        loop.run_blocking(self._open, self._opened, name=f"open {self.name}")
+
+    def _opened(self, session: Any, error: BaseException | None) -> None:
+        self._opening = False
+        if error is not None:  # (the expected failures are counted and logged by _open)
+            self.open_failures += 1
+            log.warning("source %s: opening the Zenoh session failed: %s; retrying",
+                        self.name, error)
+        if self.stop_requested:  # halted meanwhile: it waited for this attempt
+            self._close(session)
+            return
+        if session is None:
+            loop = self.io_loop
+            if loop is not None:
+                self._retry = loop.call_later(self._backoff.next(), self._try_open)
+            return
+        self._session = session
+
+    def _arrived(self) -> None:  # the loop's thread, handed over from Zenoh's
+        self._drain_scheduled = False
+        q = self._queue
+        for _ in range(DRAIN_BATCH):
+            try:
+                item = q.get_nowait()
+            except queue.Empty:
                 return
-            while not stop.is_set():
-                try:
-                    item = self._queue.get(timeout=0.1)
-                except queue.Empty:
-                    continue
-                if item is _STOP:
-                    break
-                self._handle(*item)
-        finally:
-            self.ready.clear()
-            if session is not None:
-                try:
-                    session.close()
-                except Exception:
-                    log.debug("source %s: session close failed", self.name, exc_info=True)
+            self._handle(*item)
+        self._schedule_drain()  # more waiting: after the loop's other work
 
-    def stop(self, timeout: float = 1.0) -> None:
-        self._queue.put(_STOP)
-        super().stop(timeout)
+    def _schedule_drain(self) -> None:
+        loop = self.io_loop
+        if not self._drain_scheduled and loop is not None:
+            self._drain_scheduled = True
+            loop.call_soon(self._arrived)
+
+    def halt(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
+            self._retry = None
+        self.ready.clear()
+        session, self._session = self._session, None
+        if session is not None:
+            self._close(session)
+        elif not self._opening:  # (an open in flight: _opened closes what it brings)
+            self.finish()
+
+    def _close(self, session: Any) -> None:
+        """Close ``session`` on the loop's blocking calls, then finish."""
+        def close() -> None:
+            try:
+                if session is not None:
+                    session.close()
+            except Exception:
+                log.debug("source %s: session close failed", self.name, exc_info=True)
+            finally:
+                self.finish()
+
+        loop = self.io_loop
+        if loop is None:
+            close()
+        else:
+            loop.run_blocking(close, name=f"close {self.name}")
 
     def _open(self) -> Any:
         import zenoh

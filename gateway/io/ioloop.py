@@ -4,6 +4,13 @@ File descriptors are registered with a callback; timers (``call_later``/``call_e
 the loop thread; any other thread hands work over with :meth:`IoLoop.call_soon`, which wakes
 the loop through a socket pair and never blocks.  A callback that raises is logged (the first
 few times) and counted; the loop carries on.
+
+Work that blocks and cannot be made non-blocking (an open that may wait seconds for a host,
+a recording's close and fsync, a third-party source's blocking loop) goes to
+:meth:`IoLoop.run_blocking`: a call on :class:`BlockingCalls`, a small pool of worker threads
+shared by every loop of the process (at most ``BLOCKING_WORKERS``, started on demand, ended
+after ``BLOCKING_IDLE_S`` without work), counted, its result handed back on the loop.  This
+module is where the runtime creates threads: the loops' and the pool's.
 """
 
 from __future__ import annotations
@@ -12,11 +19,13 @@ import contextlib
 import heapq
 import itertools
 import logging
+import os
 import select
 import selectors
 import socket
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -25,6 +34,13 @@ log = logging.getLogger(__name__)
 
 MAX_WAIT_S = 0.5
 LOGGED_ERRORS = 5
+#: Worker threads for blocking calls, for the whole process: opens that wait on a host that
+#: does not answer (pyserial's ``socket://``: up to 5 s) are the longest; more of them than
+#: this wait their turn in a queue (counted) instead of adding threads.
+BLOCKING_WORKERS = 4
+#: A worker with nothing to do for this long ends: the burst of opens at start-up shares
+#: one or two workers, and a gateway at rest keeps none.
+BLOCKING_IDLE_S = 1.0
 
 
 class Timer:
@@ -117,11 +133,141 @@ class _SelectorPoller:
         self._selector.close()
 
 
+class BlockingCall:
+    """One call handed to :class:`BlockingCalls`: :meth:`wait` for it from any thread."""
+
+    __slots__ = ("_done", "error", "fn", "name", "result")
+
+    def __init__(self, fn: Callable[[], Any], name: str) -> None:
+        self.fn = fn
+        self.name = name
+        self.result: Any = None
+        self.error: BaseException | None = None
+        self._done = threading.Event()
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """True once the call has returned or raised."""
+        return self._done.wait(timeout)
+
+
+class BlockingCalls:
+    """A bounded pool of worker threads for calls that block (see the module docstring).
+
+    At most ``workers`` threads run short calls; calls beyond that queue in order.  A
+    *long* call (a third-party source's blocking ``run`` loop, which returns only when it is
+    stopped) would hold a worker for the whole run, so it gets a thread of its own instead,
+    counted apart (``long_running``).  Every call, its failures and the queue's peak are
+    counted in :meth:`stats`."""
+
+    def __init__(self, workers: int = BLOCKING_WORKERS, idle_s: float = BLOCKING_IDLE_S,
+                 name: str = "blocking") -> None:
+        if workers < 1:
+            raise ValueError("workers must be at least 1")
+        self.workers = workers
+        self.idle_s = idle_s
+        self.name = name
+        self._lock = threading.Lock()
+        self._ready = threading.Condition(self._lock)
+        self._queue: deque[BlockingCall] = deque()
+        self._threads = 0  # worker threads alive
+        self._idle = 0  # of which waiting for work
+        self._ids = itertools.count(1)
+        self.calls = 0
+        self.failed = 0
+        self.queued_peak = 0
+        self.workers_peak = 0
+        self.long_running = 0  # long calls running now
+        self.long_calls = 0
+        if hasattr(os, "register_at_fork"):  # a forked child has none of these threads
+            after = weakref.WeakMethod(self._after_fork)
+            os.register_at_fork(after_in_child=lambda: (m := after()) and m())
+
+    def _after_fork(self) -> None:
+        self._lock = threading.Lock()
+        self._ready = threading.Condition(self._lock)
+        self._threads = self._idle = 0
+        self.long_running = 0
+
+    def submit(self, fn: Callable[[], Any], *, name: str = "call",
+               long: bool = False) -> BlockingCall:
+        """Run ``fn`` on a worker thread (``long``: on a thread of its own); never blocks."""
+        call = BlockingCall(fn, name)
+        if long:
+            with self._lock:
+                self.long_calls += 1
+                self.long_running += 1
+            threading.Thread(target=self._run_long, args=(call,), name=f"{self.name}-{name}",
+                             daemon=True).start()
+            return call
+        with self._lock:
+            self.calls += 1
+            self._queue.append(call)
+            waiting = len(self._queue)
+            self.queued_peak = max(self.queued_peak, waiting)
+            if self._idle >= waiting:
+                self._ready.notify()
+                return call
+            if self._threads >= self.workers:
+                return call  # every worker busy: it waits its turn
+            self._threads += 1
+            self.workers_peak = max(self.workers_peak, self._threads)
+        threading.Thread(target=self._work, name=f"{self.name}-{next(self._ids)}",
+                         daemon=True).start()
+        return call
+
+    def _execute(self, call: BlockingCall) -> None:
+        try:
+            call.result = call.fn()
+        except BaseException as exc:
+            call.error = exc
+            with self._lock:
+                self.failed += 1
+            log.debug("blocking call %s failed", call.name, exc_info=True)
+        finally:
+            call._done.set()
+
+    def _run_long(self, call: BlockingCall) -> None:
+        try:
+            self._execute(call)
+        finally:
+            with self._lock:
+                self.long_running -= 1
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                if not self._queue:
+                    self._idle += 1
+                    self._ready.wait_for(lambda: bool(self._queue), self.idle_s)
+                    self._idle -= 1
+                    if not self._queue:  # idle for idle_s: this worker ends
+                        self._threads -= 1
+                        return
+                call = self._queue.popleft()
+            self._execute(call)
+
+    def stats(self) -> dict[str, int]:
+        with self._lock:
+            return {"calls": self.calls, "failed": self.failed, "queued": len(self._queue),
+                    "queued_peak": self.queued_peak, "workers": self._threads,
+                    "workers_peak": self.workers_peak, "workers_max": self.workers,
+                    "long_running": self.long_running, "long_calls": self.long_calls}
+
+
+#: The pool every loop of the process uses unless it is given another.
+BLOCKING = BlockingCalls()
+
+
 class IoLoop:
     """A selector loop on a thread of its own (see the module docstring)."""
 
-    def __init__(self, name: str = "io") -> None:
+    def __init__(self, name: str = "io", *, blocking: BlockingCalls | None = None) -> None:
         self.name = name
+        self.blocking = blocking if blocking is not None else BLOCKING
         self._sel: _EpollPoller | _SelectorPoller = (
             _EpollPoller() if hasattr(select, "epoll") else _SelectorPoller())
         self._rsock, self._wsock = socket.socketpair()
@@ -150,6 +296,31 @@ class IoLoop:
         self._woken = True
         with contextlib.suppress(BlockingIOError, OSError):
             self._wsock.send(b"\0")  # a full pair already holds a pending wake-up
+
+    def run_blocking(self, fn: Callable[[], Any],
+                     then: Callable[[Any, BaseException | None], Any] | None = None, *,
+                     name: str = "call", long: bool = False) -> BlockingCall:
+        """Run ``fn`` (which may block) on :attr:`blocking`'s workers, never on this loop's
+        thread; then, if given, ``then(result, error)`` runs on the loop's thread (not at
+        all if the loop has stopped by then: a caller that must release what ``fn`` made
+        does it in ``fn``).  ``long``: ``fn`` runs until it is told to stop (a source's
+        blocking loop) and gets a thread of its own.  Never blocks."""
+        if then is None:
+            return self.blocking.submit(fn, name=name, long=long)
+
+        def call() -> Any:
+            result: Any = None
+            error: BaseException | None = None
+            try:
+                result = fn()
+            except Exception as exc:
+                error = exc
+            self.call_soon(lambda: then(result, error))
+            if error is not None:
+                raise error
+            return result
+
+        return self.blocking.submit(call, name=name, long=long)
 
     @property
     def in_loop_thread(self) -> bool:

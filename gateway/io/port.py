@@ -21,8 +21,10 @@ is a :class:`PortEngine` around a port and a sans-I/O protocol object:
 * **exclusive use**: :meth:`exclusive` parks the engine and hands the raw port to the caller
   (an AT-command exchange, as the firmware's TX lock does); frames queue meanwhile.
 
-By default an engine runs a loop thread of its own.  Engines of non-blocking sockets may share
-one :class:`~gateway.io.ioloop.IoLoop` (``loop=``), as a MAVLink router's UDP and TCP links do.
+By default an engine runs a loop thread of its own.  Engines of non-blocking ports may share
+one :class:`~gateway.io.ioloop.IoLoop` (``loop=``, or :meth:`PortEngine.use_loop` before
+start), as a MAVLink router's UDP and TCP links and a gateway's sources do.  Opens run on the
+loop's bounded pool of blocking calls, never on its thread.
 
 What a port must offer: ``write(data) -> int | None`` (bytes written; None means all),
 ``read(size) -> bytes`` (returns ``b""`` when nothing is waiting once the engine has set a
@@ -195,6 +197,18 @@ class PortEngine:
     def port(self) -> Any:
         """The open port, or None while it is down (for reading settings, not for I/O)."""
         return self._port
+
+    def use_loop(self, loop: IoLoop) -> None:
+        """Serve the port on ``loop`` (shared with others, started and stopped by its owner)
+        instead of a loop of the engine's own; only before :meth:`start`."""
+        if self._started:
+            raise RuntimeError(f"{self.name}: use_loop() after start()")
+        if loop is self._loop:
+            return
+        if self._own_loop:
+            self._loop.close()
+        self._loop = loop
+        self._own_loop = False
 
     @property
     def loop(self) -> IoLoop:
@@ -421,18 +435,19 @@ class PortEngine:
         return self._port
 
     def _open(self) -> None:
-        """Start one open attempt.  The opener runs in a short-lived thread of its own: an
-        open can block for seconds (pyserial's ``socket://`` waits up to 5 s for a host that
-        does not answer) and the engine's thread must stay free to stop or to serve the other
-        engines of a shared loop."""
+        """Start one open attempt.  The opener runs on the loop's pool of blocking calls
+        (:meth:`IoLoop.run_blocking`): an open can block for seconds (pyserial's
+        ``socket://`` waits up to 5 s for a host that does not answer) and the engine's
+        thread must stay free to stop or to serve the other engines of a shared loop."""
         self._retry = None
         if self._closing or self._port is not None or self._opening:
             return
         self._opening = True
-        threading.Thread(target=self._open_in_background, name=f"open-{self.name}",
-                         daemon=True).start()
+        self._loop.run_blocking(self._open_in_background, name=f"open {self.name}")
 
     def _open_in_background(self) -> None:
+        """(A pool worker.)  The result goes back to the loop unless close() came first;
+        then the late port is closed here, as the loop may be gone."""
         port: Any = None
         error: Exception | None = None
         try:

@@ -8,18 +8,37 @@ The contract, all of it public (the app uses nothing else):
   validated: the constructor does not check them again);
 * ``attach(context)``, called before ``start`` with the gateway's
   :class:`gateway.backend.GatewayContext` (kept as ``context``);
-* ``start(sink)`` returns at once; the work happens on the source's own thread (or a port
-  engine's);
+* optionally ``use_loop(loop)``, called before ``start`` with the
+  :class:`~gateway.io.ioloop.IoLoop` the gateway's sources share (a source started without
+  one runs a loop of its own);
+* ``start(sink)`` returns at once; the work happens on that loop (timers, a
+  :class:`~gateway.io.port.PortEngine`, callbacks handed over with ``call_soon``) — a source
+  starts no thread itself;
 * ``request_stop()`` asks it to stop and returns at once (so many sources wind down
   together); ``stop(timeout)`` stops it and returns within about ``timeout``; both safe twice;
 * ``done``, a ``threading.Event`` set once the source has nothing more to send (a replay's
   end, a one-flight simulation, or after ``stop``);
 * ``stats()``, a dict of counters.
 
-A subclass that needs a thread implements :meth:`Source.run` (loop until the ``stop`` event
-it is given is set) and hands messages to :meth:`Source.emit`; a source on a
-:class:`gateway.io.port.PortEngine` overrides ``start``/``stop`` instead.  Every message carries
-``origin`` = the source's name.
+A subclass of :class:`Source` implements (the "must / might" list for source authors):
+
+* **must**, one of: :meth:`Source.begin` — on the loop's thread, once: schedule timers
+  (:class:`gateway.pacing.Pacer`, ``io_loop.call_every``) or start an engine on
+  :attr:`Source.io_loop`, hand messages to :meth:`Source.emit` from the loop's thread, and
+  call :meth:`Source.finish` when there is nothing more to send; what blocks (an open, a
+  file read, a library's close) goes to ``io_loop.run_blocking`` and its result comes back on
+  the loop.  Or, for code that can only block (a third-party source written for a thread of
+  its own), :meth:`Source.run` — loop until the ``stop`` event it is given is set.  Such a
+  ``run`` is a *long* blocking call of the loop (:meth:`IoLoop.run_blocking`): the loop's
+  pool gives it a thread of its own, counted in the pool's ``long_running``, and ``emit`` is
+  called from that thread;
+* **might**: :meth:`Source.halt` — on the loop's thread, once, after ``request_stop``: cancel
+  timers, close engines, then :meth:`Source.finish` (the default finishes at once, or, for a
+  ``run`` source, when ``run`` returns); ``stats``, ``routes`` (messages it takes, through a
+  :class:`SourceInbox`), ``attach``; or ``start``/``stop`` themselves, for a source whose
+  work lives on another owner's loop (the MAVLink source on the hub's).
+
+Every message carries ``origin`` = the source's name.
 """
 
 from __future__ import annotations
@@ -32,6 +51,7 @@ from typing import Any, ClassVar
 from gateway import registry
 from gateway.backend import Backend, GatewayContext, Routes
 from gateway.io.endpoints import check_serial_port, is_device
+from gateway.io.ioloop import BlockingCall, IoLoop
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +59,7 @@ Sink = Callable[[Any], Any]
 
 
 class Source:
-    """Base class: a named worker thread running :meth:`run` until :meth:`stop`."""
+    """Base class: a source whose work runs on an I/O loop (see the module docstring)."""
 
     NAME: ClassVar[str] = "source"
     CONFIG: ClassVar[Any] = None
@@ -49,8 +69,11 @@ class Source:
         self.context = GatewayContext()
         self.done = threading.Event()
         self._stop = threading.Event()  # what run() is given; set by request_stop()
-        self._thread: threading.Thread | None = None
         self._sink: Sink | None = None
+        self._loop: IoLoop | None = None
+        self._own_loop = False
+        self._halted = False
+        self._run_call: BlockingCall | None = None
 
     @classmethod
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:
@@ -74,6 +97,19 @@ class Source:
         tell this gateway's own publications from others' reads ``context.own_ids``."""
         self.context = context
 
+    def use_loop(self, loop: IoLoop) -> None:
+        """Run on ``loop`` (shared with the gateway's other sources; its owner starts and
+        stops it) instead of a loop of the source's own; before :meth:`start`."""
+        if self._sink is not None:
+            raise RuntimeError(f"source {self.name}: use_loop() after start()")
+        self._loop = loop
+        self._own_loop = False
+
+    @property
+    def io_loop(self) -> IoLoop | None:
+        """The loop the source runs on (None before :meth:`start` unless one was given)."""
+        return self._loop
+
     @property
     def running(self) -> bool:
         """Started and not done (a source retrying its port is running)."""
@@ -82,12 +118,32 @@ class Source:
     def start(self, sink: Sink) -> None:
         """Begin delivering messages to ``sink``; returns at once; a second call does
         nothing."""
-        if self._thread is not None:
+        if self._sink is not None:
             return
         self._sink = sink
-        self._thread = threading.Thread(target=self._main, name=f"source-{self.name}",
-                                        daemon=True)
-        self._thread.start()
+        loop = self._loop
+        if loop is None:
+            loop = self._loop = IoLoop(f"source-{self.name}")
+            self._own_loop = True
+            loop.start()
+        loop.call_soon(self._begin)
+
+    def _begin(self) -> None:
+        if self._stop.is_set():
+            self._halt()
+            return
+        try:
+            self.begin()
+        except Exception:
+            log.exception("source %s failed to start", self.name)
+            self.finish()
+
+    def begin(self) -> None:
+        """Start the work, on the loop's thread (see the module docstring).  The default
+        runs :meth:`run` as a long blocking call of the loop."""
+        loop = self._loop
+        assert loop is not None
+        self._run_call = loop.run_blocking(self._main, name=f"source-{self.name}", long=True)
 
     def _main(self) -> None:
         try:
@@ -95,14 +151,35 @@ class Source:
         except Exception:
             log.exception("source %s failed", self.name)
         finally:
-            self.done.set()
+            self.finish()
 
     def run(self, stop: threading.Event) -> None:
-        """The source's loop; return when ``stop`` is set (or when there is nothing left)."""
-        raise NotImplementedError
+        """A blocking source's loop; return when ``stop`` is set (or when there is nothing
+        left).  Only for code that cannot work on the loop: see :meth:`begin`."""
+        raise NotImplementedError(f"source {self.name}: implement begin() or run()")
+
+    def halt(self) -> None:
+        """Stop the work, on the loop's thread, once; :meth:`finish` when it has wound down
+        (the default: at once, or when a blocking :meth:`run` returns)."""
+        if self._run_call is None:
+            self.finish()
+
+    def _halt(self) -> None:
+        if self._halted:
+            return
+        self._halted = True
+        try:
+            self.halt()
+        except Exception:
+            log.exception("source %s failed to stop", self.name)
+            self.finish()
+
+    def finish(self) -> None:
+        """Say that the source has nothing more to send (sets :attr:`done`); safe twice."""
+        self.done.set()
 
     def emit(self, msg: Any) -> None:
-        """Hand one message to the sink (from the source's thread)."""
+        """Hand one message to the sink (from the loop's thread, or ``run``'s)."""
         sink = self._sink
         if sink is not None:
             sink(msg)
@@ -113,16 +190,28 @@ class Source:
 
     def request_stop(self) -> None:
         """Ask the source to stop, without waiting for it; safe twice."""
+        if self._stop.is_set():
+            return
         self._stop.set()
+        loop = self._loop
+        if self._sink is None or loop is None:
+            return
+        if loop.in_loop_thread or not loop.alive:
+            self._halt()
+        else:
+            loop.call_soon(self._halt)
 
     def stop(self, timeout: float = 1.0) -> None:
-        """Stop and wait up to ``timeout`` for the thread to end; safe twice."""
+        """Stop and wait up to ``timeout`` for the source to wind down; safe twice."""
         self.request_stop()
-        t = self._thread
-        if t is not None and t is not threading.current_thread():
-            t.join(timeout)
-            if t.is_alive():
-                log.warning("source %s did not stop within %.1f s", self.name, timeout)
+        loop = self._loop
+        if self._sink is None:
+            self.finish()  # never started: nothing more will come
+        elif loop is not None and not loop.in_loop_thread and not self.done.wait(timeout):
+            log.warning("source %s did not stop within %.1f s", self.name, timeout)
+        if (self._own_loop and loop is not None and not loop.in_loop_thread
+                and loop.stop(0.2)):
+            loop.close()
 
     def stats(self) -> dict[str, Any]:
         return {}

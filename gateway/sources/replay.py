@@ -1,15 +1,17 @@
-"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed."""
+"""Replay a recording (see :mod:`gateway.recording`) at real time or N× speed: the file is
+read once on the loop's blocking calls, then paced on the source's I/O loop
+(:class:`gateway.pacing.Pacer`)."""
 
 from __future__ import annotations
 
 import logging
-import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from gateway import recording
 from gateway.config import Key, Schema
-from gateway.pacing import paced
+from gateway.pacing import Pacer
 from gateway.sources import Source
 from gateway.wire import Decoder
 
@@ -45,20 +47,53 @@ class ReplaySource(Source):
         self.decoder = Decoder(origin=self.name)
         self.read_stats = recording.ReadStats()
         self.frames_sent = 0
+        self._pacer: Pacer[bytes] | None = None
 
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
+    def begin(self) -> None:
+        loop = self.io_loop
+        assert loop is not None
+        # the file is read once, off the loop (a long recording takes a while), then paced
+        loop.run_blocking(self._read, self._loaded, name=f"read {self.path.name}")
+
+    def _read(self) -> bytes:
+        data = self.path.read_bytes()
+        recording.check_header(data, self.path)
+        return data
+
+    def _loaded(self, data: bytes | None, error: BaseException | None) -> None:
+        loop = self.io_loop
+        if self.stop_requested or loop is None:  # halted meanwhile (and finished)
+            return
+        if error is not None or data is None:
+            log.error("replay %s: cannot read it: %s", self.path, error)
+            self.finish()
+            return
+        self._pacer = Pacer(loop, self._passes(data), self.speed, self._deliver,
+                            on_end=self.finish)
+        self._pacer.start()
+
+    def _passes(self, data: bytes) -> Iterator[tuple[float, bytes]]:
+        """The recording's records, once or (``loop``) again and again; each pass is paced
+        from its own first record."""
+        while not self.stop_requested:
             self.read_stats = recording.ReadStats()
-            records = recording.read(self.path, self.read_stats)
-            for _, frame in paced(records, self.speed, stop):
-                for msg in self.decoder.feed(frame):
-                    self.frames_sent += 1
-                    self.emit(msg)
+            for _, t, frame in recording.scan(data, self.read_stats):
+                yield t, frame
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
                          self.read_stats.torn_tail_bytes)
             if not self.loop:
                 return
+
+    def _deliver(self, t: float, frame: bytes) -> None:
+        for msg in self.decoder.feed(frame):
+            self.frames_sent += 1
+            self.emit(msg)
+
+    def halt(self) -> None:
+        if self._pacer is not None:
+            self._pacer.cancel()
+        self.finish()
 
     def stats(self) -> dict[str, Any]:
         st = self.read_stats

@@ -1,6 +1,7 @@
 """Serial wire source: Aurora frames from any pyserial port or URL.
 
-The port belongs to a :class:`gateway.io.port.PortEngine`: its thread reads whatever arrives
+The port belongs to a :class:`gateway.io.port.PortEngine` on the source's I/O loop (the
+gateway's, shared by its sources): the loop's thread reads whatever arrives
 into the sans-I/O :class:`gateway.wire.Decoder` and hands every decoded message on.  When the
 port fails or vanishes the engine logs it once, counts it and reopens it with backoff until
 it is back (a device path that is not there yet is simply retried: hot-plug).
@@ -15,7 +16,7 @@ from gateway.config import Key, Schema
 from gateway.io.backoff import Backoff
 from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.io.transport import open_serial
-from gateway.sources import Sink, Source, check_serial_url
+from gateway.sources import Source, check_serial_url
 from gateway.wire import Decoder
 
 log = logging.getLogger(__name__)
@@ -60,16 +61,15 @@ class SerialSource(Source):
         """The stream broke (or stopped): nothing completes a pending frame."""
         return self.decoder.flush()
 
-    def start(self, sink: Sink) -> None:
-        if self._sink is not None:
-            return
-        self._sink = sink
+    def begin(self) -> None:
+        loop = self.io_loop
+        assert loop is not None
+        self.engine.use_loop(loop)
         self.engine.start()
 
-    def stop(self, timeout: float = 1.0) -> None:
-        self._stop.set()
-        self.engine.close(timeout)
-        self.done.set()
+    def halt(self) -> None:
+        self.engine.close(0.0)  # on the loop's thread: closes at once
+        self.finish()
 
     def stats(self) -> dict[str, Any]:
         es = self.engine.stats

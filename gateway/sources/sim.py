@@ -1,20 +1,20 @@
 """Simulated flight source: the SIMPLE state machine's flight, repeated, as the rocket sends it.
 
-Messages are encoded to wire frames and decoded again, so what the gateway handles is exactly
+The flight is paced on the source's I/O loop (:class:`gateway.pacing.Pacer`).  Messages are
+encoded to wire frames and decoded again, so what the gateway handles is exactly
 what a receiver of the real frames would see (f32 rounding of the 36-byte revision included).
 """
 
 from __future__ import annotations
 
 import itertools
-import threading
 from collections.abc import Iterator
 from typing import Any
 
 from gateway.config import Key, Schema
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate, Status
-from gateway.pacing import paced
+from gateway.pacing import Pacer
 from gateway.sources import Source
 from gateway.wire import Decoder, encode
 
@@ -88,14 +88,25 @@ class SimSource(Source):
         self.cycles = cycles
         self.decoder = Decoder(origin=self.name)
         self.sent = 0
+        self._pacer: Pacer[bytes] | None = None
 
-    def run(self, stop: threading.Event) -> None:
-        frames = flight_frames(self.model, self.rate_hz, self.status_hz, self.cycles)
-        decoder = self.decoder
-        for _, frame in paced(frames, self.speed, stop):
-            for msg in decoder.feed(frame):
-                self.sent += 1
-                self.emit(msg)
+    def begin(self) -> None:
+        loop = self.io_loop
+        assert loop is not None
+        self._pacer = Pacer(loop, flight_frames(self.model, self.rate_hz, self.status_hz,
+                                                self.cycles),
+                            self.speed, self._deliver, on_end=self.finish)
+        self._pacer.start()
+
+    def _deliver(self, t: float, frame: bytes) -> None:
+        for msg in self.decoder.feed(frame):
+            self.sent += 1
+            self.emit(msg)
+
+    def halt(self) -> None:
+        if self._pacer is not None:
+            self._pacer.cancel()
+        self.finish()
 
     def stats(self) -> dict[str, Any]:
         return {"sent": self.sent}
