@@ -14,6 +14,9 @@ STAMP := $(VENV)/.installed-stamp
 ARGS ?=
 PYTEST_ARGS ?=
 # The suite is mostly waiting on sockets, ptys and subprocesses: four workers on two cores.
+# Whole files per worker (loadfile): a module-scoped fixture (test_cli's batch of short
+# runs, the plot and export recordings) then runs once, as in a serial run, not once per
+# worker that happens to get one of its tests.
 PYTEST_WORKERS ?= 4
 
 PACKAGES := gateway backends dialects
@@ -38,7 +41,7 @@ run: bytecode
 	$(BIN)/aurora-gateway run $(ARGS)
 
 test: bytecode
-	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
