@@ -133,6 +133,14 @@ def checked_flag(args: argparse.Namespace, dest: str, flag: str, key: Key,
 _warned: set[str] = set()
 
 
+def source_flags() -> tuple[tuple[str, str, str, str], ...]:
+    """(argparse dest, flag, source type, key) of every flag that sets a source's key (on
+    every source of that type): derived from the source options classes."""
+    return tuple((flag.dest, flag.name, type_name, key)
+                 for type_name, opts in _source_options().items()
+                 for key, flag, _ in opts.flags() if flag.sources)
+
+
 def _backend_flags() -> dict[str, Any]:
     """Backend name → what adds its flags and reads them back (:func:`registry.load_flags`:
     a light module, so no backend is imported; else the class).  A broken plug-in is
@@ -684,3 +692,11 @@ def console_main() -> NoReturn:
 
 if __name__ == "__main__":
     console_main()
+
+
+def __getattr__(name: str) -> Any:
+    """``SOURCE_FLAGS``: :func:`source_flags`, computed when asked for (importing this module
+    imports no source's options: Ctrl-C during start-up is handled by :func:`console_main`)."""
+    if name == "SOURCE_FLAGS":
+        return source_flags()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
