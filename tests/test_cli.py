@@ -723,7 +723,7 @@ def test_the_light_options_modules_name_the_backends_own_defaults() -> None:
     from backends.zenoh import options as zenoh_options
     from backends.zenoh import session as zenoh_session
 
-    assert mavlink_options.QGC_UDP == mavlink.QGC_UDP
-    assert crsf_options.DEFAULT_BAUD == crsf.DEFAULT_BAUD
-    assert hc12_options.MODES == hc12.MODES
+    assert mavlink.MavlinkBackend.EMBEDDED_DEFAULT == {"endpoints": [mavlink_options.QGC_UDP]}
+    assert crsf.CrsfBackend().baudrate == crsf_options.DEFAULT_BAUD
+    assert hc12.Hc12Backend.OPTIONS.schema().keys["mode"].choices == hc12_options.MODES
     assert zenoh_options.MODES == zenoh_session.MODES

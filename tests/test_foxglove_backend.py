@@ -26,7 +26,7 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
-from backends.foxglove import flags
+from backends.foxglove import options as flags
 from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
 from backends.foxglove.options import FoxgloveOptions
 from gateway import config, registry

@@ -28,7 +28,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path.cwd()))
 
-from gateway import config, registry  # noqa: E402
+from gateway import config, registry
 
 FLAGS_GROUPS = ("aurora_gateway.backend_flags", "aurora_gateway.backend_options")
 
@@ -45,7 +45,7 @@ def _fields_declaring(cls: Any, key: str) -> int:
     opts = getattr(cls, "OPTIONS", None)
     if opts is None or not dataclasses.is_dataclass(opts):
         return 1  # a hand-written CONFIG schema: one declaration
-    return sum(1 for c in opts.__mro__ if key in c.__dict__.get("__annotations__", {}))
+    return sum(1 for c in opts.__mro__ if key in inspect.get_annotations(c))
 
 
 def _init_defaults(cls: Any) -> set[str]:
