@@ -23,7 +23,6 @@ import pytest
 from helpers import run_within, wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
-from backends.crsf import flags as crsf_flags
 from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import LinkStatistics, RcChannels, encode
 from backends.crsf.options import CrsfOptions
@@ -147,7 +146,7 @@ def test_run_flags() -> None:
     assert parts["crsf"].options["url"] == "socket://127.0.0.1:9"
     assert parts["crsf"].options["baudrate"] == 416666
     args = build_parser().parse_args(["run"])
-    assert crsf_flags.cli_options(args) is None
+    assert CrsfOptions.cli_options(args) is None
 
 
 # -- ports -----------------------------------------------------------------------------------

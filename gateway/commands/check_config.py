@@ -2,8 +2,9 @@
 
 The file goes through :func:`gateway.config.load`, the code ``run --config`` uses, so it
 passes here exactly when ``run`` would accept its keys and values.  What needs the outside
-world (a port, a recording, a key file) and the few checks a backend makes when it is built
-(MAVLink: a key file *or* a passphrase) are left to ``run``: nothing is opened or built here.
+world (a port, a recording, a key file) is left to ``run``: nothing is opened or built here.
+The checks between keys (MAVLink: a key file *or* a passphrase) are made, by the options
+declaration (:mod:`gateway.options`).
 
 The resolved configuration is every source and every enabled backend with all its options,
 defaults filled in, as TOML that loads back to the same configuration (``--json``: one JSON
