@@ -108,9 +108,7 @@ class Key:
             try:
                 self.validator(value)
             except ValueError as exc:
-                text = str(exc)
-                raise ConfigError(text if text.startswith(f"{where}") else f"{where}: {text}") \
-                    from None
+                raise ConfigError(f"{where}: {exc}") from None
         if float in kinds and int not in kinds and isinstance(value, int):
             return float(value)
         return value

@@ -230,3 +230,28 @@ def test_the_options_modules_constants_are_the_protocol_modules() -> None:
                                                              radio.POLL_S)
     assert zenoh.ENCODINGS == encoding.ENCODINGS
     assert sources.REOPEN_MAX_S == uavtalk.REOPEN_MAX_S == port.REOPEN_MAX_S
+
+
+def test_the_example_file_shows_the_declared_defaults() -> None:
+    """examples/gateway.toml is checked against the declarations: each value it shows, set or
+    commented out, is the declared default, except where the default is "not set" or empty
+    (then it shows what a value looks like)."""
+    import re
+    import tomllib
+
+    from test_config import EXAMPLE, _sections
+
+    shown = 0
+    for group, type_name, block in _sections(EXAMPLE.read_text(encoding="utf-8")):
+        keys = config.schema_of(registry.load(group, type_name)).keys
+        for line in block.splitlines():
+            m = re.match(r"^(?:# )?(\w+) = (.*?)(?:\s+#.*)?$", line)
+            if not m or m.group(1) in ("type", "name", "enabled"):
+                continue
+            key = keys[m.group(1)]
+            if key.default in (config.REQUIRED, None, []):
+                continue
+            value = tomllib.loads(f"v = {m.group(2)}")["v"]
+            assert value == key.default, (type_name, m.group(1), value, key.default)
+            shown += 1
+    assert shown > 150
