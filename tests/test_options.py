@@ -18,6 +18,7 @@ from backends.crsf.options import CrsfOptions
 from backends.mavlink.options import MavlinkOptions
 from gateway import config, registry
 from gateway.commands import cli
+from gateway.io.endpoints import KINDS, usage
 from gateway.options import ConfigError, Options, option_fields, options_of
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -148,6 +149,22 @@ def test_a_flag_is_checked_by_its_key_and_named() -> None:
         {"endpoints": ["udpin:0.0.0.0:1", "tcpin::2"]}
 
 
+def test_a_convert_flag_is_read_by_argparse_in_its_own_words(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """Flag(convert=...) runs as argparse reads each value (a repeatable flag stays so): the
+    address flags' mistakes are the endpoint grammar's one usage line, not a key's."""
+    assert _opts(MavlinkOptions, "--mavlink", " udp:[::1]:0 ") == {"endpoints": ["udp:[::1]:0"]}
+    with pytest.raises(SystemExit) as info:
+        _opts(MavlinkOptions, "--mavlink", "udpout:127.0.0.1:9", "--mavlink", "tcpin:h:x")
+    assert info.value.code == 2
+    err = capsys.readouterr().err.splitlines()[-1]
+    assert err.endswith("argument --mavlink: 'tcpin:h:x': port 'x' is not a number; expected "
+                        + usage(KINDS)), err
+    assert _opts(CrsfOptions, "--crsf", "pty") == {"url": "pty"}
+    with pytest.raises(SystemExit):
+        _opts(CrsfOptions, "--crsf", "")
+
+
 def test_a_shared_flag_sets_the_backend_and_every_source_of_its_type() -> None:
     """--xbee-api is declared once, by the field the XBee backend and source share: alone it
     configures no backend, but sets the sources' API mode; with --xbee, the backend's too."""
@@ -209,7 +226,7 @@ def test_the_options_modules_constants_are_the_protocol_modules() -> None:
     from backends.zenoh import encoding
     from backends.zenoh import options as zenoh
     from gateway import model
-    from gateway.io import port
+    from gateway.io import links, port
     from gateway.sources import options as sources
 
     assert (crsf.SYNC_FC, crsf.SYNC_RADIO, crsf.SYNC_RX) == (
@@ -230,6 +247,7 @@ def test_the_options_modules_constants_are_the_protocol_modules() -> None:
                                                              radio.POLL_S)
     assert zenoh.ENCODINGS == encoding.ENCODINGS
     assert sources.REOPEN_MAX_S == uavtalk.REOPEN_MAX_S == port.REOPEN_MAX_S
+    assert fprime.ENDPOINT_KINDS == uavtalk.ENDPOINT_KINDS == links.STREAM_KINDS
 
 
 def test_the_example_file_shows_the_declared_defaults() -> None:
