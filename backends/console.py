@@ -6,16 +6,16 @@ never blocks the dispatcher: lines are dropped (and counted) instead.
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, Outcome, Routes
-from gateway.config import Key, Schema
 from gateway.io.port import PortEngine
 from gateway.model import LinkEvent, RawFrame, SmUpdate, Status
+from gateway.options import Flag, Options, option
 
 
 class _StreamTransport:
@@ -48,37 +48,34 @@ def format_status(m: Status) -> str:
     return f"t={m.timestamp_ms / 1000:10.3f}s STATUS {m.state_name:<10} {health}"
 
 
+@dataclass(frozen=True, kw_only=True)
+class ConsoleOptions(Options):
+    """``[backends.console]`` (this module is light: it is also where the flags come from)."""
+
+    TITLE: ClassVar[str] = "console backend"
+    interval_s: float = option(1.0, "least time between update lines (state changes always "
+                               "print)", minimum=0,
+                               flag=Flag("--console-interval", metavar="S"))
+    stream: str = option("stdout", "where lines go", choices=("stdout", "stderr"))
+    status: bool = option(False, "print STATUS heartbeats too")
+
+
 class ConsoleBackend(Backend):
     NAME = "console"
-    CONFIG = Schema(
-        interval_s=Key(float, 1.0, "least time between update lines (state changes always "
-                       "print)", minimum=0),
-        stream=Key(str, "stdout", "where lines go", choices=("stdout", "stderr")),
-        status=Key(bool, False, "print STATUS heartbeats too"),
-    )
+    OPTIONS = ConsoleOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
 
-    def __init__(self, interval_s: float = 1.0, stream: str = "stdout", status: bool = False,
-                 name: str | None = None, out: Any = None) -> None:
+    def __init__(self, options: ConsoleOptions | None = None, name: str | None = None,
+                 out: Any = None) -> None:
         super().__init__(name)
-        self.interval_s = interval_s
-        self.show_status = status
-        self._out = out if out is not None else getattr(sys, stream).buffer
+        options = options or ConsoleOptions()
+        self.interval_s = options.interval_s
+        self.show_status = options.status
+        self._out = out if out is not None else getattr(sys, options.stream).buffer
         self._last_line = -math.inf
         self._last_state: tuple[int, int] | None = None
         self.engine = PortEngine(lambda: _StreamTransport(self._out), name=self.name,
                                  queue_depth=64)
-
-    @classmethod
-    def add_cli_arguments(cls, parser: argparse.ArgumentParser) -> None:
-        parser.add_argument("--console-interval", type=float, metavar="S",
-                            help="console backend: least seconds between update lines")
-
-    @classmethod
-    def cli_options(cls, args: argparse.Namespace) -> dict[str, Any] | None:
-        if args.console_interval is None:
-            return None
-        return {"interval_s": args.console_interval}
 
     def init(self) -> None:
         self.engine.start()

@@ -26,16 +26,21 @@ A backend **may** implement:
     called before ``init`` with the gateway's :class:`GatewayContext`: ``emit`` hands a
     message the backend decoded (link statistics from a radio, commands from a ground
     station) to every other backend, with ``origin`` set to the backend's own name;
-``CONFIG``
-    a :class:`gateway.config.Schema` for its ``[backends.<name>]`` table: the options are
-    validated there (one clear line naming the key) before the constructor runs, so the
-    constructor does not check them again;
+``OPTIONS``
+    its options, declared once: a :class:`gateway.options.Options` dataclass (in a light
+    module, found without importing the backend through the ``aurora_gateway.backend_options``
+    entry point) from which its ``[backends.<name>]`` schema (``CONFIG``, derived), its
+    ``run`` flags and its documentation come.  The constructor takes the validated object:
+    ``XBackend(XOptions(...), name=...)``;
 ``from_config(table)``
-    build it from the validated table (default: the keys as keyword arguments);
+    build it from the validated table (default: ``cls(OPTIONS.from_table(table), name=…)``;
+    a plug-in with a hand-written ``CONFIG`` schema and no ``OPTIONS``: the keys as keyword
+    arguments);
 ``EMBEDDED_DEFAULT``
     its options in the embedded default run (loopback, no hardware); None leaves it out;
 ``add_cli_arguments(parser)`` / ``cli_options(args)``
-    its quick flags on ``aurora-gateway run`` and the options they set.
+    its quick flags on ``aurora-gateway run`` and the options they set (default: those its
+    ``OPTIONS`` fields declare).
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
+from gateway.options import Options, options_of
 from gateway.outcome import Outcome
 
 #: The stats keys every built-in backend reports (see the module docstring).
@@ -89,6 +95,23 @@ class Routes:
         return list(self._table)
 
 
+def derive_config(cls: Any) -> None:
+    """Set ``cls.CONFIG`` to the schema its ``OPTIONS`` declare (a class with no ``OPTIONS``
+    keeps its own)."""
+    opts = options_of(cls)
+    if opts is not None:
+        cls.CONFIG = opts.schema()
+
+
+def build(cls: Any, table: dict[str, Any], name: str | None) -> Any:
+    """A backend or source from its validated table: ``cls(OPTIONS.from_table(table),
+    name=name)``, or for a class without ``OPTIONS`` the keys as keyword arguments."""
+    opts = options_of(cls)
+    if opts is not None:
+        return cls(opts.from_table(table), name=name)
+    return cls(name=name, **table)
+
+
 _instances = itertools.count(1)
 
 
@@ -125,8 +148,15 @@ class Backend:
     """Base class for backends: sensible defaults for everything a backend may implement."""
 
     NAME: ClassVar[str] = "backend"
-    CONFIG: ClassVar[Any] = None  # a gateway.config.Schema
+    #: the options declaration (see the module docstring); None: a plug-in's own CONFIG
+    OPTIONS: ClassVar[type[Options] | None] = None
+    #: the schema of its table: derived from OPTIONS (a plug-in may write its own)
+    CONFIG: ClassVar[Any] = None
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        derive_config(cls)
 
     def __init__(self, name: str | None = None) -> None:
         self.name = name or self.NAME
@@ -134,16 +164,20 @@ class Backend:
 
     @classmethod
     def from_config(cls, table: dict[str, Any], name: str | None = None) -> Backend:
-        return cls(name=name, **table)
+        return build(cls, table, name)
 
     @classmethod
     def add_cli_arguments(cls, parser: Any) -> None:
         """Add this backend's quick flags to ``aurora-gateway run`` (e.g. ``--mavlink``)."""
+        opts = options_of(cls)
+        if opts is not None:
+            opts.add_cli_arguments(parser)
 
     @classmethod
-    def cli_options(cls, args: Any) -> dict[str, Any] | None:
+    def cli_options(cls, args: Any, where: str = "") -> dict[str, Any] | None:
         """Options the parsed flags set for this backend, or None when none were given."""
-        return None
+        opts = options_of(cls)
+        return opts.cli_options(args, where) if opts is not None else None
 
     def routes(self) -> Routes:
         """The message types this backend takes and their handlers (none by default)."""

@@ -10,149 +10,61 @@ the flag named in the message — whether or not anything would use the value.
 
 from __future__ import annotations
 
-import math
 import tomllib
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from gateway import registry
-
-REQUIRED: Any = object()
-
-
-class ConfigError(ValueError):
-    """A configuration problem, described in one line that names the key."""
-
-
-@dataclass(frozen=True)
-class Key:
-    """One allowed key: its type, default and bounds."""
-
-    kind: type | tuple[type, ...]
-    default: Any = REQUIRED
-    help: str = ""
-    choices: tuple[Any, ...] | None = None
-    minimum: float | None = None
-    maximum: float | None = None
-    nullable: bool = False
-    #: a further check of a well-typed value: raise ValueError saying what is wrong
-    validator: Callable[[Any], object] | None = None
-
-    def describe(self) -> str:
-        if self.choices is not None:
-            return "one of " + ", ".join(repr(c) for c in self.choices)
-        kinds = self.kind if isinstance(self.kind, tuple) else (self.kind,)
-        names = {int: "an integer", float: "a number", str: "a string", bool: "true or false",
-                 list: "a list", dict: "a table"}
-        text = " or ".join(names.get(k, k.__name__) for k in kinds)
-        if self.minimum is not None and self.maximum is not None:
-            text += f" from {self.minimum:g} to {self.maximum:g}"
-        elif self.minimum is not None:
-            text += f" ≥ {self.minimum:g}"
-        elif self.maximum is not None:
-            text += f" ≤ {self.maximum:g}"
-        return text
-
-    def check(self, where: str, value: Any) -> Any:
-        if value is None and self.nullable:
-            return None
-        kinds = self.kind if isinstance(self.kind, tuple) else (self.kind,)
-        ok = False
-        for k in kinds:
-            if k is bool:
-                ok = isinstance(value, bool)
-            elif k is int:
-                ok = isinstance(value, int) and not isinstance(value, bool)
-            elif k is float:
-                ok = isinstance(value, int | float) and not isinstance(value, bool)
-                if ok and not math.isfinite(value):
-                    ok = False
-            else:
-                ok = isinstance(value, k)
-            if ok:
-                break
-        if ok and self.choices is not None and value not in self.choices:
-            ok = False
-        if ok and self.minimum is not None and value < self.minimum:
-            ok = False
-        if ok and self.maximum is not None and value > self.maximum:
-            ok = False
-        if not ok:
-            raise ConfigError(f"{where}: expected {self.describe()}, got {value!r}")
-        if self.validator is not None:
-            try:
-                self.validator(value)
-            except ValueError as exc:
-                raise ConfigError(f"{where}: {exc}") from None
-        if float in kinds and int not in kinds and isinstance(value, int):
-            return float(value)
-        return value
-
-
-class Schema:
-    """The keys a table may have."""
-
-    def __init__(self, **keys: Key) -> None:
-        self.keys = keys
-
-    def validate(self, table: dict[str, Any], where: str,
-                 ignore: Iterable[str] = ()) -> dict[str, Any]:
-        """Check ``table``; return it with defaults filled in (``ignore``d keys left out)."""
-        if not isinstance(table, dict):
-            raise ConfigError(f"{where}: expected a table, got {table!r}")
-        ignored = set(ignore)
-        out: dict[str, Any] = {}
-        for key, value in table.items():
-            if key in ignored:
-                continue
-            spec = self.keys.get(key)
-            if spec is None:
-                allowed = ", ".join(sorted(self.keys)) or "none"
-                raise ConfigError(f"{where}.{key}: unknown key; allowed: {allowed}")
-            out[key] = spec.check(f"{where}.{key}", value)
-        for key, spec in self.keys.items():
-            if key not in out:
-                if spec.default is REQUIRED:
-                    raise ConfigError(f"{where}.{key}: required ({spec.describe()})")
-                out[key] = spec.default
-        return out
-
-    def __or__(self, other: Schema) -> Schema:
-        return Schema(**self.keys, **other.keys)
-
-
-EMPTY = Schema()
-
-
-def flag_value(text: str) -> Any:
-    """A number flag's text as the value a TOML file would hold (int, else float, else the
-    text itself), left for :meth:`Key.check` to accept or refuse with the allowed range."""
-    try:
-        return int(text)
-    except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
-
-
-def check_flag(flag: str, key: Key, value: Any, sets: str = "") -> Any:
-    """Validate a flag's value with the :class:`Key` it sets (``sets`` names that key in the
-    message, e.g. ``gateway.link_timeout_s``)."""
-    return key.check(f"{flag} ({sets})" if sets else flag, value)
-
-GATEWAY_SCHEMA = Schema(
-    status_interval_s=Key(float, 1.0, "seconds between status lines; 0 = none", minimum=0),
-    link_timeout_s=Key(float, 3.0, "silence after which a source's link is down", minimum=0.05),
-    record=Key(str, "", "append every received frame to this recording file"),
-    record_dir=Key(str, "", "record into a new file in this directory for each run and "
-                   "flight, named <UTC start>-<source>.aur (not with record)"),
-    log_level=Key(str, "info", "logging level",
-                  choices=("debug", "info", "warning", "error")),
+from gateway.options import (
+    EMPTY,
+    REQUIRED,
+    ConfigError,
+    Flag,
+    Key,
+    Options,
+    Schema,
+    check_flag,
+    flag_value,
+    option,
+    options_of,
 )
+
+__all__ = ["REQUIRED", "ConfigError", "GatewayConfig", "GatewayOptions", "Key", "Part",
+           "Schema", "check_flag", "flag_value", "load", "parse"]
+
+
+@dataclass(frozen=True, kw_only=True)
+class GatewayOptions(Options):
+    """The ``[gateway]`` table."""
+
+    status_interval_s: float = option(
+        1.0, "seconds between status lines; 0 = none", minimum=0,
+        flag=Flag("--status-interval", "seconds between status lines on stderr (0 = none)",
+                  metavar="S"))
+    link_timeout_s: float = option(
+        3.0, "silence after which a source's link is down", minimum=0.05,
+        flag=Flag("--link-timeout", "silence after which a source's link is reported down "
+                  "(default 3)", metavar="S"))
+    record: str = option("", "append every received frame to this recording file",
+                         flag=Flag("--record", "append every received frame to FILE",
+                                   metavar="FILE"))
+    record_dir: str = option(
+        "", "record into a new file in this directory for each run and flight, named "
+        "<UTC start>-<source>.aur (not with record)",
+        flag=Flag("--record-dir", "record into a new file in DIR (created) per run and per "
+                  "flight, named <UTC start>-<source>.aur; not with --record", metavar="DIR"))
+    log_level: str = option("info", "logging level",
+                            choices=("debug", "info", "warning", "error"),
+                            flag=Flag("--log-level", "logging level", metavar="LEVEL"))
+
+    def check(self) -> None:
+        if self.record and self.record_dir:
+            raise ConfigError("gateway.record, gateway.record_dir: give one or the other")
+
+
+GATEWAY_SCHEMA = GatewayOptions.schema()
 
 
 @dataclass
@@ -181,15 +93,31 @@ def _resolve(group: str, type_name: str, where: str) -> Any:
         raise ConfigError(f"{where}.type: {exc}") from None
 
 
-def _schema_of(cls: Any) -> Schema:
+def schema_of(cls: Any) -> Schema:
+    """A backend's or source's schema: derived from its ``OPTIONS`` declaration (a
+    :class:`gateway.options.Options`), else a plug-in's own ``CONFIG``."""
+    opts = options_of(cls)
+    if opts is not None:
+        return opts.schema()
     return getattr(cls, "CONFIG", None) or EMPTY
+
+
+def _check_together(cls: Any, table: dict[str, Any], where: str) -> None:
+    """The checks between keys (:meth:`Options.check`), as the options object is built."""
+    opts = options_of(cls)
+    if opts is not None:
+        try:
+            opts.from_table(table)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
 
 
 def make_source(type_name: str, options: dict[str, Any], name: str | None,
                 where: str) -> Part:
     """Validate one source table into a :class:`Part`."""
     cls = _resolve(registry.SOURCE_GROUP, type_name, where)
-    opts = _schema_of(cls).validate(options, where, ignore=("type", "name"))
+    opts = schema_of(cls).validate(options, where, ignore=("type", "name"))
+    _check_together(cls, opts, where)
     return Part(type_name, name or getattr(cls, "default_name", lambda o: type_name)(opts),
                 opts, cls)
 
@@ -197,7 +125,8 @@ def make_source(type_name: str, options: dict[str, Any], name: str | None,
 def make_backend(type_name: str, options: dict[str, Any], name: str, where: str) -> Part:
     """Validate one backend table into a :class:`Part`."""
     cls = _resolve(registry.BACKEND_GROUP, type_name, where)
-    opts = _schema_of(cls).validate(options, where, ignore=("type", "enabled"))
+    opts = schema_of(cls).validate(options, where, ignore=("type", "enabled"))
+    _check_together(cls, opts, where)
     return Part(type_name, name, opts, cls)
 
 

@@ -5,7 +5,7 @@ without one (default 3 s).  Every change becomes a :class:`LinkEvent` handed to 
 (normally the dispatcher, so every backend hears it).  The clock is injectable so the
 behaviour is testable without waiting.
 
-Events reach the sink in the order the state changed, even when a source's thread
+Events reach the sink in the order the state changed, even when a source's loop
 (:meth:`LinkMonitor.frame_seen`) and the checking thread (:meth:`LinkMonitor.check`) race:
 changes are queued under a lock and delivered by one thread at a time, so a late "down"
 can never overtake the "up" that followed it.  No lock is held while the sink runs and no
@@ -46,7 +46,7 @@ class LinkMonitor:
         self.changes = 0
 
     def frame_seen(self, source: str, via: str = "") -> None:
-        """A valid frame arrived from ``source`` (call from the source's thread); ``via`` is
+        """A valid frame arrived from ``source`` (call from the source's loop); ``via`` is
         the message's (see :mod:`gateway.model`), carried on the source's link events."""
         now = self._clock()
         self._last[source] = now

@@ -6,11 +6,12 @@ The entry-point groups below are the one list: the built-ins are declared in thi
 installed (``pip install -e .`` for a checkout; ``make`` does it) for its metadata to exist.
 Adding a backend touches neither the dispatcher nor the CLI.
 
-A backend's command-line flags are found apart from its class, in ``BACKEND_FLAGS_GROUP``
-(same name, a light module or object with ``add_cli_arguments(parser)`` and
-``cli_options(args)``), so building ``run``'s parser imports no backend: the class (and
-pymavlink, Zenoh…) is imported only for a backend the configuration runs.  A backend with no
-entry there has its class's classmethods of the same names used instead (:func:`load_flags`).
+A backend's (or source's) options are found apart from its class, in
+``BACKEND_OPTIONS_GROUP`` (``SOURCE_OPTIONS_GROUP``): same name, its
+:class:`gateway.options.Options` dataclass in a light module, which has
+``add_cli_arguments(parser)`` and ``cli_options(args)``.  So building ``run``'s parser imports
+no backend: the class (and pymavlink, Zenoh…) is imported only for a backend the configuration
+runs.  A backend with no entry there has its class used instead (:func:`load_flags`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ from typing import Any
 BACKEND_GROUP = "aurora_gateway.backends"
 SOURCE_GROUP = "aurora_gateway.sources"
 COMMAND_GROUP = "aurora_gateway.commands"
-BACKEND_FLAGS_GROUP = "aurora_gateway.backend_flags"
+BACKEND_OPTIONS_GROUP = "aurora_gateway.backend_options"
+SOURCE_OPTIONS_GROUP = "aurora_gateway.source_options"
 
 _cache: dict[tuple[str, str], Any] = {}
 
@@ -54,7 +56,8 @@ def load(group: str, name: str) -> Any:
     target = targets.get(name)
     if target is None:
         kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source", COMMAND_GROUP: "command",
-                BACKEND_FLAGS_GROUP: "backend's flags"}.get(group, group)
+                BACKEND_OPTIONS_GROUP: "backend's options",
+                SOURCE_OPTIONS_GROUP: "source's options"}.get(group, group)
         available = ", ".join(targets) or (
             "none (no aurora_gateway entry points: install the package, pip install -e .)")
         raise RegistryError(f"unknown {kind} {name!r}; available: {available}")
@@ -79,9 +82,19 @@ def source_names() -> list[str]:
 
 
 def load_flags(name: str) -> Any:
-    """What adds backend ``name``'s flags and reads them back: its ``BACKEND_FLAGS_GROUP``
-    entry (imports nothing heavy), else its class (which has the two classmethods, as every
-    :class:`gateway.backend.Backend` does).  RegistryError if neither imports."""
-    if name in names(BACKEND_FLAGS_GROUP):
-        return load(BACKEND_FLAGS_GROUP, name)
+    """What adds backend ``name``'s flags and reads them back: its options class from
+    ``BACKEND_OPTIONS_GROUP`` (imports nothing heavy), else its class (which has the two
+    classmethods, as every :class:`gateway.backend.Backend` does).  RegistryError if neither
+    imports."""
+    if name in names(BACKEND_OPTIONS_GROUP):
+        return load(BACKEND_OPTIONS_GROUP, name)
     return load(BACKEND_GROUP, name)
+
+
+def load_source_options(name: str) -> Any:
+    """Source type ``name``'s options class: its ``SOURCE_OPTIONS_GROUP`` entry (imports
+    nothing heavy), else its class's ``OPTIONS``; None for a source with neither (a plug-in
+    with its own ``CONFIG``).  RegistryError if it fails to import."""
+    if name in names(SOURCE_OPTIONS_GROUP):
+        return load(SOURCE_OPTIONS_GROUP, name)
+    return getattr(load(SOURCE_GROUP, name), "OPTIONS", None)

@@ -174,9 +174,10 @@ class MavPeer:
 def running_backend(*endpoints: str, **opts: Any) -> Iterator[Any]:
     """A started MavlinkBackend on ``endpoints`` behind a real Dispatcher; closed on exit."""
     from backends.mavlink.backend import MavlinkBackend
+    from backends.mavlink.options import MavlinkOptions
     from gateway.dispatcher import Dispatcher
 
-    b = MavlinkBackend(endpoints=list(endpoints), **opts)
+    b = MavlinkBackend(MavlinkOptions(endpoints=list(endpoints), **opts))
     d = Dispatcher([b])
     assert d.start() == [], d.records[0].init_error
     try:

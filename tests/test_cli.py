@@ -714,17 +714,17 @@ def test_only_and_disable_leave_a_files_backend_unvalidated(tmp_path: Path) -> N
         cli.config_from_args(args)
 
 
-def test_the_light_flag_modules_name_the_backends_own_defaults() -> None:
+def test_the_light_options_modules_name_the_backends_own_defaults() -> None:
     from backends.crsf import backend as crsf
-    from backends.crsf import flags as crsf_flags
+    from backends.crsf import options as crsf_options
     from backends.hc12 import backend as hc12
-    from backends.hc12 import flags as hc12_flags
+    from backends.hc12 import options as hc12_options
     from backends.mavlink import backend as mavlink
-    from backends.mavlink import flags as mavlink_flags
-    from backends.zenoh import flags as zenoh_flags
+    from backends.mavlink import options as mavlink_options
+    from backends.zenoh import options as zenoh_options
     from backends.zenoh import session as zenoh_session
 
-    assert mavlink_flags.QGC_UDP == mavlink.QGC_UDP
-    assert crsf_flags.DEFAULT_BAUD == crsf.DEFAULT_BAUD
-    assert hc12_flags.MODES == hc12.MODES
-    assert zenoh_flags.MODES == zenoh_session.MODES
+    assert mavlink.MavlinkBackend.EMBEDDED_DEFAULT == {"endpoints": [mavlink_options.QGC_UDP]}
+    assert crsf.CrsfBackend().baudrate == crsf_options.DEFAULT_BAUD
+    assert hc12.Hc12Backend.OPTIONS.schema().keys["mode"].choices == hc12_options.MODES
+    assert zenoh_options.MODES == zenoh_session.MODES

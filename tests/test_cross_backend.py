@@ -10,7 +10,9 @@ from mavlink_peer import MavPeer
 
 from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import LinkStatistics, encode
+from backends.crsf.options import CrsfOptions
 from backends.mavlink.backend import MavlinkBackend
+from backends.mavlink.options import MavlinkOptions
 from gateway.backend import GatewayContext
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats
@@ -25,8 +27,8 @@ def _signed(byte: int) -> int:
 def test_receiver_link_statistics_reach_a_ground_station_as_radio_status() -> None:
     master, slave = os.openpty()
     gcs = MavPeer(255, 190)
-    mavlink = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
-    crsf = CrsfBackend(url=os.ttyname(slave), name="elrs")
+    mavlink = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{gcs.port}"]))
+    crsf = CrsfBackend(CrsfOptions(url=os.ttyname(slave)), name="elrs")
     d = Dispatcher([crsf, mavlink])
     crsf.attach(GatewayContext(emit=d.dispatch))
     try:

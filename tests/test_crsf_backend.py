@@ -23,9 +23,9 @@ import pytest
 from helpers import run_within, wait_for
 from test_crsf_edgetx import EdgeTxRadio
 
-from backends.crsf import flags as crsf_flags
 from backends.crsf.backend import CrsfBackend
 from backends.crsf.frames import LinkStatistics, RcChannels, encode
+from backends.crsf.options import CrsfOptions
 from backends.crsf.ports import PtyPair
 from dialects.states import SimpleState
 from gateway import config, model
@@ -34,6 +34,7 @@ from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import LinkStats, SmUpdate, Status
+from gateway.sources.options import SimOptions
 from gateway.sources.sim import SimSource, flight_messages
 
 DEADLINE_S = 15.0
@@ -145,7 +146,7 @@ def test_run_flags() -> None:
     assert parts["crsf"].options["url"] == "socket://127.0.0.1:9"
     assert parts["crsf"].options["baudrate"] == 416666
     args = build_parser().parse_args(["run"])
-    assert crsf_flags.cli_options(args) is None
+    assert CrsfOptions.cli_options(args) is None
 
 
 # -- ports -----------------------------------------------------------------------------------
@@ -190,7 +191,7 @@ def test_own_pty_sends_telemetry_and_reads_the_receiver() -> None:
 def test_serial_url_shares_the_port_between_writer_and_reader(peer: PtyPeer) -> None:
     d = Dispatcher()
     rec = Recorder()
-    b = CrsfBackend(url=peer.path, sink=d.dispatch)
+    b = CrsfBackend(CrsfOptions(url=peer.path), sink=d.dispatch)
     d.add(b)
     d.add(rec)
     d.start()
@@ -209,7 +210,7 @@ def test_serial_url_shares_the_port_between_writer_and_reader(peer: PtyPeer) -> 
 
 
 def test_loop_url_reads_back_what_it_writes() -> None:
-    b = CrsfBackend(url="loop://")
+    b = CrsfBackend(CrsfOptions(url="loop://"))
     b.init()
     try:
         assert wait_for(lambda: b.engine.connected)
@@ -225,7 +226,7 @@ def test_dead_port_is_retried_and_a_lost_connection_reconnects() -> None:
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     srv.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
     port = srv.getsockname()[1]
-    b = CrsfBackend(url=f"socket://127.0.0.1:{port}")
+    b = CrsfBackend(CrsfOptions(url=f"socket://127.0.0.1:{port}"))
     b.init()
     conns: list[socket.socket] = []
     try:
@@ -265,7 +266,7 @@ def test_state_changes_published_before_the_port_opens_go_out_first() -> None:
     srv = socket.socket()
     srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     srv.bind(("127.0.0.1", 0))  # bound, not listening: connections are refused
-    b = CrsfBackend(url=f"socket://127.0.0.1:{srv.getsockname()[1]}")
+    b = CrsfBackend(CrsfOptions(url=f"socket://127.0.0.1:{srv.getsockname()[1]}"))
     b.init()
     conn: socket.socket | None = None
     try:
@@ -290,7 +291,7 @@ def test_backend_starts_no_thread_of_its_own(peer: PtyPeer) -> None:
     """Sending, receiving and the scheduler all run on the port engine's thread; and the
     last state change still goes out when the backend closes right after it."""
     before = set(threading.enumerate())
-    b = CrsfBackend(url=peer.path, name="crsf-solo")
+    b = CrsfBackend(CrsfOptions(url=peer.path), name="crsf-solo")
     b.init()
     radio = EdgeTxRadio()
     try:
@@ -448,7 +449,7 @@ class Clock:
 def test_link_stats_are_rate_limited_and_a_failing_sink_is_isolated() -> None:
     clock = Clock()
     got: list[LinkStats] = []
-    b = CrsfBackend(link_stats_hz=5.0, sink=got.append, clock=clock, name="elrs")
+    b = CrsfBackend(CrsfOptions(link_stats_hz=5.0), sink=got.append, clock=clock, name="elrs")
     frame = encode(LINK_STATS)
     b.feed(frame * 10)
     assert len(got) == 1 and b.link_stats_rx == 10
@@ -465,7 +466,7 @@ def test_link_stats_are_rate_limited_and_a_failing_sink_is_isolated() -> None:
     clock.now += 1
     b.feed(frame)
     assert b.emit_errors == 1 and b.stats()["emit_errors"] == 1
-    quiet = CrsfBackend(link_stats_hz=0, sink=got.append)
+    quiet = CrsfBackend(CrsfOptions(link_stats_hz=0), sink=got.append)
     quiet.feed(frame)
     assert len(got) == 2 and quiet.link_stats_rx == 1
 
@@ -504,9 +505,9 @@ def test_simulated_flight_in_process(peer: PtyPeer) -> None:
     """The flight at 4× speed through a real dispatcher into a pty; every state in order,
     altitude within 0.1 m and attitude within 1e-4 rad of what the source sent."""
     rec = Recorder()
-    d = Dispatcher([CrsfBackend(url=peer.path), rec])
+    d = Dispatcher([CrsfBackend(CrsfOptions(url=peer.path)), rec])
     d.start()
-    src = SimSource(speed=4, cycles=1, pad_idle_s=0.5, pad_armed_s=0.5)
+    src = SimSource(SimOptions(speed=4, cycles=1, pad_idle_s=0.5, pad_armed_s=0.5))
     radio = EdgeTxRadio()
     try:
         src.start(d.dispatch)

@@ -37,6 +37,7 @@ from backends.crsf.frames import (
     Voltages,
     encode,
 )
+from backends.crsf.options import CrsfOptions
 from gateway.model import Battery as ModelBattery
 from gateway.model import Position, SmUpdate, Status, VehicleState
 
@@ -283,7 +284,7 @@ def test_sm_update_maps_to_attitude_altitude_vario_and_flight_mode() -> None:
 
 
 def test_pitch_sign_is_configurable() -> None:
-    b = CrsfBackend(pitch="nose-down")
+    b = CrsfBackend(CrsfOptions(pitch="nose-down"))
     b.send_sm_update(sm_update(pitch=0.25))
     assert show(latest_frame(b, FRAME_ATTITUDE))["Ptch"] == -250
 
@@ -292,7 +293,7 @@ def test_flight_mode_star_when_disarmed_and_configurable_suffix() -> None:
     b = CrsfBackend()
     b.send_sm_update(sm_update(state=0, armed=False))
     assert show(latest_frame(b, FRAME_FLIGHT_MODE)) == {"FM": "IDLE*"}
-    b2 = CrsfBackend(disarmed_suffix="")
+    b2 = CrsfBackend(CrsfOptions(disarmed_suffix=""))
     b2.send_sm_update(sm_update(state=0, armed=False))
     assert show(latest_frame(b2, FRAME_FLIGHT_MODE)) == {"FM": "IDLE"}
 

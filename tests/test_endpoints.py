@@ -324,8 +324,12 @@ def test_every_endpoint_flag_uses_the_grammar(capsys: pytest.CaptureFixture[str]
         assert err.count("\n") == 1 and f"argument {flag}: {words}" in err, err
     args = parser.parse_args(["run", "--crsf", "pty", "--hc12", "loop://", "--http", "[::1]:0",
                               "--mavlink", "udp:[::1]:0", "--zenoh-listen", "tcp/[::1]:0"])
-    assert (args.crsf, args.hc12.device, args.http.host, args.mavlink[0].kind) == (
+    # a flag holds what its key will (the options declarations): the text the grammar
+    # accepted, or the host and port keys --http sets
+    assert (args.crsf, args.hc12, args.http["host"], parse_endpoint(args.mavlink[0]).kind) == (
         "pty", "loop://", "::1", "udpin")
+    assert (args.http["port"], args.mavlink, args.zenoh_listen) == (
+        0, ["udp:[::1]:0"], ["tcp/[::1]:0"])
 
 
 # -- IPv6 bound where it says ----------------------------------------------------------------------
@@ -381,11 +385,12 @@ def test_udpin_on_v6_loopback_binds_there() -> None:
 def test_a_backend_given_a_v6_tcpin_endpoint_serves_on_it() -> None:
     """--uavtalk tcpin:[::1]:0 end to end: the backend's listener is on ::1 and takes a GCS."""
     from backends.uavtalk.backend import UavtalkBackend
+    from backends.uavtalk.options import UavtalkOptions
     from gateway.backend import GatewayContext
     from gateway.dispatcher import Dispatcher
 
     d = Dispatcher()
-    b = UavtalkBackend(endpoints=["tcpin:[::1]:0"])
+    b = UavtalkBackend(UavtalkOptions(endpoints=["tcpin:[::1]:0"]))
     b.attach(GatewayContext(emit=d.dispatch))
     d.add(b)
     d.start()

@@ -27,6 +27,7 @@ from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
 from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
+from backends.foxglove.options import FoxgloveOptions
 from gateway import config, registry
 from gateway.backend import GatewayContext, Outcome
 from gateway.dispatcher import Dispatcher
@@ -215,7 +216,7 @@ def assert_same_rotation(q: dict[str, float], roll: float, pitch: float, yaw: fl
 # --- tests ------------------------------------------------------------------------------------
 
 def test_a_client_sees_the_channels_and_the_flight() -> None:
-    backend = FoxgloveBackend(host="127.0.0.1", port=0)
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
     dispatcher = Dispatcher([backend])
     assert dispatcher.start() == []
     try:
@@ -299,7 +300,7 @@ def check_a_flight(backend: FoxgloveBackend, dispatcher: Dispatcher,
 def test_the_gateways_counters_every_second() -> None:
     counters = {"backends": {"mavlink": {"sent": 12, "dropped": 0, "errors": 1, "link": 1}},
                 "sources": {"sim": {"frames": 40}}}
-    backend = FoxgloveBackend(host="127.0.0.1", port=0)
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
     backend.attach(GatewayContext(services={"gateway.stats": lambda: counters}))
     dispatcher = Dispatcher([backend])
     assert dispatcher.start() == []
@@ -316,7 +317,7 @@ def test_the_gateways_counters_every_second() -> None:
 
 
 def test_a_full_queue_drops_and_counts() -> None:
-    b = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=3)
+    b = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0, queue_depth=3))
     assert b.send_sm_update(sm(0)) == Outcome.NOT_READY  # before init
     entered, release = threading.Event(), threading.Event()
     real_log = b._log
@@ -341,7 +342,7 @@ def test_a_full_queue_drops_and_counts() -> None:
 
 
 def test_close_is_quick_safe_twice_and_frees_the_port() -> None:
-    b = FoxgloveBackend(host="127.0.0.1", port=0)
+    b = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
     b.init()
     port = b.port
     with foxglove_client(port) as client:
@@ -371,14 +372,14 @@ def test_a_busy_port_is_a_backend_error_naming_it() -> None:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        b = FoxgloveBackend(host="127.0.0.1", port=port)
+        b = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=port))
         with pytest.raises(BackendError, match=f"127.0.0.1:{port}"):
             b.init()
         b.close()
 
 
 def test_the_legacy_protocol_name_alone_is_refused() -> None:
-    b = FoxgloveBackend(host="127.0.0.1", port=0)
+    b = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
     b.init()
     try:
         with pytest.raises(InvalidStatus), connect(

@@ -20,6 +20,7 @@ from helpers import wait_for
 from backends.fprime.backend import FprimeBackend
 from backends.fprime.channels import codecs
 from backends.fprime.commands import NO_OP, NO_OP_RECEIVED, NOT_SUPPORTED
+from backends.fprime.options import FprimeOptions
 from backends.fprime.packets import FW_PACKET_LOG, TlmPacker
 from dialects.states import SimpleState
 from gateway import config
@@ -94,7 +95,7 @@ class Ground:
 @pytest.fixture
 def gateway(request: Any) -> Iterator[tuple[Dispatcher, FprimeBackend]]:
     d = Dispatcher()
-    b = FprimeBackend(endpoints=["tcpin:127.0.0.1:0"], framing=request.param)
+    b = FprimeBackend(FprimeOptions(endpoints=["tcpin:127.0.0.1:0"], framing=request.param))
     b.attach(GatewayContext(emit=d.dispatch))
     d.add(b)
     d.start()
@@ -266,7 +267,7 @@ def test_a_busy_port_refuses_the_start() -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        b = FprimeBackend(endpoints=[f"tcpin:127.0.0.1:{port}"])
+        b = FprimeBackend(FprimeOptions(endpoints=[f"tcpin:127.0.0.1:{port}"]))
         with pytest.raises(BackendError, match=str(port)):
             b.init()
         b.close()

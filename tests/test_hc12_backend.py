@@ -24,6 +24,7 @@ from test_hc12_support import (
 )
 
 from backends.hc12.backend import Hc12Backend
+from backends.hc12.options import Hc12Options
 from gateway import config
 from gateway.commands import cli
 from gateway.config import ConfigError
@@ -50,7 +51,7 @@ def running(settings: Path, **kwargs: Any) -> Iterator[Any]:
 
 @contextlib.contextmanager
 def backend_on(url: str, **options: Any) -> Iterator[Hc12Backend]:
-    b = Hc12Backend(url, control="off", **options)
+    b = Hc12Backend(Hc12Options(url=url, control="off", **options))
     b.init()
     try:
         assert b.engine.wait_connected(DEADLINE_S)
@@ -197,7 +198,7 @@ def test_a_port_that_is_not_there_means_not_ready_never_blocking() -> None:
     with socket.socket() as s:  # a free port with nobody listening
         s.bind(("127.0.0.1", 0))
         url = f"rfc2217://127.0.0.1:{s.getsockname()[1]}"
-    b = Hc12Backend(url, control="off")
+    b = Hc12Backend(Hc12Options(url=url, control="off"))
     b.init()
     try:
         start = time.monotonic()

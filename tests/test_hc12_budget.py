@@ -14,6 +14,7 @@ from test_hc12_support import FakeClock, sm, status
 from backends.hc12 import at
 from backends.hc12.backend import Hc12Backend
 from backends.hc12.budget import AirBudget, figures
+from backends.hc12.options import Hc12Options
 from backends.hc12.setline import BENCH_HINT, NoSetLine, SetLineError, parse_set_line
 from backends.hc12.vehicle import VehicleWatch
 from gateway.flight import FlightModel, FlightProfile
@@ -132,7 +133,7 @@ def test_100hz_stream_into_9600_baud_budget(revision: int) -> None:
     what reaches the far side of the port never exceeds the budget, drops are counted, every
     STATUS is delivered."""
     clock = FakeClock(0.0)
-    backend = Hc12Backend("loop://", queue_depth=4096, control="off", clock=clock)
+    backend = Hc12Backend(Hc12Options(url="loop://", queue_depth=4096, control="off"), clock=clock)
     backend.init()
     reader = None
     try:
@@ -186,8 +187,9 @@ def test_100hz_stream_into_9600_baud_budget(revision: int) -> None:
 
 def test_min_interval_limits_sm_updates_but_not_status() -> None:
     clock = FakeClock(0.0)
-    backend = Hc12Backend("loop://", min_interval_s=0.2, utilisation_pct=100,
-                          burst_bytes=10_000, queue_depth=4096, control="off", clock=clock)
+    backend = Hc12Backend(Hc12Options(url="loop://", min_interval_s=0.2, utilisation_pct=100,
+                                      burst_bytes=10_000, queue_depth=4096, control="off"),
+                          clock=clock)
     backend.init()
     try:
         assert backend.engine.wait_connected(5.0)

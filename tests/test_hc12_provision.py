@@ -34,6 +34,7 @@ from test_hc12_support import (
 
 from backends.hc12 import cli, control
 from backends.hc12.backend import Hc12Backend
+from backends.hc12.options import Hc12Options
 from backends.hc12.port import open_port
 from backends.hc12.provision import run_request
 from backends.hc12.setline import BENCH_HINT, GpioSetLine, SetLineSpec
@@ -358,8 +359,8 @@ def test_at_never_interleaves_with_frames_and_queued_frames_drain_after(
     the module in AT mode; frames submitted meanwhile wait for the lock and go out after."""
     write_settings(settings_file, baud=115200)
     emu = emu_mod.Hc12Emulator(settings_file, tx_buffer=1 << 20).start()
-    b = Hc12Backend(emu.url, baudrate=115200, air_baud=115200, utilisation_pct=100,
-                    set_line="rts", control="off")
+    b = Hc12Backend(Hc12Options(url=emu.url, baudrate=115200, air_baud=115200, utilisation_pct=100,
+                                set_line="rts", control="off"))
     b.init()
     stop = threading.Event()
     accepted: list[tuple[float, bytes]] = []
@@ -413,7 +414,7 @@ def test_at_never_interleaves_with_frames_and_queued_frames_drain_after(
 def test_provisioning_through_the_backend_follows_the_idle_rule(settings_file: Path) -> None:
     clock = FakeClock()
     emu = emu_mod.Hc12Emulator(settings_file).start()
-    b = Hc12Backend(emu.url, set_line="rts", control="off", clock=clock)
+    b = Hc12Backend(Hc12Options(url=emu.url, set_line="rts", control="off"), clock=clock)
     b.init()
     try:
         assert b.engine.wait_connected(DEADLINE_S)
@@ -499,7 +500,7 @@ def test_what_an_exclusive_block_changes_is_put_back_and_frames_flow_after(
     writes again, so the frames queued meanwhile are not garbled."""
     write_settings(settings_file, baud=19200)
     emu = emu_mod.Hc12Emulator(settings_file).start()
-    b = Hc12Backend(emu.url, baudrate=19200, air_baud=19200, control="off")
+    b = Hc12Backend(Hc12Options(url=emu.url, baudrate=19200, air_baud=19200, control="off"))
     b.init()
     try:
         assert b.engine.wait_connected(DEADLINE_S)
@@ -523,7 +524,7 @@ def test_provisioning_a_port_that_is_down_sends_nothing() -> None:
     with socket.socket() as s:  # a free port with nobody listening
         s.bind(("127.0.0.1", 0))
         url = f"rfc2217://127.0.0.1:{s.getsockname()[1]}"
-    b = Hc12Backend(url, set_line="rts", control="off")
+    b = Hc12Backend(Hc12Options(url=url, set_line="rts", control="off"))
     b.init()
     try:
         r = b.provision("info", bench=True)

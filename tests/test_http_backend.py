@@ -17,6 +17,7 @@ from helpers import run_within, wait_for
 from prometheus_client.parser import text_string_to_metric_families
 
 from backends.http.backend import HttpBackend
+from backends.http.options import HttpOptions
 from gateway import config
 from gateway.backend import Backend, BackendError, GatewayContext, Routes
 from gateway.config import ConfigError
@@ -55,7 +56,7 @@ class Probe(Backend):
 @pytest.fixture
 def gw() -> Iterator[tuple[Dispatcher, HttpBackend, Probe]]:
     d = Dispatcher()
-    b = HttpBackend(port=0, event_interval_s=0.05, max_clients=2)
+    b = HttpBackend(HttpOptions(port=0, event_interval_s=0.05, max_clients=2))
     probe = Probe()
     ctx = GatewayContext(emit=d.dispatch)
     ctx.services["gateway.stats"] = lambda: {"backends": d.stats(), "sources": {}}
@@ -249,7 +250,7 @@ def test_nothing_changes_state(gw: Any, method: str) -> None:
 
 
 def test_close_ends_open_streams_within_a_second_and_is_safe_twice() -> None:
-    b = HttpBackend(port=0, event_interval_s=0.05)
+    b = HttpBackend(HttpOptions(port=0, event_interval_s=0.05))
     b.init()
     host, port = b.address()
     conn = http.client.HTTPConnection(host, port, timeout=5)
@@ -280,7 +281,7 @@ def test_a_busy_port_refuses_the_start() -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        b = HttpBackend(port=port)
+        b = HttpBackend(HttpOptions(port=port))
         with pytest.raises(BackendError, match=str(port)):
             b.init()
         b.close()

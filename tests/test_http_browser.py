@@ -19,6 +19,7 @@ import pytest
 from helpers import wait_for
 
 from backends.http.backend import HttpBackend
+from backends.http.options import HttpOptions
 from gateway.backend import GatewayContext
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkEvent, SmUpdate
@@ -47,7 +48,7 @@ def climbing(d: Dispatcher, stop: threading.Event) -> None:
 @pytest.fixture
 def page_url() -> Iterator[str]:
     d = Dispatcher()
-    b = HttpBackend(port=0)
+    b = HttpBackend(HttpOptions(port=0))
     ctx = GatewayContext(emit=d.dispatch)
     ctx.services["gateway.stats"] = lambda: {"backends": d.stats(), "sources": {}}
     b.attach(ctx)

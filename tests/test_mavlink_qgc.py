@@ -23,6 +23,7 @@ import pytest
 from mavlink_peer import MavPeer
 
 from backends.mavlink.backend import MavlinkBackend
+from backends.mavlink.options import MavlinkOptions
 from backends.mavlink.translate import sm_update_from_mavlink, status_from_mavlink
 from dialects import aurora_mavlink as aurora
 from dialects.states import SimpleState as S
@@ -33,6 +34,7 @@ from gateway.commands import cli
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.model import RcChannels, SmUpdate, Status
+from gateway.sources.options import SimOptions
 from gateway.sources.sim import SimSource
 from gateway.wire import decode_all, encode
 
@@ -48,7 +50,7 @@ def gcs() -> Iterator[MavPeer]:
 
 @contextlib.contextmanager
 def running(port: int, **opts: Any) -> Iterator[tuple[MavlinkBackend, Dispatcher]]:
-    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{port}"], **opts)
+    b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{port}"], **opts))
     d = Dispatcher([b])
     assert d.start() == []
     try:
@@ -223,7 +225,7 @@ class Tap:
 def test_attitude_follows_a_10_hz_rocket_update_for_update(gcs: MavPeer) -> None:
     with running(gcs.port) as (_, d):
         tap = Tap(d)
-        src = SimSource(rate_hz=10, speed=1, pad_idle_s=5)
+        src = SimSource(SimOptions(rate_hz=10, speed=1, pad_idle_s=5))
         src.start(tap)
         try:
             assert gcs.wait_until(lambda: len(tap.sm_updates()) >= 13, WAIT)
@@ -249,7 +251,8 @@ def test_a_simulated_flight_streams_everything_qgc_shows(gcs: MavPeer) -> None:
     order = ["IDLE", "ARMED", "BOOST", "BURNOUT", "APOGEE", "MAIN", "REDUNDANT", "LANDED"]
     with running(gcs.port, heartbeat_hz=10, extended_sys_state_hz=10) as (_, d):
         tap = Tap(d)
-        src = SimSource(rate_hz=20, status_hz=2, speed=4, pad_idle_s=0.4, pad_armed_s=0.8)
+        src = SimSource(SimOptions(rate_hz=20, status_hz=2, speed=4, pad_idle_s=0.4,
+                                   pad_armed_s=0.8))
         src.start(tap)
         try:
             landed = gcs.wait_for("STATUSTEXT", lambda m: m.text == "#LANDED", timeout=WAIT * 2)
@@ -405,14 +408,14 @@ def test_bad_endpoints_and_keys_are_one_clear_line() -> None:
     for bad in ("udpout:127.0.0.1", "tcp:host:port", "udpout:[::1]:70000", "serial:,9600",
                 "serial:/dev/ttyUSB0,fast", "nonsense"):
         with pytest.raises(ValueError, match=r"\S"):
-            MavlinkBackend(endpoints=[bad])
+            MavlinkBackend(MavlinkOptions(endpoints=[bad]))
 
 
 def test_an_endpoint_that_cannot_open_fails_the_backend_not_the_gateway() -> None:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     s.bind(("127.0.0.1", 0))
     try:
-        b = MavlinkBackend(endpoints=[f"udpin:127.0.0.1:{s.getsockname()[1]}"])
+        b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpin:127.0.0.1:{s.getsockname()[1]}"]))
         d = Dispatcher([b])
         failures = d.start()
         d.close()
@@ -488,7 +491,7 @@ class _RcRecorder(Backend):
 def test_rc_overrides_reach_the_gateway_and_commands_go_out_as_rc_channels(gcs: MavPeer) -> None:
     dev = gcs.dialect
     rec = _RcRecorder()
-    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
+    b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{gcs.port}"]))
     d = Dispatcher([b, rec])
     b.attach(GatewayContext(emit=d.dispatch))
     assert d.start() == []

@@ -15,6 +15,7 @@ from mavlink_peer import MavPeer, running_backend, upstream_dialect
 
 from backends.mavlink.backend import MavlinkBackend
 from backends.mavlink.frames import FramerStats, split_datagram
+from backends.mavlink.options import MavlinkOptions
 from backends.mavlink.signing import (
     NEW_STREAM_WINDOW,
     SignatureVerifier,
@@ -106,8 +107,9 @@ def test_routed_traffic_passes_unverified_and_unchanged() -> None:
     signing applies to what the gateway itself consumes and sends."""
     other_key = hashlib.sha256(b"the vehicle's own key").digest()
     with MavPeer(255, 190) as gcs:
-        b = MavlinkBackend(endpoints=["udpin:127.0.0.1:0", f"udpout:127.0.0.1:{gcs.port}"],
-                           signing_passphrase=PASS)
+        b = MavlinkBackend(MavlinkOptions(
+            endpoints=["udpin:127.0.0.1:0", f"udpout:127.0.0.1:{gcs.port}"],
+                                          signing_passphrase=PASS))
         d = Dispatcher([b])
         assert d.start() == []
         try:
@@ -182,10 +184,10 @@ def test_keys_from_passphrase_and_files(tmp_path: Path) -> None:
     with pytest.raises(SigningError):
         key_from_passphrase("")
     with pytest.raises(SigningError, match=r"bad\.key"):  # at construction: a config error
-        MavlinkBackend(endpoints=["udpout:127.0.0.1:9"], signing_key_file=str(bad))
+        MavlinkBackend(MavlinkOptions(endpoints=["udpout:127.0.0.1:9"], signing_key_file=str(bad)))
     cfg = config.parse({"backends": {"mavlink": {"signing_key_file": str(bad)}}})
     with pytest.raises(ConfigError, match=r"^backends\.mavlink: signing key .*bad\.key"):
         Gateway(cfg)
     with pytest.raises(ValueError, match="one, not both"):
-        MavlinkBackend(signing_key_file=str(raw), signing_passphrase=PASS)
+        MavlinkBackend(MavlinkOptions(signing_key_file=str(raw), signing_passphrase=PASS))
     assert struct.calcsize("<IH") == 6  # the 48-bit timestamp layout the tests read

@@ -11,6 +11,7 @@ import pytest
 from mavlink_peer import MavPeer, upstream_dialect
 
 from backends.mavlink.backend import MavlinkBackend
+from backends.mavlink.options import MavlinkOptions, MavlinkSourceOptions
 from backends.mavlink.source import MavlinkSource, classic_mode_name
 from gateway import config
 from gateway.backend import Backend, Routes
@@ -71,7 +72,7 @@ def started(source: MavlinkSource, sink: Sink) -> MavlinkSource:
 
 def test_an_ardupilot_vehicle_feeds_the_model() -> None:
     sink = Sink()
-    src = started(MavlinkSource(url="udpin:127.0.0.1:0", name="copter"), sink)
+    src = started(MavlinkSource(MavlinkSourceOptions(url="udpin:127.0.0.1:0"), name="copter"), sink)
     veh = MavPeer(1, 1, dest=src.endpoints[0].address)
     try:
         armed_loiter = dev.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | dev.MAV_MODE_FLAG_SAFETY_ARMED
@@ -124,7 +125,9 @@ def test_an_ardupilot_vehicle_feeds_the_model() -> None:
 
 def test_only_the_followed_vehicle_counts() -> None:
     sink = Sink()
-    src = started(MavlinkSource(url="udpin:127.0.0.1:0", target_system=3, name="v3"), sink)
+    src = started(MavlinkSource(MavlinkSourceOptions(url="udpin:127.0.0.1:0",
+                                                     target_system=3), name="v3"),
+                  sink)
     other = MavPeer(4, 1, dest=src.endpoints[0].address)
     mine = MavPeer(3, 1, dest=src.endpoints[0].address)
     try:
@@ -143,9 +146,10 @@ def test_only_the_followed_vehicle_counts() -> None:
 
 def test_one_gateway_feeds_another_losslessly_over_mavlink() -> None:
     sink = Sink()
-    src = started(MavlinkSource(url="udpin:127.0.0.1:0", name="upstream"), sink)
+    src = started(MavlinkSource(MavlinkSourceOptions(url="udpin:127.0.0.1:0"), name="upstream"),
+                  sink)
     _, port = src.endpoints[0].address
-    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{port}"])
+    b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{port}"]))
     d = Dispatcher([b])
     assert d.start() == []
     sent = [SmUpdate(5000 + i, 2, True, 0, 100.0 + i / 3, 30.1, 29.9, 80.25, 0.1, 1.4, 0.6,
@@ -170,7 +174,7 @@ def test_one_gateway_feeds_another_losslessly_over_mavlink() -> None:
 
 def test_the_backend_does_not_echo_a_mavlink_sources_position() -> None:
     gcs = MavPeer(255, 190)
-    b = MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{gcs.port}"])
+    b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{gcs.port}"]))
     d = Dispatcher([b])
     assert d.start() == []
     try:
@@ -197,7 +201,7 @@ def test_config_and_mode_names() -> None:
     assert part.cls is MavlinkSource and part.options["sysid"] == 0  # automatic
     assert part.name == "mavlink:udpin:0.0.0.0:14551"
     with pytest.raises(ValueError, match="'bogus': not an endpoint; expected tcpin:"):
-        MavlinkSource(url="bogus")
+        MavlinkSource(MavlinkSourceOptions(url="bogus"))
     custom = dev.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert classic_mode_name(dev.MAV_AUTOPILOT_ARDUPILOTMEGA, dev.MAV_TYPE_FIXED_WING, custom,
                              10) == "AUTO"

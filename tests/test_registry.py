@@ -22,7 +22,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 GROUPS = (registry.BACKEND_GROUP, registry.SOURCE_GROUP, registry.COMMAND_GROUP,
-          registry.BACKEND_FLAGS_GROUP)
+          registry.BACKEND_OPTIONS_GROUP, registry.SOURCE_OPTIONS_GROUP)
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -105,23 +105,27 @@ def test_every_builtin_backends_flags_load_without_importing_a_backend() -> None
         import sys
         from gateway import registry as r
         flags = {n: r.load_flags(n) for n in r.backend_names()}
-        print(sorted(n for n, f in flags.items() if isinstance(f, type)))
+        sources = {n: r.load_source_options(n) for n in r.source_names()}
+        print(sorted(n for n, f in flags.items() if not f.__name__.endswith("Options")))
         print(sorted(m for m in sys.modules if m.split(".")[0] in ("pymavlink", "zenoh")
                      or m == "dialects.aurora_mavlink"
-                     or m.startswith("backends.") and m.endswith(".backend")))
+                     or m.startswith("backends.") and m.endswith((".backend", ".source"))))
+        print(sorted(n for n, o in sources.items() if not o.__name__.endswith("Options")))
     """)
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
                          text=True, timeout=60, check=True).stdout.splitlines()
-    assert out[0] == "['console']"  # no flags entry: its class (light) is the fallback
+    assert out[0] == "['console']"  # no options entry: its class (light) is the fallback
     assert out[1] == "[]"
+    assert out[2] == "[]"  # every source's options come from a light module
 
 
 def test_load_flags_prefers_the_flags_entry_and_falls_back_to_the_class() -> None:
     from backends.console import ConsoleBackend
-    from backends.mavlink import flags
+    from backends.mavlink.options import MavlinkOptions, MavlinkSourceOptions
 
-    assert registry.load_flags("mavlink") is flags
+    assert registry.load_flags("mavlink") is MavlinkOptions
     assert registry.load_flags("console") is ConsoleBackend
+    assert registry.load_source_options("mavlink") is MavlinkSourceOptions
     with pytest.raises(registry.RegistryError, match="unknown backend 'teleporter'"):
         registry.load_flags("teleporter")
 

@@ -33,6 +33,7 @@ from gateway.model import RawFrame, RcChannels, SmUpdate, Status
 from gateway.pacing import BATCH, Pacer
 from gateway.recording import Recorder
 from gateway.sources import Source
+from gateway.sources.options import ReplayOptions, SerialOptions, SimOptions
 from gateway.sources.replay import ReplaySource
 from gateway.sources.serial_source import SerialSource
 from gateway.sources.sim import BOOT_UPTIME_MS, SimSource, flight_frames
@@ -164,7 +165,7 @@ def wait_until_reading(send: int | Callable[[bytes], Any], sink: Sink) -> None:
 def test_pty_frames_are_decoded_and_delivered_with_the_source_name(
         pty_pair: tuple[int, str]) -> None:
     master, slave_path = pty_pair
-    src = SerialSource(slave_path, baudrate=9600, name="rocket")
+    src = SerialSource(SerialOptions(url=slave_path, baudrate=9600), name="rocket")
     sink = Sink()
     src.start(sink)
     try:
@@ -190,7 +191,7 @@ def test_pty_frames_are_decoded_and_delivered_with_the_source_name(
 def test_a_pty_whose_master_goes_away_is_a_counted_disconnect_not_a_crash() -> None:
     master, slave = os.openpty()
     tty.setraw(slave)
-    src = SerialSource(os.ttyname(slave), name="pty", reconnect_max_s=0.2)
+    src = SerialSource(SerialOptions(url=os.ttyname(slave), reconnect_max_s=0.2), name="pty")
     sink = Sink()
     try:
         with log_event("gateway.io.port", "read failed") as failed:
@@ -224,7 +225,8 @@ def server() -> Iterator[socket.socket]:
 def test_socket_source_counts_a_disconnect_reconnects_and_continues(
         server: socket.socket) -> None:
     port = server.getsockname()[1]
-    src = SerialSource(f"socket://127.0.0.1:{port}", name="tcp", reconnect_max_s=0.5)
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}", reconnect_max_s=0.5),
+                       name="tcp")
     sink = Sink()
     frames = sample_frames()
     first, second = frames[:40], frames[40:]
@@ -257,7 +259,7 @@ def test_socket_source_reads_a_burst_in_chunks_not_byte_by_byte(
     """pyserial's socket:// says at most one byte is waiting; the source must still take a
     burst in a handful of reads (it once read 1 byte per call: 1.9k frames/s on loopback)."""
     port = server.getsockname()[1]
-    src = SerialSource(f"socket://127.0.0.1:{port}", name="tcp")
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}"), name="tcp")
     sink = Sink()
     feeds: list[int] = []
 
@@ -289,7 +291,8 @@ def test_a_port_with_no_listener_yet_is_retried_not_fatal() -> None:
     srv.bind(("127.0.0.1", 0))
     srv.settimeout(DEADLINE_S)
     port = srv.getsockname()[1]
-    src = SerialSource(f"socket://127.0.0.1:{port}", name="late", reconnect_max_s=0.2)
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}", reconnect_max_s=0.2),
+                       name="late")
     sink = Sink()
     try:
         with log_event("gateway.io.port", "retrying") as retrying:
@@ -317,7 +320,7 @@ def test_stop_while_retrying_a_refused_port_is_quick() -> None:
     srv = socket.socket()
     srv.bind(("127.0.0.1", 0))  # never listens
     port = srv.getsockname()[1]
-    src = SerialSource(f"socket://127.0.0.1:{port}", reconnect_max_s=5.0)
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}", reconnect_max_s=5.0))
     try:
         with log_event("gateway.io.port", "retrying") as retrying:
             src.start(Sink())
@@ -357,7 +360,7 @@ def test_stop_ends_the_thread_within_1s_even_while_a_connect_hangs() -> None:
         with contextlib.suppress(BlockingIOError):
             c.connect(("127.0.0.1", port))
         fillers.append(c)
-    src = SerialSource(f"socket://127.0.0.1:{port}")
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}"))
     try:
         baseline = _syn_sent_to(port)
         src.start(Sink())
@@ -378,7 +381,7 @@ def test_stop_ends_the_thread_within_1s_even_while_a_connect_hangs() -> None:
 
 @pytest.mark.parametrize("revision", [64, 36])
 def test_sim_with_speed_0_and_one_cycle_emits_exactly_one_flight(revision: int) -> None:
-    src = SimSource(speed=0, cycles=1, revision=revision)
+    src = SimSource(SimOptions(speed=0, cycles=1, revision=revision))
     model = FlightModel(FlightProfile(revision=revision))
     sink = Sink()
     src.start(sink)
@@ -418,7 +421,7 @@ def test_sim_with_speed_0_and_one_cycle_emits_exactly_one_flight(revision: int) 
 
 
 def test_sim_source_stops_within_1s_while_pacing() -> None:
-    src = SimSource(speed=1.0, name="slow-sim")
+    src = SimSource(SimOptions(speed=1.0), name="slow-sim")
     sink = Sink()
     src.start(sink)
     try:
@@ -455,7 +458,7 @@ def run_replay(src: ReplaySource, timeout: float = DEADLINE_S) -> Sink:
 def test_replay_at_speed_0_emits_every_frame_in_order(tmp_path: Path) -> None:
     frames = sample_frames()
     make_recording(tmp_path / "f.agrec", frames, span_s=3600.0)  # an hour, replayed at once
-    src = ReplaySource(str(tmp_path / "f.agrec"), speed=0)
+    src = ReplaySource(ReplayOptions(path=str(tmp_path / "f.agrec"), speed=0))
     sink = run_replay(src, timeout=5.0)
     assert [m.raw for m in sink.msgs] == frames
     assert {m.origin for m in sink.msgs} == {"replay:f.agrec"}
@@ -468,7 +471,7 @@ def test_replay_at_speed_n_compresses_the_recorded_span_n_fold(tmp_path: Path,
                                                                speed: float) -> None:
     frames = sample_frames()[:41]
     items = make_recording(tmp_path / "p.agrec", frames, span_s=2.0)
-    sink = run_replay(ReplaySource(str(tmp_path / "p.agrec"), speed=speed))
+    sink = run_replay(ReplaySource(ReplayOptions(path=str(tmp_path / "p.agrec"), speed=speed)))
     stamps = [s for s, _ in sink.items]
     assert [m.raw for m in sink.msgs] == frames
     want = 2.0 / speed
@@ -485,7 +488,7 @@ def test_replay_skips_a_torn_tail(tmp_path: Path) -> None:
     make_recording(path, frames, span_s=1.0)
     data = path.read_bytes()
     path.write_bytes(data[:-7])  # the last record loses its CRC and part of its frame
-    src = ReplaySource(str(path), speed=0)
+    src = ReplaySource(ReplayOptions(path=str(path), speed=0))
     sink = run_replay(src)
     assert [m.raw for m in sink.msgs] == frames[:-1]
     assert src.stats()["torn_tail_bytes"] > 0
@@ -500,7 +503,7 @@ def test_replay_passes_a_corrupt_record_in_the_middle(tmp_path: Path) -> None:
     off = len(recording.HEADER) + sum(len(f) + recording.REC_OVERHEAD for f in frames[:3])
     data[off + 12] ^= 0x55  # inside the fourth record's frame
     path.write_bytes(bytes(data))
-    src = ReplaySource(str(path), speed=0)
+    src = ReplaySource(ReplayOptions(path=str(path), speed=0))
     sink = run_replay(src)
     assert [m.raw for m in sink.msgs] == frames[:3] + frames[4:]
     assert src.stats()["corrupt_skips"] == 1
@@ -509,7 +512,7 @@ def test_replay_passes_a_corrupt_record_in_the_middle(tmp_path: Path) -> None:
 def test_replay_loop_repeats_until_stopped(tmp_path: Path) -> None:
     frames = sample_frames()[:5]
     make_recording(tmp_path / "l.agrec", frames, span_s=0.01)
-    src = ReplaySource(str(tmp_path / "l.agrec"), speed=1.0, loop=True)
+    src = ReplaySource(ReplayOptions(path=str(tmp_path / "l.agrec"), speed=1.0, loop=True))
     sink = Sink()
     src.start(sink)
     try:
@@ -675,9 +678,9 @@ def test_sources_sharing_one_loop_deliver_on_its_thread_and_each_stops_within_1s
         threads.add(threading.current_thread().name)
         sink(msg)
 
-    sim = SimSource(speed=1.0, name="sim-a")
-    replay = ReplaySource(str(tmp_path / "f.agrec"), speed=0, name="again")
-    port = SerialSource(slave_path, baudrate=9600, name="rocket")
+    sim = SimSource(SimOptions(speed=1.0), name="sim-a")
+    replay = ReplaySource(ReplayOptions(path=str(tmp_path / "f.agrec"), speed=0), name="again")
+    port = SerialSource(SerialOptions(url=slave_path, baudrate=9600), name="rocket")
     sources: list[Source] = [sim, replay, port]
     try:
         for s in sources:

@@ -25,6 +25,7 @@ from helpers import GATEWAY, ROOT, wait_for
 
 from backends.uavtalk.backend import UavtalkBackend, parse_endpoint
 from backends.uavtalk.objects import ObjectSet
+from backends.uavtalk.options import UavtalkOptions
 from backends.uavtalk.translate import FLIGHT_MODES, Vehicle, quaternion
 from dialects.states import SimpleState
 from gateway import config
@@ -267,7 +268,7 @@ class Feed:
 @pytest.fixture
 def gateway() -> Iterator[tuple[Dispatcher, UavtalkBackend]]:
     d = Dispatcher()
-    b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"])
+    b = UavtalkBackend(UavtalkOptions(endpoints=["tcpin:127.0.0.1:0"]))
     b.attach(GatewayContext(emit=d.dispatch))
     d.add(b)
     d.start()
@@ -455,7 +456,8 @@ def test_a_client_that_never_reads_stalls_nobody(gateway: Any) -> None:
 def test_silent_gcs_is_disconnected_after_8_s_and_reconnects() -> None:
     skew = [0.0]  # the backend's clock runs ahead of the GCS's by this much
     d = Dispatcher()
-    b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"], clock=lambda: time.monotonic() + skew[0])
+    b = UavtalkBackend(UavtalkOptions(endpoints=["tcpin:127.0.0.1:0"]),
+                       clock=lambda: time.monotonic() + skew[0])
     d.add(b)
     d.start()
     gcs = SpecGcs(b.address(), walk=())  # connected, it sends nothing
@@ -483,7 +485,7 @@ def test_tcp_client_endpoint_reconnects_with_a_fresh_session() -> None:
     with socket.create_server(("127.0.0.1", 0)) as listener:
         listener.settimeout(DEADLINE_S)
         port = listener.getsockname()[1]
-        b = UavtalkBackend(endpoints=[f"tcp:127.0.0.1:{port}"])
+        b = UavtalkBackend(UavtalkOptions(endpoints=[f"tcp:127.0.0.1:{port}"]))
         b.init()
         try:
             for round_ in (1, 2):  # the second time after the GCS hung up
@@ -540,7 +542,7 @@ def test_hooks_never_block_a_full_inbox_drops(gateway: Any) -> None:
 
 
 def test_not_ready_before_start_and_close_twice() -> None:
-    b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"])
+    b = UavtalkBackend(UavtalkOptions(endpoints=["tcpin:127.0.0.1:0"]))
     assert b.send_status(STATUS_OK) is Outcome.NOT_READY
     b.init()
     b.close()

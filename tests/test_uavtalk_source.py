@@ -15,6 +15,7 @@ import pytest
 
 from backends.uavtalk.codec import Decoder, Packet, PacketType, encode
 from backends.uavtalk.objects import ObjectSet
+from backends.uavtalk.options import UavtalkSourceOptions
 from backends.uavtalk.source import UavtalkSource, parse_url
 from backends.uavtalk.telemetry import Status
 from gateway import config
@@ -202,7 +203,7 @@ def sim() -> Any:
 
 def test_connects_and_emits_vehicle_position_battery(sim: FlightSim) -> None:
     got = Collector()
-    src = UavtalkSource(f"tcp:127.0.0.1:{sim.port}", rate_hz=20.0)
+    src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{sim.port}", rate_hz=20.0))
     src.start(got)
     try:
         assert wait_until(lambda: src.state == Status.CONNECTED, 5.0), src.stats()
@@ -242,7 +243,7 @@ def test_connects_and_emits_vehicle_position_battery(sim: FlightSim) -> None:
 
 def test_vehicle_state_is_rate_limited(sim: FlightSim) -> None:
     got = Collector()
-    src = UavtalkSource(f"tcp:127.0.0.1:{sim.port}", rate_hz=2.0)
+    src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{sim.port}", rate_hz=2.0))
     src.start(got)
     try:
         got.wait_for(lambda m: isinstance(m, VehicleState) and m.roll_rad is not None)
@@ -258,7 +259,7 @@ def test_vehicle_state_is_rate_limited(sim: FlightSim) -> None:
 def test_silence_disconnects_and_a_new_handshake_reconnects(sim: FlightSim) -> None:
     clock = SkewClock()
     got = Collector()
-    src = UavtalkSource(f"tcp:127.0.0.1:{sim.port}", clock=clock)
+    src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{sim.port}"), clock=clock)
     src.start(got)
     try:
         assert wait_until(lambda: src.state == Status.CONNECTED, 5.0)
@@ -289,7 +290,7 @@ def test_silence_disconnects_and_a_new_handshake_reconnects(sim: FlightSim) -> N
 def test_a_closed_connection_is_reopened_with_a_fresh_handshake() -> None:
     sim = FlightSim()
     port = sim.port
-    src = UavtalkSource(f"tcp:127.0.0.1:{port}", reconnect_max_s=0.2)
+    src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{port}", reconnect_max_s=0.2))
     got = Collector()
     src.start(got)
     try:
@@ -320,7 +321,8 @@ def _packet(name: str, values: dict[str, Any]) -> bytes:
 
 def test_objects_become_messages_and_a_bad_one_is_counted() -> None:
     now = [100.0]
-    src = UavtalkSource("tcp:127.0.0.1:9", objects=OBJECTS, clock=lambda: now[0])
+    src = UavtalkSource(UavtalkSourceOptions(url="tcp:127.0.0.1:9"), objects=OBJECTS,
+                        clock=lambda: now[0])
     assert src.feed(_packet("AttitudeState", {"Roll": 1.0})) == []  # no FlightStatus yet
     out = src.feed(_packet("FlightStatus", {"Armed": 0, "FlightMode": 0}))
     assert [type(m) for m in out] == [VehicleState]
@@ -365,7 +367,7 @@ def test_url_parsing_and_config() -> None:
         config.make_source(kind, opts, None, "--source[0]")
     opts = UavtalkSource.CONFIG.validate({"url": "/dev/ttyUSB0,57600"}, "sources[0]")
     assert opts["rate_hz"] == 10.0
-    src = UavtalkSource(**opts)
+    src = UavtalkSource(UavtalkSourceOptions(**opts))
     assert (src.kind, src.device, src.baudrate) == ("serial", "/dev/ttyUSB0", 57600)
     with pytest.raises(config.ConfigError, match="url"):
         UavtalkSource.CONFIG.validate({"url": "tcp:nohost"}, "sources[0].url")
@@ -389,7 +391,7 @@ def test_a_simulated_flight_served_over_uavtalk_arrives_as_vehicle_states() -> N
                      "--uavtalk", f"tcpin:127.0.0.1:{port}", "--status-interval", "0",
                      "--duration", "30")
     got = Collector()
-    src = UavtalkSource(f"tcp:127.0.0.1:{port}", reconnect_max_s=0.2)
+    src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{port}", reconnect_max_s=0.2))
     src.start(got)  # retried with backoff until the gateway listens
     try:
         assert wait_until(lambda: src.state == Status.CONNECTED, 10.0), flight.text("stderr")

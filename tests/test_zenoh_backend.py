@@ -15,6 +15,8 @@ from zenoh_peer import (
     wait_until,
 )
 
+from backends.zenoh.options import ZenohOptions, ZenohSourceOptions
+
 zenoh = pytest.importorskip("zenoh")
 
 from backends.zenoh import encoding as enc  # noqa: E402
@@ -57,7 +59,7 @@ def endpoint():
 
 @pytest.fixture
 def backend(endpoint):
-    b = ZenohBackend(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-test")
+    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-test"))
     b.init()
     assert b.wait_ready(20), "the session did not open"
     yield b
@@ -99,7 +101,7 @@ def test_publishes_json_and_raw_frames_with_attachment(backend, subscriber):
 
 
 def test_packed_encoding(endpoint, subscriber):
-    b = ZenohBackend(listen=[endpoint], vehicle=VEHICLE, encoding="packed", raw=False)
+    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, encoding="packed", raw=False))
     b.init()
     try:
         assert b.wait_ready(20)
@@ -147,7 +149,7 @@ def test_liveliness_token_appears_and_vanishes(endpoint, subscriber):
             cond.notify_all()
 
     subscriber.liveliness().declare_subscriber("aurora/*/gateway/*", on_token, history=True)
-    b = ZenohBackend(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-live")
+    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-live"))
     b.init()
     token = f"aurora/{VEHICLE}/gateway/gw-live"
     try:
@@ -162,8 +164,8 @@ def test_liveliness_token_appears_and_vanishes(endpoint, subscriber):
 def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
     """With congestion control BLOCK nothing is lost inside Zenoh: whatever the hand-off
     queue refused is counted, and everything it accepted arrives, in order."""
-    b = ZenohBackend(listen=[endpoint], vehicle=VEHICLE, raw=False, queue_depth=4,
-                     congestion_control="block")
+    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, raw=False, queue_depth=4,
+                                  congestion_control="block"))
     b.init()
     try:
         assert b.wait_ready(20)
@@ -188,7 +190,8 @@ def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
 
 def test_not_ready_until_the_router_comes_then_publishes():
     ep = free_endpoint()
-    b = ZenohBackend(mode="client", connect=[ep], vehicle=VEHICLE, reconnect_max_s=0.5)
+    b = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle=VEHICLE,
+                                  reconnect_max_s=0.5))
     b.init()  # the router is not there: init does not fail, the worker keeps trying
     router = RouterProcess(ep)
     try:
@@ -212,7 +215,8 @@ def test_not_ready_until_the_router_comes_then_publishes():
 
 def test_updates_published_while_the_router_is_gone_are_counted_as_unrouted():
     router = RouterProcess().start()
-    b = ZenohBackend(mode="client", connect=[router.endpoint], vehicle=VEHICLE, raw=False)
+    b = ZenohBackend(ZenohOptions(mode="client", connect=[router.endpoint], vehicle=VEHICLE,
+                                  raw=False))
     try:
         b.init()
         assert b.wait_ready(20)
@@ -255,7 +259,7 @@ def test_second_session_on_a_taken_default_port_joins_the_first():
 # -- gateway to gateway ------------------------------------------------------------------------
 
 def test_own_publications_never_come_back_through_a_source(endpoint, backend):
-    src = ZenohSource(connect=[endpoint], vehicle=VEHICLE)
+    src = ZenohSource(ZenohSourceOptions(connect=[endpoint], vehicle=VEHICLE))
     src.attach(backend.context)  # one gateway: the backend's id is in the shared context
     got: list = []
     src.start(got.append)

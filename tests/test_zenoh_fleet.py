@@ -25,6 +25,8 @@ from zenoh_peer import (
     wait_for_gateway,
 )
 
+from backends.zenoh.options import ZenohOptions
+
 zenoh = pytest.importorskip("zenoh")
 
 from backends.zenoh.backend import ZenohBackend  # noqa: E402
@@ -146,8 +148,8 @@ def test_acl_dashboards_may_subscribe_but_not_publish():
         with pytest.raises(zenoh.ZError):  # no valid credentials, no session
             SessionOptions(mode="client", connect=[ep], user="dashboard",
                            password="wrong").open()
-        gw = ZenohBackend(mode="client", connect=[ep], vehicle="rocket1", gateway_id="gw",
-                          **credentials("gateway"))
+        gw = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle="rocket1",
+                                       gateway_id="gw", **credentials("gateway")))
         gw.init()
         assert gw.wait_ready(20)
         dash_opts = SessionOptions(mode="client", connect=[ep], **credentials("dashboard"))
@@ -253,7 +255,8 @@ def test_mutual_tls_between_gateway_and_router(tmp_path):
         with pytest.raises(zenoh.ZError):  # no client certificate: refused
             SessionOptions(mode="client", connect=[ep],
                            tls_root_ca=str(tmp_path / "ca.pem")).open()
-        gw = ZenohBackend(mode="client", connect=[ep], vehicle="rocket1", **tls("gateway"))
+        gw = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle="rocket1",
+                                       **tls("gateway")))
         gw.init()
         assert gw.wait_ready(20)
         sub = SessionOptions(mode="client", connect=[ep], **tls("gateway")).open()

@@ -1,11 +1,13 @@
-"""Write ``docs/config-reference.md``, the configuration reference, from the schemas.
+"""Write ``docs/config-reference.md``, the configuration reference, from the options
+declarations.
 
-One section for ``[gateway]`` (``gateway.config.GATEWAY_SCHEMA``) and one for every source and
+One section for ``[gateway]`` (``gateway.config.GatewayOptions``) and one for every source and
 backend this project registers (the ``aurora_gateway.sources`` / ``aurora_gateway.backends``
 entry points of the ``aurora-gateway`` distribution, as ``gateway.registry`` finds them; other
 installed plug-ins document themselves).  Each is a table: key | type | default |
-range / choices | meaning, read from each :class:`gateway.config.Key`.  Defaults are written
-in TOML syntax, as in a file.
+range / choices | meaning, read from the schema each options dataclass derives
+(:mod:`gateway.options`), with the ``run`` flag that sets a key and whether it is a secret.
+Defaults are written in TOML syntax, as in a file.
 
 Run::
 
@@ -26,7 +28,8 @@ from typing import Any
 
 from gateway import registry
 from gateway.commands.check_config import toml_value
-from gateway.config import GATEWAY_SCHEMA, REQUIRED, Key, Schema
+from gateway.config import GATEWAY_SCHEMA, REQUIRED, GatewayOptions, Key, Schema, schema_of
+from gateway.options import Options, options_of
 
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUT = ROOT / "docs" / "config-reference.md"
@@ -72,18 +75,28 @@ def key_range(key: Key) -> str:
     return ""
 
 
-def table(schema: Schema) -> list[str]:
+def key_meaning(key: Key, flag: str | None) -> str:
+    text = key.help
+    if flag:
+        text += f" (flag `{flag}`)"
+    if key.secret:
+        text += " (a secret: check-config never prints it)"
+    return text
+
+
+def table(schema: Schema, options: type[Options] | None = None) -> list[str]:
     if not schema.keys:
         return ["No keys."]
+    flags = {name: flag.name for name, flag, _ in options.flags()} if options else {}
     lines = ["| key | type | default | range / choices | meaning |", "|---|---|---|---|---|"]
     for name, key in schema.keys.items():
         lines.append(f"| `{name}` | {key_type(key)} | {_cell(key_default(key))} | "
-                     f"{_cell(key_range(key))} | {_cell(key.help)} |")
+                     f"{_cell(key_range(key))} | {_cell(key_meaning(key, flags.get(name)))} |")
     return lines
 
 
-def _schema(cls: Any) -> Schema:
-    return getattr(cls, "CONFIG", None) or Schema()
+def _table(cls: Any) -> list[str]:
+    return table(schema_of(cls), options_of(cls))
 
 
 def render() -> str:
@@ -95,8 +108,9 @@ def render() -> str:
         "do not edit. -->",
         "",
         "Every key of the TOML file `aurora-gateway run --config FILE` reads, with its type, "
-        "default and allowed values, generated from the schemas the gateway validates with "
-        "(so it cannot disagree with them). `aurora-gateway check-config FILE` validates a "
+        "default, allowed values and the `run` flag that sets it, generated from the options "
+        "declarations the gateway validates with (so it cannot disagree with them). "
+        "`aurora-gateway check-config FILE` validates a "
         "file and prints it with every default filled in; "
         "[`examples/gateway.toml`](../examples/gateway.toml) is a commented example. "
         "A bad key or value stops the gateway before anything starts, with one line naming "
@@ -107,7 +121,7 @@ def render() -> str:
         "",
         "## `[gateway]`",
         "",
-        *table(GATEWAY_SCHEMA),
+        *table(GATEWAY_SCHEMA, GatewayOptions),
         "",
         "## Sources: `[[sources]]`",
         "",
@@ -116,7 +130,7 @@ def render() -> str:
     ]
     for name in _ours(registry.SOURCE_GROUP):
         cls = registry.load(registry.SOURCE_GROUP, name)
-        out += ["", f"### `type = \"{name}\"`", "", *table(_schema(cls))]
+        out += ["", f"### `type = \"{name}\"`", "", *_table(cls)]
     out += [
         "",
         "## Backends: `[backends.NAME]`",
@@ -127,7 +141,7 @@ def render() -> str:
     ]
     for name in _ours(registry.BACKEND_GROUP):
         cls = registry.load(registry.BACKEND_GROUP, name)
-        out += ["", f"### `[backends.{name}]`", "", *table(_schema(cls))]
+        out += ["", f"### `[backends.{name}]`", "", *_table(cls)]
     return "\n".join(out) + "\n"
 
 

@@ -51,9 +51,6 @@ from backends.crsf.frames import (
     FRAME_VARIO,
     FRAME_VOLTAGES,
     MAX_VOLTAGES,
-    SYNC_FC,
-    SYNC_RADIO,
-    SYNC_RX,
     Attitude,
     BaroAltitude,
     Battery,
@@ -66,20 +63,17 @@ from backends.crsf.frames import (
     encode,
     flight_mode_text,
 )
+from backends.crsf.options import PTY_URL, CrsfOptions
 from backends.crsf.ports import PtyPair
 from backends.crsf.scheduler import CHANGE_RING_DEPTH, Scheduler
 from gateway import model
 from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
-from gateway.config import Key, Schema
-from gateway.io.endpoints import check_serial_port
 from gateway.io.ioloop import Timer
 from gateway.io.port import PortEngine
 from gateway.io.transport import open_serial
 
 log = logging.getLogger(__name__)
 
-PTY_URL = "pty"
-DEFAULT_BAUD = 420000
 #: The port engine's queue holds a burst of state changes; regular frames are only picked
 #: while fewer than MAX_QUEUED are waiting, so a slow port delays the next (latest) value
 #: instead of queueing stale ones.
@@ -106,97 +100,36 @@ def health_marker(status: model.Status) -> str:
     return ""
 
 
-def _check_suffix(text: str) -> None:
-    if len(text) > 4 or not text.isascii():
-        raise ValueError("expected at most 4 ASCII characters")
-
-
-def _check_url(url: str) -> None:
-    if url != PTY_URL:
-        check_serial_port(url)
-
-
 class CrsfBackend(Backend):
     """Sends the rocket's telemetry as CRSF frames; reads link statistics back."""
 
     NAME = "crsf"
-    CONFIG = Schema(
-        url=Key(str, PTY_URL, "receiver UART: serial port or pyserial URL (/dev/ttyUSB0, "
-                "socket://host:port, rfc2217://…); 'pty' = create a pseudo-terminal and log "
-                "its path", validator=_check_url),
-        baudrate=Key(int, DEFAULT_BAUD, "UART speed: 420000 for ExpressLRS, 416666 for TBS",
-                     minimum=1200),
-        sync=Key(int, SYNC_FC, "address byte of the frames sent (0xC8 = flight controller)",
-                 choices=(SYNC_FC, SYNC_RADIO, SYNC_RX)),
-        pitch=Key(str, "nose-up", "which pitch is positive (Betaflight/INAV: nose-down)",
-                  choices=("nose-up", "nose-down")),
-        disarmed_suffix=Key(str, "*", "appended to the flight mode while disarmed; '' = none",
-                            validator=_check_suffix),
-        health_marker=Key(bool, True, "append !IMU/!BARO/!CAL/!LOG to the flight mode when "
-                          "STATUS reports a failing check"),
-        max_frames_per_s=Key(float, 20.0, "total frame rate cap", minimum=1, maximum=1000),
-        refresh_s=Key(float, 2.0, "longest gap between two frames of one type",
-                      minimum=0.2, maximum=15),
-        hold_s=Key(float, 10.0, "stop re-sending a value not updated for this long, so the "
-                   "radio shows it stale; 0 = never", minimum=0),
-        attitude_hz=Key(float, 10.0, "attitude (0x1E) rate; 0 = off", minimum=0, maximum=100),
-        altitude_hz=Key(float, 5.0, "baro altitude + vario (0x09) rate; 0 = off", minimum=0,
-                        maximum=100),
-        vario_hz=Key(float, 2.0, "vario (0x07) rate; 0 = off", minimum=0, maximum=100),
-        flight_mode_hz=Key(float, 2.0, "flight mode (0x21) rate, plus at once on a change; "
-                           "0 = off", minimum=0, maximum=100),
-        gps_hz=Key(float, 2.0, "GPS (0x02) rate; 0 = off", minimum=0, maximum=100),
-        battery_hz=Key(float, 1.0, "battery (0x08) rate; 0 = off", minimum=0, maximum=100),
-        voltages_hz=Key(float, 1.0, "voltages (0x0E) rate; 0 = off", minimum=0, maximum=100),
-        voltages_source_id=Key(int, 128, "source id of the voltages frame (EdgeTX shows ids "
-                               "≥ 128 as a voltage array, lower ones as cells)", minimum=0,
-                               maximum=255),
-        link_stats_hz=Key(float, 5.0, "most link-statistics messages per second handed to the "
-                          "other backends; 0 = none", minimum=0),
-    )
+    OPTIONS = CrsfOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"url": PTY_URL}
 
-    def __init__(
-        self,
-        url: str = PTY_URL,
-        baudrate: int = DEFAULT_BAUD,
-        sync: int = SYNC_FC,
-        pitch: str = "nose-up",
-        disarmed_suffix: str = "*",
-        health_marker: bool = True,
-        max_frames_per_s: float = 20.0,
-        refresh_s: float = 2.0,
-        hold_s: float = 10.0,
-        attitude_hz: float = 10.0,
-        altitude_hz: float = 5.0,
-        vario_hz: float = 2.0,
-        flight_mode_hz: float = 2.0,
-        gps_hz: float = 2.0,
-        battery_hz: float = 1.0,
-        voltages_hz: float = 1.0,
-        voltages_source_id: int = 128,
-        link_stats_hz: float = 5.0,
-        name: str | None = None,
-        sink: Callable[[Any], Any] | None = None,
-        clock: Callable[[], float] = time.monotonic,
-    ) -> None:
+    def __init__(self, options: CrsfOptions | None = None, name: str | None = None,
+                 sink: Callable[[Any], Any] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
-        # The options were validated by CONFIG (the configuration or the flags).
-        self.url = url
-        self.baudrate = baudrate
-        self.sync = sync
-        self.pitch_sign = 1.0 if pitch == "nose-up" else -1.0
-        self.disarmed_suffix = disarmed_suffix
-        self.use_health_marker = health_marker
-        self.voltages_source_id = voltages_source_id
-        self.link_stats_interval_s = 1.0 / link_stats_hz if link_stats_hz > 0 else math.inf
+        options = options or CrsfOptions()
+        self.url = options.url
+        self.baudrate = options.baudrate
+        self.sync = options.sync
+        self.pitch_sign = 1.0 if options.pitch == "nose-up" else -1.0
+        self.disarmed_suffix = options.disarmed_suffix
+        self.use_health_marker = options.health_marker
+        self.voltages_source_id = options.voltages_source_id
+        self.link_stats_interval_s = (1.0 / options.link_stats_hz if options.link_stats_hz > 0
+                                      else math.inf)
         self._clock = clock
         self._sink = sink
         self.scheduler = Scheduler(
-            {FRAME_ATTITUDE: attitude_hz, FRAME_BARO_ALTITUDE: altitude_hz,
-             FRAME_VARIO: vario_hz, FRAME_FLIGHT_MODE: flight_mode_hz, FRAME_GPS: gps_hz,
-             FRAME_BATTERY: battery_hz, FRAME_VOLTAGES: voltages_hz},
-            max_rate_hz=max_frames_per_s, refresh_s=refresh_s, hold_s=hold_s, clock=clock)
+            {FRAME_ATTITUDE: options.attitude_hz, FRAME_BARO_ALTITUDE: options.altitude_hz,
+             FRAME_VARIO: options.vario_hz, FRAME_FLIGHT_MODE: options.flight_mode_hz,
+             FRAME_GPS: options.gps_hz, FRAME_BATTERY: options.battery_hz,
+             FRAME_VOLTAGES: options.voltages_hz},
+            max_rate_hz=options.max_frames_per_s, refresh_s=options.refresh_s,
+            hold_s=options.hold_s, clock=clock)
         self.decoder = Decoder()
         self.pty: PtyPair | None = None
         self.engine = PortEngine(self._open, name=self.name, protocol=self.decoder,

@@ -35,11 +35,9 @@ from foxglove.channels import FrameTransformChannel, LocationFixChannel
 from foxglove.messages import FrameTransform, LocationFix, Quaternion, Timestamp, Vector3
 from foxglove.websocket import ServerListener
 
-from backends.foxglove.flags import DEFAULT_HOST, DEFAULT_PORT
+from backends.foxglove.options import FoxgloveOptions
 from gateway.attitude import quaternion_xyzw
 from gateway.backend import Backend, BackendError, Outcome, Routes
-from gateway.config import Key, Schema
-from gateway.io.endpoints import check_host
 from gateway.model import LinkStats, Position, SmUpdate, Status
 
 log = logging.getLogger(__name__)
@@ -143,25 +141,16 @@ class FoxgloveBackend(Backend):
     """Serves the rocket's channels to Foxglove (see the module docstring)."""
 
     NAME = "foxglove"
-    CONFIG = Schema(
-        host=Key(str, DEFAULT_HOST, "address to listen on (loopback by default; 0.0.0.0 for "
-                 "the field network)", validator=check_host),
-        port=Key(int, DEFAULT_PORT, "TCP port of the WebSocket server (0: any free port)",
-                 minimum=0, maximum=65535),
-        queue_depth=Key(int, 1024, "updates waiting for the worker before new ones are dropped",
-                        minimum=1),
-        backlog=Key(int, 1024, "messages buffered per client by the server (its oldest are "
-                    "dropped when a client is slow)", minimum=1),
-    )
+    OPTIONS = FoxgloveOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
-    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 queue_depth: int = 1024, backlog: int = 1024, name: str | None = None) -> None:
+    def __init__(self, options: FoxgloveOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
-        self.host = host
-        self.port = port
-        self.backlog = backlog
-        self._queue: queue.Queue[tuple[int, Any] | None] = queue.Queue(maxsize=queue_depth)
+        options = options or FoxgloveOptions()
+        self.host = options.host
+        self.port = options.port
+        self.backlog = options.backlog
+        self._queue: queue.Queue[tuple[int, Any] | None] = queue.Queue(maxsize=options.queue_depth)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._server: Any = None

@@ -28,33 +28,23 @@ import threading
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
-from gateway.config import Key, Schema
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop
 from gateway.io.links import (
-    USAGE,
     LinkSet,
-    endpoints_validator,
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
 
-from .channels import DEFAULT_ID_BASE, ChannelCodec, Getter, check_id_base, codecs
+from .channels import ChannelCodec, Getter, codecs
 from .commands import NO_OP, CommandHandler
-from .framing import (
-    DEFAULT_FRAMING,
-    FRAMINGS,
-    TM_MAX_FRAME,
-    TM_MIN_FRAME,
-    make_deframer,
-    make_framer,
-)
-from .packets import DEFAULT_BUFFER_SIZE, TIME_BASES, TlmPacker, UpdateClock
+from .framing import make_deframer, make_framer
+from .options import DEFAULT_SERIAL_BAUD, FprimeOptions
+from .packets import TIME_BASES, TlmPacker, UpdateClock
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SERIAL_BAUD = 115200
 _ACCEPTED = Outcome.ACCEPTED
 _NOT_READY = Outcome.NOT_READY
 
@@ -62,10 +52,6 @@ _NOT_READY = Outcome.NOT_READY
 def parse_endpoint(text: str) -> Endpoint:
     """Parse one endpoint (:mod:`gateway.io.endpoints`); raises its EndpointError."""
     return parse_stream_endpoint(text, default_baud=DEFAULT_SERIAL_BAUD)
-
-
-def _check_id_base(value: Any) -> None:
-    check_id_base(value)
 
 
 class Link:
@@ -121,60 +107,29 @@ class FprimeBackend(Backend):
     """Serves the rocket's channels to F´ ground systems (see the module docstring)."""
 
     NAME = "fprime"
-    CONFIG = Schema(
-        endpoints=Key(list, [], "tcpin:HOST:PORT (fprime-gds --ip-client connects), "
-                      "tcp:HOST:PORT, serial:DEVICE[,BAUD] or a pyserial URL",
-                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD)),
-        framing=Key(str, DEFAULT_FRAMING, "ccsds (F´ v4 / fprime-gds default) or fprime",
-                    choices=tuple(FRAMINGS)),
-        id_base=Key(int, DEFAULT_ID_BASE, "id of the first channel (the dictionary's "
-                    "--id-base must be the same)", validator=_check_id_base),
-        buffer_size=Key(int, DEFAULT_BUFFER_SIZE, "bytes per telemetry packet "
-                        "(FW_COM_BUFFER_MAX_SIZE)", minimum=32, maximum=4000),
-        time_base=Key(str, "workstation", "time base of the time tags",
-                      choices=tuple(TIME_BASES)),
-        time_context=Key(int, 0, "time context of the time tags", minimum=0, maximum=255),
-        scid=Key(int, 0x44, "ccsds: spacecraft id (fprime-gds --scid or the dictionary's "
-                 "ComCfg.SpacecraftId)", minimum=0, maximum=0x3FF),
-        vcid=Key(int, 1, "ccsds: virtual channel id (fprime-gds --vcid)", minimum=0,
-                 maximum=7),
-        frame_size=Key(int, 1024, "ccsds: TM frame size (fprime-gds --frame-size or the "
-                       "dictionary's ComCfg.TmFrameFixedSize)", minimum=TM_MIN_FRAME,
-                       maximum=TM_MAX_FRAME),
-        queue_depth=Key(int, 64, "writes waiting per peer before drops", minimum=1,
-                        maximum=4096),
-    )
+    OPTIONS = FprimeOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
-    def __init__(self, endpoints: list[str] | None = None, framing: str = DEFAULT_FRAMING,
-                 id_base: int = DEFAULT_ID_BASE, buffer_size: int = DEFAULT_BUFFER_SIZE,
-                 time_base: str = "workstation", time_context: int = 0, scid: int = 0x44,
-                 vcid: int = 1, frame_size: int = 1024, queue_depth: int = 64,
-                 name: str | None = None) -> None:
+    def __init__(self, options: FprimeOptions, name: str | None = None) -> None:
         super().__init__(name)
-        self.specs = [parse_endpoint(e) for e in (endpoints or [])]
-        if not self.specs:
-            raise ValueError(f"at least one endpoint is needed; {USAGE}")
-        if framing not in FRAMINGS:
-            raise ValueError(f"framing {framing!r}: use one of {', '.join(FRAMINGS)}")
-        check_id_base(id_base)
-        self.framing = framing
-        self.id_base = id_base
-        self.scid = scid
-        self.vcid = vcid
-        self.frame_size = frame_size
+        self.specs = [parse_endpoint(e) for e in options.endpoints]
+        self.framing = options.framing
+        self.id_base = options.id_base
+        self.scid = options.scid
+        self.vcid = options.vcid
+        self.frame_size = options.frame_size
         self.new_framer()  # refuse a bad frame size now, not at the first client
-        self.codecs: dict[type, tuple[tuple[ChannelCodec, Getter], ...]] = codecs(id_base)
-        self.packer = TlmPacker(buffer_size)
-        self.clock = UpdateClock(TIME_BASES[time_base], time_context)
+        self.codecs: dict[type, tuple[tuple[ChannelCodec, Getter], ...]] = codecs(options.id_base)
+        self.packer = TlmPacker(options.buffer_size)
+        self.clock = UpdateClock(TIME_BASES[options.time_base], options.time_context)
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, _spec: Link(n, self),
-            queue_depth=queue_depth, on_closed=self._retire, label="ground system")
+            queue_depth=options.queue_depth, on_closed=self._retire, label="ground system")
         self._running = False
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
                         "clients_closed": 0}
-        self.commands = CommandHandler(id_base)
+        self.commands = CommandHandler(options.id_base)
         self._commands_seen: set[int] = set()
         self.messages = 0
         self.packets = 0

@@ -35,82 +35,45 @@ from typing import Any, ClassVar
 from backends.hc12 import at, control
 from backends.hc12.budget import DEFAULT_PRIORITY_RESERVE, AirBudget, figures
 from backends.hc12.control import ControlServer
+from backends.hc12.options import Hc12Options
 from backends.hc12.port import open_port
 from backends.hc12.provision import Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, make_set_line, parse_set_line
-from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
+from backends.hc12.vehicle import VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
-from gateway.config import Key, Schema
-from gateway.io.endpoints import check_serial_port
 from gateway.io.port import PortEngine, PortNotReady
-from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
+from gateway.model import RawFrame, SmUpdate, Status
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)
 
-MODES = ("relay", "generate")
 
 
 class Hc12Backend(Backend):
     """Drives an HC-12 433 MHz UART radio (see the module docstring)."""
 
     NAME = "hc12"
-    CONFIG = Schema(
-        url=Key(str, help="the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
-                "rfc2217://host:port", validator=check_serial_port),
-        baudrate=Key(int, 9600, "host UART rate; must equal the module's (AT+B)",
-                     choices=at.BAUD_RATES),
-        mode=Key(str, "relay", "relay: pass frames on byte-identical; generate: encode "
-                 "updates in `revision`", choices=MODES),
-        revision=Key(int, SM_UPDATE_F64_LEN, "SM_UPDATE payload length in generate mode",
-                     choices=(SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN)),
-        air_baud=Key(int, 9600, "the link rate the byte budget is computed from (10 bits a "
-                     "byte); the lower of this and baudrate counts", minimum=300,
-                     maximum=1_000_000),
-        utilisation_pct=Key(float, 80.0, "share of the air link frames may use", minimum=1,
-                            maximum=100),
-        burst_bytes=Key(int, None, "bytes that may go out back to back; default: the "
-                        "headroom of one second", minimum=0, maximum=65536, nullable=True),
-        queue_depth=Key(int, 16, "frames waiting for the port before drops", minimum=1,
-                        maximum=4096),
-        min_interval_s=Key(float, 0.0, "least time between accepted SM_UPDATEs; 0 = off "
-                           "(STATUS exempt)", minimum=0),
-        set_line=Key(str, "none", "the module's SET line: none, rts, dtr or gpio:CHIP:LINE"),
-        set_invert=Key(bool, False, "SET is driven through an inverter"),
-        at_baud=Key(int, at.AT_BAUD, "host UART rate while in AT mode", choices=at.BAUD_RATES),
-        reply_timeout_s=Key(float, 1.0, "how long to wait for an AT reply", minimum=0.05,
-                            maximum=30),
-        idle_max_age_s=Key(float, DEFAULT_MAX_AGE_S, "how fresh the vehicle's IDLE must be "
-                           "for provisioning", minimum=0.1, maximum=600),
-        control=Key(str, "auto", "control socket for `aurora-gateway hc12`: auto, off or a "
-                    "path"),
-    )
+    OPTIONS = Hc12Options
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
 
-    def __init__(self, url: str, baudrate: int = 9600, mode: str = "relay",
-                 revision: int = SM_UPDATE_F64_LEN, air_baud: int = 9600,
-                 utilisation_pct: float = 80.0, burst_bytes: int | None = None,
-                 queue_depth: int = 16, min_interval_s: float = 0.0, set_line: str = "none",
-                 set_invert: bool = False, at_baud: int = at.AT_BAUD,
-                 reply_timeout_s: float = 1.0, idle_max_age_s: float = DEFAULT_MAX_AGE_S,
-                 control: str = "auto", name: str | None = None,
+    def __init__(self, options: Hc12Options, name: str | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
-        # The options were validated by CONFIG (the configuration or the flags).
-        self.url = url
-        self.baudrate = baudrate
-        self.mode = mode
-        self.revision = revision
-        self.set_spec = parse_set_line(set_line, set_invert)
-        self.at_baud = at_baud
-        self.timing = Timing(reply_timeout_s=reply_timeout_s)
-        self.control = control
+        self.url = options.url
+        self.baudrate = options.baudrate
+        self.mode = options.mode
+        self.revision = options.revision
+        self.set_spec = parse_set_line(options.set_line, options.set_invert)
+        self.at_baud = options.at_baud
+        self.timing = Timing(reply_timeout_s=options.reply_timeout_s)
+        self.control = options.control
         self._clock = clock
-        self.budget = AirBudget(figures(min(baudrate, air_baud), utilisation_pct, burst_bytes,
+        self.budget = AirBudget(figures(min(options.baudrate, options.air_baud),
+                                        options.utilisation_pct, options.burst_bytes,
                                         DEFAULT_PRIORITY_RESERVE), clock=clock)
-        self.watch = VehicleWatch(idle_max_age_s, clock=clock)
-        self.engine = PortEngine(self._open, name=self.name, queue_depth=queue_depth,
-                                 min_interval_s=min_interval_s, clock=clock)
+        self.watch = VehicleWatch(options.idle_max_age_s, clock=clock)
+        self.engine = PortEngine(self._open, name=self.name, queue_depth=options.queue_depth,
+                                 min_interval_s=options.min_interval_s, clock=clock)
         self._set_line: SetLine | None = None
         self._control: ControlServer | None = None
         self._provision_lock = threading.Lock()

@@ -43,9 +43,8 @@ from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, ClassVar
 
+from backends.http.options import HttpOptions
 from gateway.backend import STATS_KEYS, Backend, BackendError, Routes
-from gateway.config import Key, Schema
-from gateway.io.endpoints import check_host
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -60,8 +59,6 @@ from gateway.model import (
 
 log = logging.getLogger(__name__)
 
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8080
 _JOIN_S = 0.8  # close(): what the server thread may take to stop
 
 
@@ -70,30 +67,17 @@ class HttpBackend(Backend):
     module docstring)."""
 
     NAME = "http"
-    CONFIG = Schema(
-        host=Key(str, DEFAULT_HOST, "address to listen on (0.0.0.0: every interface)",
-                 validator=check_host),
-        port=Key(int, DEFAULT_PORT, "TCP port (0: any free port)", minimum=0, maximum=65535),
-        max_clients=Key(int, 16, "event streams (/events) served at once; more get 503",
-                        minimum=1, maximum=256),
-        event_interval_s=Key(float, 0.25, "seconds between two events of a stream",
-                             minimum=0.05, maximum=10),
-        client_timeout_s=Key(float, 5.0, "a client that does not read for this long is cut",
-                             minimum=0.1, maximum=60),
-    )
+    OPTIONS = HttpOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
-    def __init__(self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT,
-                 max_clients: int = 16, event_interval_s: float = 0.25,
-                 client_timeout_s: float = 5.0, name: str | None = None) -> None:
+    def __init__(self, options: HttpOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
-        if not 0 <= port <= 65535:
-            raise ValueError(f"port {port}: expected 0 to 65535")
-        self.host = host
-        self.port = port
-        self.max_clients = max_clients
-        self.event_interval_s = event_interval_s
-        self.client_timeout_s = client_timeout_s
+        options = options or HttpOptions()
+        self.host = options.host
+        self.port = options.port
+        self.max_clients = options.max_clients
+        self.event_interval_s = options.event_interval_s
+        self.client_timeout_s = options.client_timeout_s
         self._latest: dict[str, Any] = {}  # kind → latest message (written by one thread)
         self._links: dict[str, bool] = {}  # source → up, from LinkEvents
         self._max_altitude: float | None = None

@@ -12,11 +12,11 @@ from typing import Any, ClassVar
 from backends.mavlink import signing
 from backends.mavlink.endpoints import Endpoint, EndpointSpec, parse_endpoint
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
+from backends.mavlink.options import QGC_UDP, MavlinkOptions
 from backends.mavlink.router import Router
-from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
+from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
-from gateway.config import Key, Schema
 from gateway.io.endpoints import KINDS, list_validator
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import (
@@ -32,7 +32,6 @@ from gateway.model import (
 
 log = logging.getLogger(__name__)
 
-QGC_UDP = "udpout:127.0.0.1:14550"
 INBOX_DEPTH = 256
 POLL_S = 0.02
 #: Routing a vehicle, the rocket takes its system id once the vehicle has been heard, or
@@ -49,76 +48,30 @@ def check_endpoints(endpoints: Any) -> list[EndpointSpec]:
     return [parse_endpoint(e) for e in endpoints]
 
 
-def _rate_key(key: str, help_text: str) -> Key:
-    return Key(float, DEFAULT_RATES[key], help_text + " (Hz, 0 = off)", minimum=0, maximum=1000)
-
-
 class MavlinkBackend(Backend):
     """Streams the rocket to ground stations (QGroundControl, MAVProxy, MAVSDK) and routes
     MAVLink between its endpoints.  Options: see :attr:`CONFIG` and the README."""
 
     NAME = "mavlink"
-    CONFIG = Schema(
-        endpoints=Key(list, [QGC_UDP], "endpoints: udpout:/udpin:/tcpin:/tcp:HOST:PORT, "
-                      "serial:DEVICE[,BAUD]", validator=lambda v: check_endpoints(v)),
-        sysid=Key(int, 1, "MAVLink system id of the rocket; when another system on the links "
-                  "uses it, the next free one (logged)", minimum=1, maximum=254),
-        compid=Key(int, 1, "component id (1 = autopilot: what QGroundControl needs)",
-                   minimum=1, maximum=255),
-        route=Key(bool, True, "forward traffic between endpoints (mavlink-router style)"),
-        stale_after_s=Key(float, 3.0, "no update for this long: system status 'uninit'",
-                          minimum=0.1),
-        pad_altitude_amsl_m=Key(float, 0.0, "pad altitude above mean sea level, added to "
-                                "the rocket's altitude above the pad for AMSL fields"),
-        signing_key_file=Key(str, "", "MAVLink 2 signing key: 32 raw bytes or 64 hex digits"),
-        signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase (key = SHA-256 of it, "
-                               "as MAVProxy and QGroundControl derive it)"),
-        serial_queue_depth=Key(int, 256, "frames queued per link (every endpoint kind)",
-                               minimum=1),
-        heartbeat_hz=_rate_key("heartbeat_hz", "HEARTBEAT"),
-        sys_status_hz=_rate_key("sys_status_hz", "SYS_STATUS"),
-        extended_sys_state_hz=_rate_key("extended_sys_state_hz", "EXTENDED_SYS_STATE"),
-        attitude_hz=_rate_key("attitude_hz", "ATTITUDE, at most"),
-        altitude_hz=_rate_key("altitude_hz", "ALTITUDE, at most"),
-        vfr_hud_hz=_rate_key("vfr_hud_hz", "VFR_HUD, at most"),
-        named_value_hz=_rate_key("named_value_hz", "NAMED_VALUE_FLOAT accel/accel_vert, at most"),
-        position_hz=_rate_key("position_hz", "GLOBAL_POSITION_INT/GPS_RAW_INT, at most"),
-        battery_hz=_rate_key("battery_hz", "BATTERY_STATUS, at most"),
-        aurora_sm_update_hz=_rate_key("aurora_sm_update_hz", "AURORA_SM_UPDATE, at most"),
-        aurora_status_hz=_rate_key("aurora_status_hz", "AURORA_STATUS, at most"),
-        radio_status_hz=_rate_key("radio_status_hz",
-                                  "RADIO_STATUS from a radio's link statistics, at most"),
-        rc_channels_hz=_rate_key("rc_channels_hz",
-                                 "RC_CHANNELS from the commands the rocket's link received, "
-                                 "at most"),
-    )
+    OPTIONS = MavlinkOptions
     #: The default run shows the rocket in a QGroundControl on this machine.
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
 
-    def __init__(self, endpoints: list[str] | tuple[str, ...] = (QGC_UDP,), sysid: int = 1,
-                 compid: int = 1, route: bool = True, stale_after_s: float = 3.0,
-                 pad_altitude_amsl_m: float = 0.0, signing_key_file: str = "",
-                 signing_passphrase: str = "", serial_queue_depth: int = 256,
-                 name: str | None = None, **rates: float) -> None:
+    def __init__(self, options: MavlinkOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
-        unknown = set(rates) - set(DEFAULT_RATES)
-        if unknown:
-            raise TypeError(f"unknown option(s): {', '.join(sorted(unknown))}")
-        # CONFIG validated the options (check_endpoints); a direct caller gets ValueError here.
-        self.specs = check_endpoints(endpoints)
-        if signing_key_file and signing_passphrase:
-            raise ValueError("signing_key_file and signing_passphrase: give one, not both")
-        self.sysid = sysid
-        self.compid = compid
-        self.route = route
-        self.signing_key_file = signing_key_file
-        self.signing_passphrase = signing_passphrase
-        self.serial_queue_depth = serial_queue_depth
+        options = options or MavlinkOptions()
+        self.specs = check_endpoints(options.endpoints)  # validated: the parsed endpoints
+        self.sysid = options.sysid
+        self.compid = options.compid
+        self.route = options.route
+        self.signing_key_file = options.signing_key_file
+        self.signing_passphrase = options.signing_passphrase
+        self.serial_queue_depth = options.serial_queue_depth
         # A key that cannot be read is a configuration error, reported before anything starts.
         self.signing_key = self._signing_key()
-        self.vehicle = AuroraVehicle(sysid, compid, rates={**DEFAULT_RATES, **rates},
-                                     stale_after_s=stale_after_s,
-                                     pad_altitude_amsl_m=pad_altitude_amsl_m,
+        self.vehicle = AuroraVehicle(options.sysid, options.compid, rates=options.rates(),
+                                     stale_after_s=options.stale_after_s,
+                                     pad_altitude_amsl_m=options.pad_altitude_amsl_m,
                                      version=__version__)
         self.vehicle.on_rc = self._on_rc
         self.hub: MavlinkHub | None = None

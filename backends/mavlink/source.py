@@ -30,6 +30,7 @@ from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.endpoints import Endpoint, parse_endpoint
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
+from backends.mavlink.options import MAV_COMP_ID_ONBOARD_COMPUTER, MavlinkSourceOptions
 from backends.mavlink.router import Router
 from backends.mavlink.translate import (
     VIA_MAVLINK,
@@ -38,14 +39,12 @@ from backends.mavlink.translate import (
     status_from_mavlink,
 )
 from gateway.backend import GatewayContext
-from gateway.config import Key, Schema
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
 from gateway.sources import Sink, Source
 
 log = logging.getLogger(__name__)
 
-MAV_COMP_ID_ONBOARD_COMPUTER = 191
 #: The listener's preferred system id: not 255, the ground stations' (ArduPilot's GCS
 #: failsafe counts any heartbeat from SYSID_MYGCS, so ours must not keep it quiet when the
 #: real ground station is gone); downwards from here to the first one nobody uses.
@@ -303,55 +302,31 @@ class MavlinkSource(Source):
     routed to every ground station and theirs back, by mavlink-router's rules."""
 
     NAME = "mavlink"
-    CONFIG = Schema(
-        url=Key(str, help="the vehicle's endpoint: udpin:0.0.0.0:14551, "
-                "serial:/dev/ttyACM0,115200, tcp:HOST:5760 …", validator=parse_endpoint),
-        endpoints=Key(list, [], "more endpoints routed to and from the vehicle (a ground "
-                      "station sharing the link)",
-                      validator=lambda v: [parse_endpoint(e) for e in v]),
-        sysid=Key(int, 0, "our system id towards the vehicle; 0 = automatic: 250, or the "
-                  "next lower one nobody on the links uses", minimum=0, maximum=254),
-        compid=Key(int, MAV_COMP_ID_ONBOARD_COMPUTER, "our component id", minimum=1,
-                   maximum=255),
-        target_system=Key(int, 0, "the vehicle's system id; 0 = the first autopilot heard",
-                          minimum=0, maximum=255),
-        rate_hz=Key(float, 10.0, "most vehicle-state and position messages per second",
-                    minimum=0.1, maximum=1000),
-        heartbeat_hz=Key(float, 1.0, "our heartbeat (ground stations are recognised by it); "
-                         "0 = none", minimum=0, maximum=10),
-        request_streams=Key(bool, True, "ask the vehicle for its telemetry and mode names"),
-        signing_key_file=Key(str, "", "MAVLink 2 signing key file"),
-        signing_passphrase=Key(str, "", "MAVLink 2 signing passphrase"),
-        queue_depth=Key(int, 256, "frames queued per link", minimum=1),
-    )
-
+    OPTIONS = MavlinkSourceOptions
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return f"mavlink:{options['url']}"
 
-    def __init__(self, url: str, endpoints: list[str] | None = None, sysid: int = 0,
-                 compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
-                 rate_hz: float = 10.0, heartbeat_hz: float = 1.0, request_streams: bool = True,
-                 signing_key_file: str = "", signing_passphrase: str = "",
-                 queue_depth: int = 256, name: str | None = None) -> None:
+    def __init__(self, options: MavlinkSourceOptions, name: str | None = None) -> None:
         super().__init__(name)
-        self.vehicle_spec = parse_endpoint(url)
-        self.extra_specs = [parse_endpoint(e) for e in endpoints or []]
-        if signing_key_file and signing_passphrase:
-            raise ValueError("signing_key_file and signing_passphrase: give one, not both")
-        self.heartbeat_hz = heartbeat_hz
-        self.rate_hz = rate_hz
-        self.queue_depth = queue_depth
+        self.vehicle_spec = parse_endpoint(options.url)
+        self.extra_specs = [parse_endpoint(e) for e in options.endpoints]
+        self.heartbeat_hz = options.heartbeat_hz
+        self.rate_hz = options.rate_hz
+        self.queue_depth = options.queue_depth
         self.signing_key: bytes | None = None
-        if signing_key_file:
-            self.signing_key = signing.key_from_file(signing_key_file)
-        elif signing_passphrase:
-            self.signing_key = signing.key_from_passphrase(signing_passphrase)
+        if options.signing_key_file:
+            self.signing_key = signing.key_from_file(options.signing_key_file)
+        elif options.signing_passphrase:
+            self.signing_key = signing.key_from_passphrase(options.signing_passphrase)
         self._pending: deque[Any] = deque()
         self._emit_scheduled = False
-        self.listener = VehicleListener(self._queue, self.name, sysid=sysid or AUTO_SYSID,
-                                        compid=compid, target_system=target_system,
-                                        rate_hz=rate_hz, request_streams=request_streams)
+        self.listener = VehicleListener(self._queue, self.name,
+                                        sysid=options.sysid or AUTO_SYSID,
+                                        compid=options.compid,
+                                        target_system=options.target_system,
+                                        rate_hz=options.rate_hz,
+                                        request_streams=options.request_streams)
         self.hub: MavlinkHub | None = None
         self.router: Router | None = None
         self.loop: IoLoop | None = None

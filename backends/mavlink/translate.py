@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from backends.mavlink.dialect import mav
+from backends.mavlink.options import DEFAULT_RATES
 from dialects.states import ERROR_STATE, IN_FLIGHT, ON_PAD, SimpleState, state_name, state_names
 from gateway.counters import Counters
 from gateway.model import (
@@ -78,23 +79,6 @@ STREAMS: dict[int, str] = {
     mav.MAVLINK_MSG_ID_AURORA_STATUS: "aurora_status_hz",
 }
 
-#: Default rates (Hz).  Event-driven streams send at most this often (never faster than the
-#: rocket's updates); 0 turns a stream off.
-DEFAULT_RATES: dict[str, float] = {
-    "heartbeat_hz": 1.0,
-    "sys_status_hz": 1.0,
-    "extended_sys_state_hz": 1.0,
-    "attitude_hz": 25.0,
-    "altitude_hz": 10.0,
-    "vfr_hud_hz": 10.0,
-    "named_value_hz": 5.0,
-    "position_hz": 5.0,
-    "battery_hz": 2.0,
-    "aurora_sm_update_hz": 50.0,
-    "aurora_status_hz": 10.0,
-    "radio_status_hz": 2.0,
-    "rc_channels_hz": 10.0,
-}
 
 #: Messages a ground station may ask for with MAV_CMD_REQUEST_MESSAGE.
 _REQUESTABLE = frozenset({

@@ -33,13 +33,10 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
-from gateway.config import Key, Schema
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.links import (
-    USAGE,
     LinkSet,
-    endpoints_validator,
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
@@ -47,12 +44,12 @@ from gateway.model import Battery, Position, SmUpdate, Status
 
 from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
-from .telemetry import DEFAULT_BOARD_TYPE, FlightSession, ObjectStore
+from .options import DEFAULT_SERIAL_BAUD, UavtalkOptions
+from .telemetry import FlightSession, ObjectStore
 from .translate import Vehicle
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SERIAL_BAUD = 57600
 #: Received packets handled between two writes of a link's replies (well under the session's
 #: priority queue of 32).
 FLUSH_EVERY = 16
@@ -166,40 +163,25 @@ class UavtalkBackend(Backend):
     """Serves the rocket as a LibrePilot 16.09 flight controller (see the module docstring)."""
 
     NAME = "uavtalk"
-    CONFIG = Schema(
-        endpoints=Key(list, [], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "
-                      "serial:DEVICE[,BAUD] or a pyserial URL",
-                      validator=endpoints_validator(DEFAULT_SERIAL_BAUD)),
-        board_type=Key(int, DEFAULT_BOARD_TYPE, "FirmwareIAPObj.BoardType shown to the GCS "
-                       "(9: Revolution); must be nonzero", minimum=1, maximum=255),
-        tick_s=Key(float, 0.02, "seconds between telemetry ticks (periodic sends, retries)",
-                   minimum=0.001, maximum=1.0),
-        queue_depth=Key(int, 64, "packets waiting per link before drops", minimum=1,
-                        maximum=4096),
-        inbox_depth=Key(int, 256, "gateway messages waiting for the loop before drops",
-                        minimum=1, maximum=65536),
-    )
+    OPTIONS = UavtalkOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
-    def __init__(self, endpoints: list[str] | None = None, board_type: int = DEFAULT_BOARD_TYPE,
-                 tick_s: float = 0.02, queue_depth: int = 64, inbox_depth: int = 256,
-                 name: str | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, options: UavtalkOptions, name: str | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
-        self.specs = [parse_endpoint(e) for e in (endpoints or [])]
-        if not self.specs:
-            raise ValueError(f"at least one endpoint is needed; {USAGE}")
-        self.board_type = board_type
-        self.tick_s = tick_s
-        self.queue_depth = queue_depth
-        self.inbox_depth = inbox_depth
+        self.specs = [parse_endpoint(e) for e in options.endpoints]
+        self.board_type = options.board_type
+        self.tick_s = options.tick_s
+        self.queue_depth = options.queue_depth
+        self.inbox_depth = options.inbox_depth
         self.clock = clock
         self.objects = ObjectSet.load()
-        self.vehicle = Vehicle(self.objects, board_type)
+        self.vehicle = Vehicle(self.objects, options.board_type)
         self.store = ObjectStore(self.vehicle.defaults())
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
-            queue_depth=queue_depth, on_closed=self._retire, label="GCS")
+            queue_depth=options.queue_depth, on_closed=self._retire, label="GCS")
         self._inbox: deque[Any] = deque()
         self._inbox_lock = threading.Lock()
         self._drain_scheduled = False

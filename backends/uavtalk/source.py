@@ -34,10 +34,9 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from gateway.config import Key, Schema
 from gateway.io.backoff import Backoff
-from gateway.io.endpoints import SERIAL, TCP, Endpoint, parse_endpoint, validator
-from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.endpoints import SERIAL, TCP, Endpoint, parse_endpoint
+from gateway.io.port import REOPEN_FIRST_S, PortEngine
 from gateway.io.transport import open_serial, open_tcp_client
 from gateway.model import Battery, Position, VehicleState
 from gateway.outcome import Outcome
@@ -45,6 +44,7 @@ from gateway.sources import Source
 
 from .codec import Decoder
 from .objects import ObjectSet
+from .options import UavtalkSourceOptions
 from .telemetry import GcsSession, Status, TelemetryStats
 
 log = logging.getLogger(__name__)
@@ -52,7 +52,6 @@ log = logging.getLogger(__name__)
 VIA_UAVTALK = "uavtalk"
 TICK_S = 0.05
 """How often the session is ticked (its timeouts are 250 ms and up)."""
-DEFAULT_BAUD = 57600
 ARMED = 2  # FlightStatus.Armed: Disarmed, Arming, Armed
 MIN_FIX = 2  # GPSPositionSensor.Status: NoGPS, NoFix, Fix2D, Fix3D
 
@@ -87,32 +86,23 @@ class UavtalkSource(Source):
     """A LibrePilot flight controller as a gateway source (``[[sources]] type = "uavtalk"``)."""
 
     NAME = "uavtalk"
-    CONFIG = Schema(
-        url=Key(str, help="the flight controller: tcp:HOST:PORT, or a serial device / pyserial "
-                "URL with an optional ,BAUD (/dev/ttyACM0,57600)", validator=validator(URL_KINDS)),
-        baudrate=Key(int, DEFAULT_BAUD, "serial speed when the url gives none", minimum=50),
-        rate_hz=Key(float, 10.0, "most vehicle-state and position messages per second",
-                    minimum=0.1, maximum=1000),
-        reconnect_max_s=Key(float, REOPEN_MAX_S, "longest wait between reopen attempts",
-                            minimum=0.01),
-    )
+    OPTIONS = UavtalkSourceOptions
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return f"uavtalk:{options['url']}"
 
-    def __init__(self, url: str, baudrate: int = DEFAULT_BAUD, rate_hz: float = 10.0,
-                 reconnect_max_s: float = REOPEN_MAX_S, name: str | None = None, *,
+    def __init__(self, options: UavtalkSourceOptions, name: str | None = None, *,
                  objects: ObjectSet | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        super().__init__(name or f"uavtalk:{url}")
-        self.url = url
-        spec = parse_url(url)
+        super().__init__(name or f"uavtalk:{options.url}")
+        self.url = options.url
+        spec = parse_url(options.url)
         self.kind = spec.kind
         self.host, self.port_number = spec.host, spec.port
         self.device = spec.device
-        self.baudrate = spec.baudrate or baudrate
-        self.rate_hz = rate_hz
+        self.baudrate = spec.baudrate or options.baudrate
+        self.rate_hz = options.rate_hz
         self.objects = objects or ObjectSet.load()
         self.clock = clock
         self.decoder = Decoder(self.objects.data_length)
@@ -120,8 +110,8 @@ class UavtalkSource(Source):
         self._retired = TelemetryStats()  # the counters of sessions of earlier connections
         self._lock = threading.Lock()  # the session swap against stats()
         self._mode_options = self.objects.by_name("FlightStatus").field("FlightMode").options
-        self._state_gate = _Gate(rate_hz)
-        self._position_gate = _Gate(rate_hz)
+        self._state_gate = _Gate(options.rate_hz)
+        self._position_gate = _Gate(options.rate_hz)
         self._out: list[Any] = []
         self._timer: Any = None
         self._last_state = self.session.state
@@ -136,7 +126,7 @@ class UavtalkSource(Source):
         self.engine = PortEngine(self._open, name=f"source {self.name}", protocol=self,
                                  on_event=self.emit, on_link=self._on_link, queue_depth=64,
                                  backoff=Backoff(REOPEN_FIRST_S,
-                                                 max(REOPEN_FIRST_S, reconnect_max_s)))
+                                                 max(REOPEN_FIRST_S, options.reconnect_max_s)))
 
     def _new_session(self) -> GcsSession:
         return GcsSession(self.objects, on_object=self._on_object)

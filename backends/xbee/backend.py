@@ -14,50 +14,30 @@ from collections.abc import Iterable
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, Outcome, Routes
-from gateway.config import Key, Schema
-from gateway.io.endpoints import check_serial_port
 from gateway.model import SmUpdate, Status
 
 from .link import AirLink, RcCommand, Send
-from .radio import DEFAULT_BAUD, POLL_S, TICK_S, Radio, parse_dest, rc_message
-
-MIN_PAYLOAD = 24  # the largest packet (SmTelem) must fit
-
-
-def _check_dest(value: str) -> None:
-    parse_dest(value)
+from .options import MIN_PAYLOAD, XbeeOptions
+from .radio import Radio, parse_dest, rc_message
 
 
 class XbeeBackend(Backend):
     """The air side of the XBee link (see the module docstring)."""
 
     NAME = "xbee"
-    CONFIG = Schema(
-        url=Key(str, help="the XBee module: a serial device or pyserial URL "
-                "(socket://HOST:PORT)", validator=check_serial_port),
-        baudrate=Key(int, DEFAULT_BAUD, "the module's UART rate (its BD)", minimum=50),
-        api_mode=Key(int, 1, "the module's API mode (AP): 1, or 2 (escaped)", choices=(1, 2)),
-        dest=Key(str, "", "64-bit destination in hex; empty: broadcast",
-                 validator=_check_dest),
-        max_payload=Key(int, 100, "largest RF payload until the module's NP is known",
-                        minimum=MIN_PAYLOAD, maximum=256),
-        tick_s=Key(float, TICK_S, "seconds between link ticks", minimum=0.001, maximum=0.1),
-        poll_s=Key(float, POLL_S, "seconds between reads of the module's counters (DB, ER, "
-                   "GD, TR, EA, DC)", minimum=0.1),
-    )
+    OPTIONS = XbeeOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # needs a module: opt in
 
-    def __init__(self, url: str, baudrate: int = DEFAULT_BAUD, api_mode: int = 1,
-                 dest: str = "", max_payload: int = 100, tick_s: float = TICK_S,
-                 poll_s: float = POLL_S, name: str | None = None) -> None:
+    def __init__(self, options: XbeeOptions, name: str | None = None) -> None:
         super().__init__(name)
-        self.link = AirLink(max_payload=max_payload)
+        self.link = AirLink(max_payload=options.max_payload)
         self.commands = 0
-        self.radio = Radio(f"{self.name} {url}", url, baudrate, api_mode,
-                           dest64=parse_dest(dest), perform=self._perform,
+        self.radio = Radio(f"{self.name} {options.url}", options.url, options.baudrate,
+                           options.api_mode,
+                           dest64=parse_dest(options.dest), perform=self._perform,
                            tick=self.link.tick, on_payload=self._on_payload,
                            on_readings=self._on_readings, on_np=self._on_np,
-                           tick_s=tick_s, poll_s=poll_s)
+                           tick_s=options.tick_s, poll_s=options.poll_s)
 
     # -- the radio's thread -----------------------------------------------------------------
 

@@ -18,13 +18,13 @@ from collections.abc import Iterable
 from typing import Any
 
 from gateway.backend import Outcome, Routes
-from gateway.config import Key, Schema
 from gateway.model import LinkStats, RcChannels, SmUpdate, Status
-from gateway.sources import Source, check_serial_url
+from gateway.sources import Source
 
 from . import frames as f
 from .link import GroundLink, QueryRssi, Send
-from .radio import DEFAULT_BAUD, POLL_S, SERVOS, TICK_S, Radio, servo_from_us
+from .options import XbeeSourceOptions
+from .radio import SERVOS, Radio, servo_from_us
 
 VIA_XBEE = "xbee"
 
@@ -33,33 +33,19 @@ class XbeeSource(Source):
     """The ground side of the XBee link (see the module docstring)."""
 
     NAME = "xbee"
-    CONFIG = Schema(
-        url=Key(str, help="the XBee module: a serial device or pyserial URL "
-                "(socket://HOST:PORT)", validator=check_serial_url),
-        baudrate=Key(int, DEFAULT_BAUD, "the module's UART rate (its BD)", minimum=50),
-        api_mode=Key(int, 1, "the module's API mode (AP): 1, or 2 (escaped)", choices=(1, 2)),
-        rssi_threshold_dbm=Key(float, -85.0, "a power level whose pings arrive at least this "
-                               "strong is adequate; the lowest adequate one is used",
-                               minimum=-120, maximum=0),
-        tick_s=Key(float, TICK_S, "seconds between link ticks", minimum=0.001, maximum=0.1),
-        poll_s=Key(float, POLL_S, "seconds between reads of the module's counters",
-                   minimum=0.1),
-    )
-
+    OPTIONS = XbeeSourceOptions
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return f"xbee:{options['url']}"
 
-    def __init__(self, url: str, baudrate: int = DEFAULT_BAUD, api_mode: int = 1,
-                 rssi_threshold_dbm: float = -85.0, tick_s: float = TICK_S,
-                 poll_s: float = POLL_S, name: str | None = None) -> None:
-        super().__init__(name or f"xbee:{url}")
-        self.link = GroundLink(rssi_threshold_dbm=rssi_threshold_dbm, origin=self.name,
+    def __init__(self, options: XbeeSourceOptions, name: str | None = None) -> None:
+        super().__init__(name or f"xbee:{options.url}")
+        self.link = GroundLink(rssi_threshold_dbm=options.rssi_threshold_dbm, origin=self.name,
                                via=VIA_XBEE)
-        self.radio = Radio(f"source {self.name}", url, baudrate, api_mode,
+        self.radio = Radio(f"source {self.name}", options.url, options.baudrate, options.api_mode,
                            dest64=f.BROADCAST_64, perform=self._perform, tick=self.link.tick,
                            on_payload=self._on_payload, on_rssi=self._on_rssi,
-                           tick_s=tick_s, poll_s=poll_s)
+                           tick_s=options.tick_s, poll_s=options.poll_s)
         self.messages = 0
         self.commands_in = 0
 

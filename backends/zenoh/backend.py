@@ -35,25 +35,20 @@ from typing import Any, ClassVar
 
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
-    DEFAULT_PREFIX,
-    DEFAULT_VEHICLE,
     STATS_KIND,
     VIA_ZENOH,
     KeyLayout,
-    check_chunk,
-    check_prefix,
     make_attachment,
 )
-from backends.zenoh.session import SESSION_KEYS, SessionOptions, zerror_text
+from backends.zenoh.options import ZenohOptions
+from backends.zenoh.session import SessionOptions, zerror_text
 from gateway.backend import Backend, GatewayContext, Outcome, Routes
-from gateway.config import ConfigError, Key, Schema
+from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
 from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
 
 log = logging.getLogger(__name__)
 
-PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data",
-              "data_low", "background")
 START_WAIT_S = 1.0  # init() waits this long for the session so the first updates are not lost
 _STOP = object()
 
@@ -77,49 +72,24 @@ class ZenohBackend(Backend):
     """Publishes every message on Zenoh; see the module docstring and README.md."""
 
     NAME = "zenoh"
-    CONFIG = Schema(
-        prefix=Key(str, DEFAULT_PREFIX, "first chunk(s) of every key", validator=check_prefix),
-        vehicle=Key(str, DEFAULT_VEHICLE, "this vehicle's key chunk",
-                    validator=lambda v: check_chunk(v, "vehicle")),
-        gateway_id=Key(str, "", "this gateway's id in attachments and its liveliness token "
-                       "(default: the gateway's own, <host>-<pid>-<n>)",
-                       validator=lambda v: v and check_chunk(v, "gateway_id")),
-        encoding=Key(str, "json", "payload of sm_update/status", choices=enc.ENCODINGS),
-        raw=Key(bool, True, "also publish each untouched wire frame on raw/<type>"),
-        congestion_control=Key(str, "drop", "when the network cannot keep up: drop "
-                               "(latest data first) or block (never lose in Zenoh)",
-                               choices=("drop", "block")),
-        priority=Key(str, "data", "Zenoh priority of the publications", choices=PRIORITIES),
-        queue_depth=Key(int, 1024, "updates waiting for the worker before new ones are "
-                        "dropped", minimum=1, maximum=1_000_000),
-        liveliness=Key(bool, True, "declare a liveliness token for this gateway"),
-        queryable=Key(bool, True, "answer get() with the latest value of each key"),
-        stats_interval_s=Key(float, 1.0, "seconds between publications of this gateway's "
-                             "counters on gateway_stats (for a monitor); 0 = none", minimum=0),
-        **SESSION_KEYS,
-    )
+    OPTIONS = ZenohOptions
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
 
-    def __init__(self, name: str | None = None, *, prefix: str = DEFAULT_PREFIX,
-                 vehicle: str = DEFAULT_VEHICLE, gateway_id: str = "", encoding: str = "json",
-                 raw: bool = True, congestion_control: str = "drop", priority: str = "data",
-                 queue_depth: int = 1024, liveliness: bool = True, queryable: bool = True,
-                 stats_interval_s: float = 1.0, **session: Any) -> None:
+    def __init__(self, options: ZenohOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
-        # The options were validated by CONFIG (the configuration or the flags); a caller
-        # building the backend directly passes valid ones.
-        self.layout = KeyLayout(prefix, vehicle)
-        self._own_id = gateway_id
+        options = options or ZenohOptions()
+        self.layout = KeyLayout(options.prefix, options.vehicle)
+        self._own_id = options.gateway_id
         self.gateway_id = self._own_id or self.context.gateway_id
-        self.session_options = SessionOptions.from_options(session)
-        self.encoding = encoding
-        self.publish_raw = raw
-        self.congestion_control = congestion_control
-        self.priority = priority
-        self.queue_depth = queue_depth
-        self.declare_token = liveliness
-        self.declare_queryable = queryable
-        self.stats_interval_s = stats_interval_s
+        self.session_options = SessionOptions.from_options(options)
+        self.encoding = options.encoding
+        self.publish_raw = options.raw
+        self.congestion_control = options.congestion_control
+        self.priority = options.priority
+        self.queue_depth = options.queue_depth
+        self.declare_token = options.liveliness
+        self.declare_queryable = options.queryable
+        self.stats_interval_s = options.stats_interval_s
         self._stats_due = 0.0
         self.stats_published = 0
 

@@ -20,63 +20,15 @@ from pathlib import Path
 from typing import Any
 
 from backends.zenoh.keys import DEFAULT_ENDPOINT
-from gateway.config import ConfigError, Key
-from gateway.io.endpoints import EndpointError, parse_address
+from backends.zenoh.options import MODES, ZenohSessionOptions, check_locator, check_locators
+from gateway.options import ConfigError
 
 log = logging.getLogger(__name__)
 
-MODES = ("peer", "client", "router")
-PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
-             "vsock")
-#: The protocols whose address is HOST:PORT (IPv6 as [::1]:PORT, as Zenoh writes it).
-HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 RETRY_INIT_MS = 100
-
-def check_locator(text: str) -> None:
-    """A Zenoh locator, ``<protocol>/<address>`` (Zenoh's own grammar); for tcp, udp, tls,
-    quic and ws the address is HOST:PORT as :mod:`gateway.io.endpoints` reads it (IPv6 as
-    ``[::1]:7447``).  ValueError saying what is wrong."""
-    proto, slash, addr = text.partition("/")
-    if not slash or not addr:
-        raise ValueError(f"{text!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
-    if proto not in PROTOCOLS:
-        raise ValueError(f"unknown protocol {proto!r}; one of {', '.join(PROTOCOLS)}")
-    if proto in HOST_PORT_PROTOCOLS:
-        try:  # what follows ? or # is Zenoh's metadata and configuration
-            parse_address(re.split(r"[?#]", addr, maxsplit=1)[0], default_host=None)
-        except EndpointError as exc:
-            raise ValueError(f"{text!r}: {exc}") from None
-
-
-def check_locators(value: Any) -> None:
-    """A ``connect``/``listen`` key's value: every locator checked (:func:`check_locator`)."""
-    for item in [value] if isinstance(value, str) else value:
-        if not isinstance(item, str):
-            raise ValueError(f"{item!r} is not a string")
-        check_locator(item)
-
-
-#: The session keys, shared by every Schema in this package.  ``None`` = not given.
-SESSION_KEYS: dict[str, Key] = {
-    "mode": Key(str, None, "Zenoh mode", choices=MODES, nullable=True),
-    "connect": Key((list, str), None, "endpoints to connect to, e.g. "
-                   "['tcp/192.168.1.10:7447']", nullable=True, validator=check_locators),
-    "listen": Key((list, str), None, f"endpoints to listen on (default {DEFAULT_ENDPOINT}, or none "
-                  "when connect is given)", nullable=True, validator=check_locators),
-    "multicast_scouting": Key(bool, None, "find peers and routers by UDP multicast (default "
-                              "off)", nullable=True),
-    "tls_root_ca": Key(str, "", "CA certificate (PEM) that signs the peers' certificates"),
-    "tls_certificate": Key(str, "", "this node's certificate (PEM), to listen on tls/ "
-                           "endpoints or for mutual TLS"),
-    "tls_private_key": Key(str, "", "this node's private key (PEM)"),
-    "tls_mtls": Key(bool, False, "mutual TLS: present tls_certificate when connecting and "
-                    "require one from whoever connects"),
-    "user": Key(str, "", "user name for user/password authentication"),
-    "password": Key(str, "", "password for user/password authentication"),
-    "config_file": Key(str, "", "a full Zenoh JSON5 configuration file used as the base"),
-    "reconnect_max_s": Key(float, 1.0, "longest wait between attempts to (re)connect to an "
-                           "endpoint", minimum=0.1, maximum=3600),
-}
+#: The locator checks live in the light options module (the keys and flags use them); the
+#: session re-checks what it is given with them.
+__all__ = ["SessionOptions", "check_endpoints", "check_locator", "check_locators", "zerror_text"]
 
 _RS_LOCATION = re.compile(r"\s+at\s+/\S+\.rs:\d+\.?")
 
@@ -108,31 +60,37 @@ def check_endpoints(value: Any, key: str) -> list[str]:
 class SessionOptions:
     """Validated session options; :meth:`config` builds the zenoh.Config."""
 
-    def __init__(self, mode: str | None = None, connect: list[str] | None = None,
-                 listen: list[str] | None = None, multicast_scouting: bool | None = None,
-                 tls_root_ca: str = "", tls_certificate: str = "", tls_private_key: str = "",
-                 tls_mtls: bool = False, user: str = "", password: str = "",
-                 config_file: str = "", reconnect_max_s: float = 1.0,
-                 default_listen: list[str] | None = None) -> None:
+    def __init__(self, options: ZenohSessionOptions | None = None,
+                 default_listen: list[str] | None = None, **keys: Any) -> None:
+        """``options`` (or the session keys as keywords: ``SessionOptions(mode="client",
+        connect=[…])``, validated by :class:`ZenohSessionOptions`)."""
+        if options is None:
+            options = ZenohSessionOptions(**keys)
+        elif keys:
+            options = options.replace(**keys)
+        mode, connect, listen = options.mode, options.connect, options.listen
+        tls_certificate, tls_root_ca = options.tls_certificate, options.tls_root_ca
+        user, password = options.user, options.password
+        tls_mtls, config_file = options.tls_mtls, options.config_file
         if mode is not None and mode not in MODES:
             raise ConfigError(f"mode: expected one of {', '.join(MODES)}, got {mode!r}")
         self.mode = mode
         self.connect = check_endpoints(connect, "connect") if connect is not None else None
         self.listen = check_endpoints(listen, "listen") if listen is not None else None
-        self.multicast_scouting = multicast_scouting
+        self.multicast_scouting = options.multicast_scouting
         self.tls_root_ca = tls_root_ca
         self.tls_certificate = tls_certificate
-        self.tls_private_key = tls_private_key
+        self.tls_private_key = options.tls_private_key
         self.tls_mtls = tls_mtls
         self.user = user
         self.password = password
         self.config_file = config_file
-        self.reconnect_max_s = reconnect_max_s
+        self.reconnect_max_s = options.reconnect_max_s
         self.default_listen = ([DEFAULT_ENDPOINT] if default_listen is None
                                else list(default_listen))
         if bool(user) != bool(password):
             raise ConfigError("user/password: give both or neither")
-        if bool(tls_certificate) != bool(tls_private_key):
+        if bool(tls_certificate) != bool(options.tls_private_key):
             raise ConfigError("tls_certificate/tls_private_key: give both or neither")
         if tls_mtls and not (tls_certificate and tls_root_ca):
             raise ConfigError("tls_mtls: needs tls_root_ca, tls_certificate and "
@@ -146,9 +104,9 @@ class SessionOptions:
         self.config()  # a bad config file or value is found now, before anything starts
 
     @classmethod
-    def from_options(cls, options: dict[str, Any], **extra: Any) -> SessionOptions:
-        """Pick the session keys out of a backend's or source's options."""
-        return cls(**{k: options[k] for k in SESSION_KEYS if k in options}, **extra)
+    def from_options(cls, options: ZenohSessionOptions, **extra: Any) -> SessionOptions:
+        """The session of a backend's or source's options (their session keys)."""
+        return cls(options, **extra)
 
     @property
     def effective_mode(self) -> str:
@@ -211,7 +169,8 @@ class SessionOptions:
             connect = self.connect
         if connect is not None:
             put("connect/endpoints", connect)
-        if base or self.reconnect_max_s != SESSION_KEYS["reconnect_max_s"].default:
+        default_s = ZenohSessionOptions.schema().keys["reconnect_max_s"].default
+        if base or self.reconnect_max_s != default_s:
             retry = {"period_init_ms": RETRY_INIT_MS,
                      "period_max_ms": max(RETRY_INIT_MS, round(self.reconnect_max_s * 1000)),
                      "period_increase_factor": 2}

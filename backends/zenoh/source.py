@@ -35,7 +35,6 @@ from typing import Any
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     DEFAULT_ENDPOINT,
-    DEFAULT_PREFIX,
     JSON_KINDS,
     RAW,
     STATS_KIND,
@@ -46,8 +45,9 @@ from backends.zenoh.keys import (
     parse_attachment,
     parse_key,
 )
-from backends.zenoh.session import SESSION_KEYS, SessionOptions, check_endpoints, zerror_text
-from gateway.config import ConfigError, Key, Schema
+from backends.zenoh.options import KEY_SETS, ZenohSourceOptions
+from backends.zenoh.session import SessionOptions, check_endpoints, zerror_text
+from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import Timer
 from gateway.sources import Source
@@ -56,7 +56,6 @@ from gateway.wire import Decoder
 log = logging.getLogger(__name__)
 
 URL_SCHEME = "zenoh"
-KEY_SETS = ("raw", "json")
 DRAIN_BATCH = 256  # samples handled per turn of the loop
 
 
@@ -80,22 +79,18 @@ def parse_url(url: str) -> dict[str, Any]:
     return opts
 
 
+def check_url(url: str) -> None:
+    """The ``url`` key: empty, or a :func:`parse_url` form (its endpoints checked as Zenoh
+    locators); ValueError naming the mistake."""
+    if url:
+        parse_url(url)
+
+
 class ZenohSource(Source):
     """Subscribes to another gateway's publications and emits them as messages."""
 
     NAME = "zenoh"
-    CONFIG = Schema(
-        url=Key(str, "", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)",
-                validator=lambda v: parse_url(v) if v else None),
-        prefix=Key(str, DEFAULT_PREFIX, "key prefix of the publishing gateways"),
-        vehicle=Key(str, "*", "vehicle to follow; '*' = every vehicle (their messages are "
-                    "merged: use one source per vehicle to keep them apart)"),
-        keys=Key(str, "raw", "subscribe to the raw wire frames or to the JSON documents",
-                 choices=KEY_SETS),
-        queue_depth=Key(int, 1024, "samples waiting for the source's thread before new ones "
-                        "are dropped", minimum=1, maximum=1_000_000),
-        **SESSION_KEYS,
-    )
+    OPTIONS = ZenohSourceOptions
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
@@ -106,13 +101,15 @@ class ZenohSource(Source):
         """``--source zenoh[:VEHICLE@ENDPOINT,…]``: the url key keeps the whole text."""
         return {} if rest is None else {"url": f"{URL_SCHEME}:{rest}"}
 
-    def __init__(self, name: str | None = None, *, url: str = "",
-                 prefix: str = DEFAULT_PREFIX, vehicle: str = "*", keys: str = "raw",
-                 queue_depth: int = 1024, **session: Any) -> None:
-        super().__init__(name or url or URL_SCHEME)
-        if url:
+    def __init__(self, options: ZenohSourceOptions | None = None,
+                 name: str | None = None) -> None:
+        options = options or ZenohSourceOptions()
+        super().__init__(name or options.url or URL_SCHEME)
+        prefix, vehicle, keys = options.prefix, options.vehicle, options.keys
+        session: dict[str, Any] = {}
+        if options.url:
             try:
-                from_url = parse_url(url)
+                from_url = parse_url(options.url)
             except ValueError as exc:
                 raise ConfigError(f"url: {exc}") from None
             vehicle = from_url.get("vehicle", vehicle)
@@ -128,14 +125,12 @@ class ZenohSource(Source):
             raise ConfigError(f"vehicle: {exc}") from None
         if keys not in KEY_SETS:
             raise ConfigError(f"keys: expected 'raw' or 'json', got {keys!r}")
-        unknown = set(session) - set(SESSION_KEYS)
-        if unknown:
-            raise ConfigError(f"{sorted(unknown)[0]}: unknown key")
-        if session.get("connect") is None and not session.get("config_file"):
+        connect = session.get("connect", options.connect)
+        if connect is None and not options.config_file:
             session["connect"] = [DEFAULT_ENDPOINT]
-        self.session_options = SessionOptions.from_options(session, default_listen=[])
+        self.session_options = SessionOptions(options, default_listen=[], **session)
         self.keys = keys
-        self.queue_depth = queue_depth
+        self.queue_depth = options.queue_depth
         self.key_expr = (f"{self.prefix}/{self.vehicle}/{RAW}/**" if keys == "raw"
                          else f"{self.prefix}/{self.vehicle}/*")
         self.decoder = Decoder(origin=self.name)

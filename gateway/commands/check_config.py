@@ -2,13 +2,16 @@
 
 The file goes through :func:`gateway.config.load`, the code ``run --config`` uses, so it
 passes here exactly when ``run`` would accept its keys and values.  What needs the outside
-world (a port, a recording, a key file) and the few checks a backend makes when it is built
-(MAVLink: a key file *or* a passphrase) are left to ``run``: nothing is opened or built here.
+world (a port, a recording, a key file) is left to ``run``: nothing is opened or built here.
+The checks between keys (MAVLink: a key file *or* a passphrase) are made, by the options
+declaration (:mod:`gateway.options`).
 
 The resolved configuration is every source and every enabled backend with all its options,
 defaults filled in, as TOML that loads back to the same configuration (``--json``: one JSON
 document).  An option whose default is "not set" has no TOML form and is printed as a
-comment.  A backend with ``enabled = false`` was checked too; it is named in a comment.
+comment.  A backend with ``enabled = false`` was checked too; it is named in a comment.  A
+secret (a passphrase, a password: an option declared ``secret``) is never printed: a comment
+says it is set.
 
 Exit status: 0 valid; 2 invalid, unreadable or missing (one line on stderr naming the key,
 or the file and why it cannot be read) — the status ``run`` exits with for the same file.
@@ -30,6 +33,17 @@ PROG = "aurora-gateway check-config"
 EXIT_OK, EXIT_INVALID = 0, 2
 
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+class _Secret:
+    """A secret option's value, in place of it: printed as "set, not shown"."""
+
+    def __repr__(self) -> str:
+        return "SECRET"
+
+
+SECRET: Any = _Secret()
+SECRET_TEXT = "set, not shown (a secret)"
 
 
 def toml_string(text: str) -> str:
@@ -76,7 +90,9 @@ def toml_value(value: Any) -> str:
 def _table_lines(options: dict[str, Any]) -> list[str]:
     lines = []
     for key, value in options.items():
-        if value is None:
+        if value is SECRET:
+            lines.append(f"# {toml_key(key)}: {SECRET_TEXT}")
+        elif value is None:
             lines.append(f"# {toml_key(key)}: not set (the default)")
         else:
             lines.append(f"{toml_key(key)} = {toml_value(value)}")
@@ -89,9 +105,16 @@ def resolved_dict(cfg: GatewayConfig) -> dict[str, Any]:
     each with its ``type``)."""
     return {
         "gateway": dict(cfg.gateway),
-        "sources": [{"type": p.type, "name": p.name, **p.options} for p in cfg.sources],
-        "backends": {p.name: {"type": p.type, **p.options} for p in cfg.backends},
+        "sources": [{"type": p.type, "name": p.name, **_shown(p)} for p in cfg.sources],
+        "backends": {p.name: {"type": p.type, **_shown(p)} for p in cfg.backends},
     }
+
+
+def _shown(part: config.Part) -> dict[str, Any]:
+    """A part's options, each set secret replaced by :data:`SECRET`."""
+    keys = config.schema_of(part.cls).keys if part.cls is not None else {}
+    return {k: SECRET if v and k in keys and keys[k].secret else v
+            for k, v in part.options.items()}
 
 
 def resolved_toml(cfg: GatewayConfig, origin: str, disabled: list[str]) -> str:
@@ -157,7 +180,7 @@ def main_handler(args: argparse.Namespace) -> int:
         return EXIT_INVALID
     if args.json:
         print(json.dumps({**resolved_dict(cfg), "disabled_backends": disabled}, indent=2,
-                         ensure_ascii=False))
+                         ensure_ascii=False, default=lambda _: SECRET_TEXT))
     else:
         sys.stdout.write(resolved_toml(cfg, path or "embedded default", disabled))
     return EXIT_OK

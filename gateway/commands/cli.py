@@ -24,9 +24,10 @@ from typing import Any, NoReturn
 
 from gateway import __version__, config, logjson, recording, registry
 from gateway.app import Gateway
-from gateway.config import ConfigError, GatewayConfig, Key, Schema
+from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
 from gateway.io.backoff import Backoff
+from gateway.options import Options, add_flag, options_of
 from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
@@ -45,21 +46,12 @@ exit status:
 """
 
 # -- flags that set configuration keys -------------------------------------------------------
-# (argparse dest, flag, key): checked by the key's own Key, named in errors as the flag.
+# Declared with the keys they set (gateway.options): the gateway's own in
+# config.GatewayOptions, each source's and backend's in its options class.  Each is checked by
+# the key's own Key, named in errors as the flag.
 
-GATEWAY_FLAGS = (
-    ("status_interval", "--status-interval", "status_interval_s"),
-    ("link_timeout", "--link-timeout", "link_timeout_s"),
-    ("record", "--record", "record"),
-    ("record_dir", "--record-dir", "record_dir"),
-    ("log_level", "--log-level", "log_level"),
-)
-# (argparse dest, flag, source type, key): set on every source of that type.
-SOURCE_FLAGS = (
-    ("baud", "--baud", "serial", "baudrate"),
-    ("sim_speed", "--sim-speed", "sim", "speed"),
-    ("xbee_api", "--xbee-api", "xbee", "api_mode"),
-)
+#: (argparse dest, flag, key) of the [gateway] table's flags
+GATEWAY_FLAGS = tuple((flag.dest, flag.name, key) for key, flag, _ in GatewayOptions.flags())
 # simulate: (argparse dest, flag, key of the sim source)
 SIMULATE_FLAGS = (
     ("rate_hz", "--rate-hz", "rate_hz"),
@@ -77,12 +69,40 @@ CLI_KEYS = Schema(
 
 
 def _source_key(type_name: str, key: str) -> Key:
-    cls = registry.load(registry.SOURCE_GROUP, type_name)
-    return cls.CONFIG.keys[key]
+    opts = registry.load_source_options(type_name)
+    schema = opts.schema() if opts is not None else config.schema_of(
+        registry.load(registry.SOURCE_GROUP, type_name))
+    return schema.keys[key]
 
 
 def gateway_key(key: str) -> Key:
     return config.GATEWAY_SCHEMA.keys[key]
+
+
+def gateway_flag(p: Any, key: str) -> None:
+    """Add the flag that sets ``[gateway]``'s ``key`` (declared by config.GatewayOptions)."""
+    for name, flag, spec in GatewayOptions.flags():
+        if name == key:
+            add_flag(p, flag, spec)
+            return
+    raise KeyError(key)
+
+
+def _source_options() -> dict[str, type[Options]]:
+    """Source type → its options class (light modules: no source is imported); a source
+    without one, or a broken plug-in (reported once), is left out."""
+    out = {}
+    for name in registry.source_names():
+        try:
+            opts = registry.load_source_options(name)
+        except registry.RegistryError as exc:
+            if name not in _warned:
+                _warned.add(name)
+                log.warning("%s", exc)
+            continue
+        if opts is not None:
+            out[name] = opts
+    return out
 
 
 def key_flag(p: argparse.ArgumentParser, flag: str, key: Key, help: str, *,
@@ -113,6 +133,14 @@ def checked_flag(args: argparse.Namespace, dest: str, flag: str, key: Key,
 _warned: set[str] = set()
 
 
+def source_flags() -> tuple[tuple[str, str, str, str], ...]:
+    """(argparse dest, flag, source type, key) of every flag that sets a source's key (on
+    every source of that type): derived from the source options classes."""
+    return tuple((flag.dest, flag.name, type_name, key)
+                 for type_name, opts in _source_options().items()
+                 for key, flag, _ in opts.flags() if flag.sources)
+
+
 def _backend_flags() -> dict[str, Any]:
     """Backend name → what adds its flags and reads them back (:func:`registry.load_flags`:
     a light module, so no backend is imported; else the class).  A broken plug-in is
@@ -133,32 +161,33 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
     p.add_argument("--config", "-c", metavar="FILE",
                    help="TOML configuration (default: the embedded one — the simulated "
                         "flight through every backend on loopback)")
+    seen: set[str] = set()  # flags added, of fields two options classes share
     if sources:
-        add_source_options(p)
-    key_flag(p, "--record", gateway_key("record"), "append every received frame to FILE",
-              metavar="FILE")
-    key_flag(p, "--record-dir", gateway_key("record_dir"),
-              "record into a new file in DIR (created) per run and per flight, named "
-              "<UTC start>-<source>.aur; not with --record", metavar="DIR")
+        add_source_options(p, seen)
+    gateway_flag(p, "record")
+    gateway_flag(p, "record_dir")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
                    help="leave this backend out (repeatable)")
     p.add_argument("--only", action="append", default=[], metavar="BACKEND",
                    help="run only this backend (repeatable; with the configured or flag-set "
                         "options); the others are not even imported")
     _add_common_options(p)
-    key_flag(p, "--link-timeout", gateway_key("link_timeout_s"),
-              "silence after which a source's link is reported down (default 3)",
-              metavar="S")
+    gateway_flag(p, "link_timeout_s")
     if not backend_flags:
         return
     for flags in _backend_flags().values():
+        opts = flags if isinstance(flags, type) and issubclass(flags, Options) else \
+            options_of(flags)
+        if opts is not None:
+            opts.add_cli_arguments(p, seen)
+            continue
         add = getattr(flags, "add_cli_arguments", None)
         if add is not None:
             add(p)
     p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
 
 
-def add_source_options(p: argparse.ArgumentParser) -> None:
+def add_source_options(p: argparse.ArgumentParser, seen: set[str] | None = None) -> None:
     p.add_argument("--source", "-s", action="append", metavar="URL",
                    help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
                         "e.g. mavlink:udpin:0.0.0.0:14551), 'uavtalk:tcp:HOST:PORT' or "
@@ -167,21 +196,16 @@ def add_source_options(p: argparse.ArgumentParser) -> None:
                         "(another gateway's frames over Zenoh) or a pyserial URL "
                         "(/dev/ttyUSB0, loop://, socket://host:port, rfc2217://host:port); "
                         "repeatable; replaces the configured sources")
-    key_flag(p, "--baud", _source_key("serial", "baudrate"), "baud rate of serial sources",
-              metavar="N")
-    key_flag(p, "--sim-speed", _source_key("sim", "speed"),
-              "run the simulated flight N times faster (0 = flat out)", metavar="N")
-    # checked (by the xbee source's key) only when given: its class is not imported otherwise
-    p.add_argument("--xbee-api", type=config.flag_value, metavar="1|2",
-                   help="XBee: the modules' API mode (AP) for --source xbee:URL and --xbee "
-                        "(1, or 2: escaped; default 1)")
+    # each source type's flags (--baud, --sim-speed, --xbee-api), set on every source of it
+    seen = set() if seen is None else seen
+    for opts in _source_options().values():
+        opts.add_cli_arguments(p, seen, sources=True)
 
 
 def _add_common_options(p: argparse.ArgumentParser) -> None:
-    key_flag(p, "--status-interval", gateway_key("status_interval_s"),
-              "seconds between status lines on stderr (0 = none)", metavar="S")
+    gateway_flag(p, "status_interval_s")
     key_flag(p, "--duration", CLI_KEYS.keys["duration"], "stop after S seconds", metavar="S")
-    key_flag(p, "--log-level", gateway_key("log_level"), "logging level", metavar="LEVEL")
+    gateway_flag(p, "log_level")
     key_flag(p, "--log-format", CLI_KEYS.keys["log_format"],
               "log lines as text (default), or one JSON object a line (journald)",
               metavar="FORMAT")
@@ -248,7 +272,7 @@ def build_parser(backend_flags: bool = True,
     for dest, flag, key in SIMULATE_FLAGS:
         text, metavar = sim_help[key]
         key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
-    key_flag(sim, "--log-level", gateway_key("log_level"), "logging level", metavar="LEVEL")
+    gateway_flag(sim, "log_level")
 
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
                          description="Record what the sources receive, with no backends. "
@@ -316,13 +340,12 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
         if value is not None:
             gateway_opts[key] = value
     source_opts = []
-    for dest, flag, type_name, key in SOURCE_FLAGS:
-        if getattr(args, dest, None) is None:
-            continue  # not given: its source class need not be imported to check it
-        value = checked_flag(args, dest, flag, _source_key(type_name, key),
-                         f"{key} of {type_name} sources")
-        if value is not None:
-            source_opts.append((type_name, key, value))
+    for type_name, opts_cls in _source_options().items():
+        def sets(key: str, of: str = type_name) -> str:
+            return f"{key} of {of} sources"
+
+        values, _ = opts_cls.flag_values(args, sets, sources=True)
+        source_opts += [(type_name, key, value) for key, value in values.items()]
     if hasattr(args, "duration"):
         args.duration = checked_flag(args, "duration", "--duration", CLI_KEYS.keys["duration"])
     if hasattr(args, "log_format"):
@@ -349,7 +372,11 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     with_flags = _backend_flags() if getattr(args, "backend_flags", False) else {}
     for name, flags in with_flags.items():
         opts_fn = getattr(flags, "cli_options", None)
-        opts = opts_fn(args) if opts_fn is not None and keep(name) else None
+        opts = None
+        if opts_fn is not None and keep(name):
+            typed = flags if isinstance(flags, type) and issubclass(flags, Options) else \
+                options_of(flags)
+            opts = typed.cli_options(args, f"backends.{name}") if typed else opts_fn(args)
         if opts is None:
             continue
         current = by_name.get(name)
@@ -665,3 +692,11 @@ def console_main() -> NoReturn:
 
 if __name__ == "__main__":
     console_main()
+
+
+def __getattr__(name: str) -> Any:
+    """``SOURCE_FLAGS``: :func:`source_flags`, computed when asked for (importing this module
+    imports no source's options: Ctrl-C during start-up is handled by :func:`console_main`)."""
+    if name == "SOURCE_FLAGS":
+        return source_flags()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

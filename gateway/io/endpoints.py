@@ -399,6 +399,16 @@ def parse_all(values: Iterable[str], kinds: Collection[str] = KINDS,
     return [parse_endpoint(v, kinds, **options) for v in values]
 
 
+def text_of(kinds: Collection[str] = KINDS, **options: Any) -> Callable[[str], str]:
+    """The endpoint's text (stripped) once the grammar accepts it, else its EndpointError: an
+    option's flag ``convert`` (:class:`gateway.options.Flag`), where the key holds the text."""
+
+    def check(text: str) -> str:
+        return parse_endpoint(text, kinds, **options).text
+
+    return check
+
+
 def argument(kinds: Collection[str] = KINDS, **options: Any) -> Callable[[str], Endpoint]:
     """An argparse ``type=`` for one endpoint flag: the flag's error is the endpoint's."""
 

@@ -3,9 +3,10 @@
 
 The contract, all of it public (the app uses nothing else):
 
-* ``name``; ``CONFIG`` (a :class:`gateway.config.Schema`), ``from_config(options, name)`` and
-  optionally ``default_name(options)``, which the configuration uses (the options arrive
-  validated: the constructor does not check them again);
+* ``name``; ``OPTIONS`` (a :class:`gateway.options.Options` dataclass, its options declared
+  once; the schema ``CONFIG`` is derived from it), ``from_config(options, name)`` (default:
+  ``cls(OPTIONS.from_table(options), name=name)``) and optionally ``default_name(options)``,
+  which the configuration uses;
 * ``attach(context)``, called before ``start`` with the gateway's
   :class:`gateway.backend.GatewayContext` (kept as ``context``);
 * optionally ``use_loop(loop)``, called before ``start`` with the
@@ -49,9 +50,10 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from gateway import registry
-from gateway.backend import Backend, GatewayContext, Routes
+from gateway.backend import Backend, GatewayContext, Routes, build, derive_config
 from gateway.io.endpoints import check_serial_port, is_device
 from gateway.io.ioloop import BlockingCall, IoLoop
+from gateway.options import Options
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +64,13 @@ class Source:
     """Base class: a source whose work runs on an I/O loop (see the module docstring)."""
 
     NAME: ClassVar[str] = "source"
+    #: the options declaration; CONFIG, its schema, is derived from it
+    OPTIONS: ClassVar[type[Options] | None] = None
     CONFIG: ClassVar[Any] = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        derive_config(cls)
 
     def __init__(self, name: str | None = None) -> None:
         self.name = name or self.NAME
@@ -78,7 +86,8 @@ class Source:
     @classmethod
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:
         """An instance from options the class's ``CONFIG`` has already validated."""
-        return cls(name=name, **options)
+        source: Source = build(cls, options, name)
+        return source
 
     @classmethod
     def url_options(cls, rest: str | None) -> dict[str, Any]:

@@ -10,9 +10,9 @@ from pathlib import Path
 from typing import Any
 
 from gateway import recording
-from gateway.config import Key, Schema
 from gateway.pacing import Pacer
 from gateway.sources import Source
+from gateway.sources.options import ReplayOptions
 from gateway.wire import Decoder
 
 log = logging.getLogger(__name__)
@@ -20,12 +20,7 @@ log = logging.getLogger(__name__)
 
 class ReplaySource(Source):
     NAME = "replay"
-    CONFIG = Schema(
-        path=Key(str, help="recording file", validator=recording.check_file),
-        speed=Key(float, 1.0, "1 = real time, N = N times faster, 0 = as fast as possible",
-                  minimum=0),
-        loop=Key(bool, False, "start again at the end"),
-    )
+    OPTIONS = ReplayOptions
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
@@ -38,12 +33,11 @@ class ReplaySource(Source):
             raise ValueError("replay: needs a file, e.g. replay:flight.aur")
         return {"path": rest}
 
-    def __init__(self, path: str, speed: float = 1.0, loop: bool = False,
-                 name: str | None = None) -> None:
-        super().__init__(name or f"replay:{Path(path).name}")
-        self.path = Path(path)  # checked by CONFIG (recording.check_file) before we are built
-        self.speed = speed
-        self.loop = loop
+    def __init__(self, options: ReplayOptions, name: str | None = None) -> None:
+        super().__init__(name or f"replay:{Path(options.path).name}")
+        self.path = Path(options.path)  # checked by its option (recording.check_file)
+        self.speed = options.speed
+        self.loop = options.loop
         self.decoder = Decoder(origin=self.name)
         self.read_stats = recording.ReadStats()
         self.frames_sent = 0

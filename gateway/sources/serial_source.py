@@ -12,11 +12,11 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from gateway.config import Key, Schema
 from gateway.io.backoff import Backoff
-from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
+from gateway.io.port import REOPEN_FIRST_S, PortEngine
 from gateway.io.transport import open_serial
-from gateway.sources import Source, check_serial_url
+from gateway.sources import Source
+from gateway.sources.options import SerialOptions
 from gateway.wire import Decoder
 
 log = logging.getLogger(__name__)
@@ -24,23 +24,17 @@ log = logging.getLogger(__name__)
 
 class SerialSource(Source):
     NAME = "serial"
-    CONFIG = Schema(
-        url=Key(str, help="pyserial port or URL: /dev/ttyUSB0, loop://, socket://host:port, "
-                "rfc2217://host:port", validator=check_serial_url),
-        baudrate=Key(int, 115200, "host UART speed", minimum=50),
-        reconnect_max_s=Key(float, REOPEN_MAX_S, "longest wait between reopen attempts",
-                            minimum=0.01),
-    )
+    OPTIONS = SerialOptions
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return str(options["url"])
 
-    def __init__(self, url: str, baudrate: int = 115200, reconnect_max_s: float = REOPEN_MAX_S,
-                 name: str | None = None) -> None:
-        super().__init__(name or url)
-        self.url = url
-        self.baudrate = baudrate
+    def __init__(self, options: SerialOptions, name: str | None = None) -> None:
+        super().__init__(name or options.url)
+        self.url = options.url
+        self.baudrate = options.baudrate
+        reconnect_max_s = options.reconnect_max_s
         self.decoder = Decoder(origin=self.name)
         self.engine = PortEngine(self._open, name=f"source {self.name}", protocol=self,
                                  on_event=self.emit,

@@ -11,11 +11,11 @@ import itertools
 from collections.abc import Iterator
 from typing import Any
 
-from gateway.config import Key, Schema
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate, Status
 from gateway.pacing import Pacer
 from gateway.sources import Source
+from gateway.sources.options import SimOptions
 from gateway.wire import Decoder, encode
 
 BOOT_UPTIME_MS = 12_000  # the flight computer's uptime when the simulation starts
@@ -58,16 +58,7 @@ def flight_frames(model: FlightModel, rate_hz: float = 10.0, status_hz: float = 
 
 class SimSource(Source):
     NAME = "sim"
-    CONFIG = Schema(
-        rate_hz=Key(float, 10.0, "SM_UPDATE rate (simulated time)", minimum=0.1, maximum=1000),
-        status_hz=Key(float, 1.0, "STATUS rate; 0 = none", minimum=0, maximum=100),
-        speed=Key(float, 1.0, "time compression: N = N times faster, 0 = as fast as possible",
-                  minimum=0),
-        revision=Key(int, 64, "SM_UPDATE payload length", choices=(36, 64)),
-        cycles=Key(int, 0, "flights to simulate; 0 = for ever", minimum=0),
-        pad_idle_s=Key(float, 5.0, "seconds IDLE on the pad", minimum=0),
-        pad_armed_s=Key(float, 10.0, "seconds ARMED on the pad before launch", minimum=0.1),
-    )
+    OPTIONS = SimOptions
 
     @classmethod
     def url_options(cls, rest: str | None) -> dict[str, Any]:
@@ -76,16 +67,16 @@ class SimSource(Source):
             raise ValueError(f"sim takes nothing after 'sim:', got {rest!r}")
         return {}
 
-    def __init__(self, rate_hz: float = 10.0, status_hz: float = 1.0, speed: float = 1.0,
-                 revision: int = 64, cycles: int = 0, pad_idle_s: float = 5.0,
-                 pad_armed_s: float = 10.0, name: str | None = None) -> None:
+    def __init__(self, options: SimOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
-        self.model = FlightModel(FlightProfile(idle_s=pad_idle_s, armed_s=pad_armed_s,
-                                               revision=revision))
-        self.rate_hz = rate_hz
-        self.status_hz = status_hz
-        self.speed = speed
-        self.cycles = cycles
+        options = options or SimOptions()
+        self.model = FlightModel(FlightProfile(idle_s=options.pad_idle_s,
+                                               armed_s=options.pad_armed_s,
+                                               revision=options.revision))
+        self.rate_hz = options.rate_hz
+        self.status_hz = options.status_hz
+        self.speed = options.speed
+        self.cycles = options.cycles
         self.decoder = Decoder(origin=self.name)
         self.sent = 0
         self._pacer: Pacer[bytes] | None = None

@@ -33,6 +33,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from backends.foxglove.options import FoxgloveOptions
+from backends.http.options import HttpOptions
+
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:  # run as a script from anywhere, without installing
     sys.path.insert(0, str(ROOT))
@@ -85,10 +88,10 @@ def run_case(case: str, msgs: list[SmUpdate]) -> dict[str, Any]:
     client = None
     backends: list[Any] = []
     if "foxglove" in case:
-        backend = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=n + 1)
+        backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0, queue_depth=n + 1))
         backends.append(backend)
     if "http" in case:
-        backends.append(HttpBackend(host="127.0.0.1", port=0))
+        backends.append(HttpBackend(HttpOptions(host="127.0.0.1", port=0)))
     dispatcher = Dispatcher(backends)
     dispatcher.start()
     try:

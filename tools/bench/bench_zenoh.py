@@ -48,6 +48,8 @@ from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
+from backends.zenoh.options import ZenohOptions
+
 ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:  # run as a script from anywhere, without installing
     sys.path.insert(0, str(ROOT))
@@ -180,8 +182,9 @@ def run_backend(msgs: list[SmUpdate], *, depth: int, congestion: str = "drop",
                 slow_s: float = 0.0) -> dict[str, Any]:
     """Publish ``msgs`` through a fresh backend to a subscriber process; the figures."""
     ep = free_endpoint()
-    b = ZenohBackend(listen=[ep], vehicle=VEHICLE, encoding=encoding, raw=raw,
-                     queue_depth=depth, congestion_control=congestion, liveliness=True)
+    b = ZenohBackend(ZenohOptions(listen=[ep], vehicle=VEHICLE, encoding=encoding, raw=raw,
+                                  queue_depth=depth, congestion_control=congestion,
+                                  liveliness=True))
     b.init()
     if not b.wait_ready(30):
         raise RuntimeError("backend session did not open")

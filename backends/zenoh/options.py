@@ -1,0 +1,157 @@
+"""The Zenoh backend's and source's options, declared once (see :mod:`gateway.options`):
+their schemas, the ``--zenoh-…`` flags (the backend's) and their documentation.  The session
+keys both share are declared once, in :class:`ZenohSessionOptions`.  A light module (the
+``aurora_gateway.backend_options`` / ``source_options`` entry points): it imports neither the
+backend nor Zenoh.  The locators of ``connect``/``listen`` (and of their flags) are checked
+here, their HOST:PORT by the endpoint grammar (:mod:`gateway.io.endpoints`)."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from backends.zenoh.keys import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_PREFIX,
+    DEFAULT_VEHICLE,
+    check_chunk,
+    check_prefix,
+)
+from gateway.io.endpoints import EndpointError, parse_address
+from gateway.options import Flag, Options, lazy, option
+
+#: Zenoh's session modes
+MODES = ("peer", "client", "router")
+#: Zenoh's priorities, highest first
+PRIORITIES = ("real_time", "interactive_high", "interactive_low", "data_high", "data",
+              "data_low", "background")
+#: The payloads of sm_update/status (``backends.zenoh.encoding.ENCODINGS``)
+ENCODINGS = ("json", "packed")
+#: What a source subscribes to: the raw wire frames or the JSON documents
+KEY_SETS = ("raw", "json")
+#: Zenoh's locator protocols, and those whose address is HOST:PORT (IPv6 as [::1]:PORT, as
+#: Zenoh writes it)
+PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "unixsock-stream", "unixpipe", "serial",
+             "vsock")
+HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_locator(text: str) -> None:
+    """A Zenoh locator, ``<protocol>/<address>`` (Zenoh's own grammar); for tcp, udp, tls,
+    quic and ws the address is HOST:PORT as :mod:`gateway.io.endpoints` reads it (IPv6 as
+    ``[::1]:7447``).  ValueError saying what is wrong."""
+    proto, slash, addr = text.partition("/")
+    if not slash or not addr:
+        raise ValueError(f"{text!r} is not <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto not in PROTOCOLS:
+        raise ValueError(f"unknown protocol {proto!r}; one of {', '.join(PROTOCOLS)}")
+    if proto in HOST_PORT_PROTOCOLS:
+        try:  # what follows ? or # is Zenoh's metadata and configuration
+            parse_address(re.split(r"[?#]", addr, maxsplit=1)[0], default_host=None)
+        except EndpointError as exc:
+            raise ValueError(f"{text!r}: {exc}") from None
+
+
+def check_locators(value: Any) -> None:
+    """A ``connect``/``listen`` key's value: every locator checked (:func:`check_locator`)."""
+    for item in [value] if isinstance(value, str) else value:
+        if not isinstance(item, str):
+            raise ValueError(f"{item!r} is not a string")
+        check_locator(item)
+
+
+def _locator(text: str) -> str:
+    """``--zenoh-connect``/``--zenoh-listen``: a Zenoh locator, checked as the flag is read."""
+    check_locator(text)
+    return text
+
+
+def _check_vehicle(value: str) -> None:
+    check_chunk(value, "vehicle")
+
+
+def _check_gateway_id(value: str) -> None:
+    if value:
+        check_chunk(value, "gateway_id")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohSessionOptions(Options):
+    """The Zenoh session's keys, which the backend and the source share (their flags set the
+    backend's only)."""
+
+    mode: str | None = option(None, "Zenoh mode", choices=MODES,
+                              flag=Flag("--zenoh-mode", "Zenoh mode (default peer)",
+                                        metavar="MODE", sources=False))
+    connect: list[str] | str | None = option(
+        None, "endpoints to connect to, e.g. ['tcp/192.168.1.10:7447']",
+        validator=check_locators,
+        flag=Flag("--zenoh-connect", "connect to this Zenoh router or peer, e.g. "
+                  "tcp/10.0.0.5:7447 (repeatable; then nothing listens unless --zenoh-listen)",
+                  metavar="ENDPOINT", sources=False, convert=_locator))
+    listen: list[str] | str | None = option(
+        None, f"endpoints to listen on (default {DEFAULT_ENDPOINT}, or none when connect is "
+        "given)", validator=check_locators,
+        flag=Flag("--zenoh-listen", "listen on this endpoint (repeatable; default "
+                  f"{DEFAULT_ENDPOINT})", metavar="ENDPOINT", sources=False,
+                  convert=_locator))
+    multicast_scouting: bool | None = option(None, "find peers and routers by UDP multicast "
+                                             "(default off)")
+    tls_root_ca: str = option("", "CA certificate (PEM) that signs the peers' certificates")
+    tls_certificate: str = option("", "this node's certificate (PEM), to listen on tls/ "
+                                  "endpoints or for mutual TLS")
+    tls_private_key: str = option("", "this node's private key (PEM)")
+    tls_mtls: bool = option(False, "mutual TLS: present tls_certificate when connecting and "
+                            "require one from whoever connects")
+    user: str = option("", "user name for user/password authentication")
+    password: str = option("", "password for user/password authentication", secret=True)
+    config_file: str = option("", "a full Zenoh JSON5 configuration file used as the base",
+                              flag=Flag("--zenoh-config", "a full Zenoh JSON5 configuration "
+                                        "for the session", metavar="FILE", sources=False))
+    reconnect_max_s: float = option(1.0, "longest wait between attempts to (re)connect to an "
+                                    "endpoint", minimum=0.1, maximum=3600)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohOptions(ZenohSessionOptions):
+    """``[backends.zenoh]``: the rocket's frames and documents published over Zenoh."""
+
+    TITLE: ClassVar[str] = "zenoh backend"
+    prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key",
+                         validator=check_prefix,
+                         flag=Flag("--zenoh-prefix", metavar="PREFIX"))
+    vehicle: str = option(DEFAULT_VEHICLE, "this vehicle's key chunk", validator=_check_vehicle,
+                          flag=Flag("--zenoh-vehicle", "vehicle key chunk (default "
+                                    f"{DEFAULT_VEHICLE})", metavar="ID"))
+    gateway_id: str = option("", "this gateway's id in attachments and its liveliness token "
+                             "(default: the gateway's own, <host>-<pid>-<n>)",
+                             validator=_check_gateway_id)
+    encoding: str = option("json", "payload of sm_update/status", choices=ENCODINGS)
+    raw: bool = option(True, "also publish each untouched wire frame on raw/<type>")
+    congestion_control: str = option("drop", "when the network cannot keep up: drop "
+                                     "(latest data first) or block (never lose in Zenoh)",
+                                     choices=("drop", "block"))
+    priority: str = option("data", "Zenoh priority of the publications", choices=PRIORITIES)
+    queue_depth: int = option(1024, "updates waiting for the worker before new ones are "
+                              "dropped", minimum=1, maximum=1_000_000)
+    liveliness: bool = option(True, "declare a liveliness token for this gateway")
+    queryable: bool = option(True, "answer get() with the latest value of each key")
+    stats_interval_s: float = option(1.0, "seconds between publications of this gateway's "
+                                     "counters on gateway_stats (for a monitor); 0 = none",
+                                     minimum=0)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohSourceOptions(ZenohSessionOptions):
+    """``[[sources]] type = "zenoh"``: another gateway's frames over Zenoh."""
+
+    url: str = option("", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)",
+                      validator=lazy("backends.zenoh.source:check_url"))
+    prefix: str = option(DEFAULT_PREFIX, "key prefix of the publishing gateways")
+    vehicle: str = option("*", "vehicle to follow; '*' = every vehicle (their messages are "
+                          "merged: use one source per vehicle to keep them apart)")
+    keys: str = option("raw", "subscribe to the raw wire frames or to the JSON documents",
+                       choices=KEY_SETS)
+    queue_depth: int = option(1024, "samples waiting for the sources' loop before new ones "
+                              "are dropped", minimum=1, maximum=1_000_000)
