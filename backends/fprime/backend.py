@@ -38,6 +38,11 @@ from gateway.io.links import (
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
+from gateway.io.server import (
+    DEFAULT_CLIENT_TIMEOUT_S,
+    DEFAULT_MAX_CLIENTS,
+    ClientLimits,
+)
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
 
 from .channels import DEFAULT_ID_BASE, ChannelCodec, Getter, check_id_base, codecs
@@ -143,6 +148,11 @@ class FprimeBackend(Backend):
                        maximum=TM_MAX_FRAME),
         queue_depth=Key(int, 64, "writes waiting per peer before drops", minimum=1,
                         maximum=4096),
+        max_clients=Key(int, DEFAULT_MAX_CLIENTS, "clients a tcpin listener serves at once; "
+                        "more are refused (counted)", minimum=1, maximum=1024),
+        client_timeout_s=Key(float, DEFAULT_CLIENT_TIMEOUT_S, "a client that stops reading "
+                             "(or leaves a request incomplete) this long is cut", minimum=0.1,
+                             maximum=600),
     )
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
@@ -150,6 +160,8 @@ class FprimeBackend(Backend):
                  id_base: int = DEFAULT_ID_BASE, buffer_size: int = DEFAULT_BUFFER_SIZE,
                  time_base: str = "workstation", time_context: int = 0, scid: int = 0x44,
                  vcid: int = 1, frame_size: int = 1024, queue_depth: int = 64,
+                 max_clients: int = DEFAULT_MAX_CLIENTS,
+                 client_timeout_s: float = DEFAULT_CLIENT_TIMEOUT_S,
                  name: str | None = None) -> None:
         super().__init__(name)
         self.specs = [parse_endpoint(e) for e in (endpoints or [])]
@@ -170,7 +182,8 @@ class FprimeBackend(Backend):
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, _spec: Link(n, self),
-            queue_depth=queue_depth, on_closed=self._retire, label="ground system")
+            queue_depth=queue_depth, on_closed=self._retire, label="ground system",
+            limits=ClientLimits(max_clients, client_timeout_s, queue_depth))
         self._running = False
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
                         "clients_closed": 0}
@@ -287,4 +300,5 @@ class FprimeBackend(Backend):
                 "channel_values": self.entries, "dropped_too_big": self.packer.too_big,
                 "time_resyncs": self.clock.resyncs, "clients": len(links),
                 "commands_not_supported": self.commands.not_supported,
-                "connected": connected, "clients_closed": t["clients_closed"], "links": per}
+                "connected": connected, "clients_closed": t["clients_closed"],
+                **self.linkset.server_stats(), "links": per}

@@ -50,6 +50,12 @@ from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.io.port import PortEngine, PortNotReady
+from gateway.io.server import (
+    DEFAULT_CLIENT_TIMEOUT_S,
+    DEFAULT_MAX_CLIENTS,
+    ClientLimits,
+    server_stats,
+)
 from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, RawFrame, SmUpdate, Status
 from gateway.wire import encode
 
@@ -96,6 +102,11 @@ class Hc12Backend(Backend):
                            "for provisioning", minimum=0.1, maximum=600),
         control=Key(str, "auto", "control socket for `aurora-gateway hc12`: auto, off or a "
                     "path"),
+        max_clients=Key(int, DEFAULT_MAX_CLIENTS, "clients the control socket serves at once; "
+                        "more are refused (counted)", minimum=1, maximum=1024),
+        client_timeout_s=Key(float, DEFAULT_CLIENT_TIMEOUT_S, "a client that stops reading "
+                             "(or leaves a request incomplete) this long is cut", minimum=0.1,
+                             maximum=600),
     )
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
 
@@ -105,7 +116,8 @@ class Hc12Backend(Backend):
                  queue_depth: int = 16, min_interval_s: float = 0.0, set_line: str = "none",
                  set_invert: bool = False, at_baud: int = at.AT_BAUD,
                  reply_timeout_s: float = 1.0, idle_max_age_s: float = DEFAULT_MAX_AGE_S,
-                 control: str = "auto", name: str | None = None,
+                 control: str = "auto", max_clients: int = DEFAULT_MAX_CLIENTS,
+                 client_timeout_s: float = DEFAULT_CLIENT_TIMEOUT_S, name: str | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
         # The options were validated by CONFIG (the configuration or the flags).
@@ -117,6 +129,7 @@ class Hc12Backend(Backend):
         self.at_baud = at_baud
         self.timing = Timing(reply_timeout_s=reply_timeout_s)
         self.control = control
+        self.control_limits = ClientLimits(max_clients, client_timeout_s, queue_depth=2)
         self._clock = clock
         self.budget = AirBudget(figures(min(baudrate, air_baud), utilisation_pct, burst_bytes,
                                         DEFAULT_PRIORITY_RESERVE), clock=clock)
@@ -125,6 +138,7 @@ class Hc12Backend(Backend):
                                  min_interval_s=min_interval_s, clock=clock)
         self._set_line: SetLine | None = None
         self._control: ControlServer | None = None
+        self._served: ControlServer | None = None  # kept after close(): its counters
         self._provision_lock = threading.Lock()
         self.control_path: Any = None
         self.encoded = 0
@@ -147,9 +161,9 @@ class Hc12Backend(Backend):
             if path is not None:
                 # Served on the engine's loop: an exchange runs on the port's own thread.
                 server = ControlServer(path, self.handle_control, self.engine.loop,
-                                       name=self.name)
+                                       name=self.name, limits=self.control_limits)
                 server.start()
-                self._control = server
+                self._control = self._served = server
                 self.control_path = path
         except OSError as exc:
             if "served by another running gateway" in str(exc):
@@ -297,4 +311,5 @@ class Hc12Backend(Backend):
             "at_exchanges": self.at_exchanges,
             "at_failures": self.at_failures,
             "at_refused": self.at_refused,
+            **(self._served.stats() if self._served is not None else server_stats(())),
         }

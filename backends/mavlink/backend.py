@@ -10,7 +10,12 @@ from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
-from backends.mavlink.endpoints import Endpoint, EndpointSpec, parse_endpoint
+from backends.mavlink.endpoints import (
+    Endpoint,
+    EndpointSpec,
+    TcpServerEndpoint,
+    parse_endpoint,
+)
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.router import Router
 from backends.mavlink.translate import DEFAULT_RATES, VIA_MAVLINK, AuroraVehicle
@@ -18,6 +23,12 @@ from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.config import Key, Schema
 from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.server import (
+    DEFAULT_CLIENT_TIMEOUT_S,
+    DEFAULT_MAX_CLIENTS,
+    ClientLimits,
+    server_stats,
+)
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -74,6 +85,11 @@ class MavlinkBackend(Backend):
                                "as MAVProxy and QGroundControl derive it)"),
         serial_queue_depth=Key(int, 256, "frames queued per link (every endpoint kind)",
                                minimum=1),
+        max_clients=Key(int, DEFAULT_MAX_CLIENTS, "clients a tcpin listener serves at once; "
+                        "more are refused (counted)", minimum=1, maximum=1024),
+        client_timeout_s=Key(float, DEFAULT_CLIENT_TIMEOUT_S, "a client that stops reading "
+                             "(or leaves a request incomplete) this long is cut", minimum=0.1,
+                             maximum=600),
         heartbeat_hz=_rate_key("heartbeat_hz", "HEARTBEAT"),
         sys_status_hz=_rate_key("sys_status_hz", "SYS_STATUS"),
         extended_sys_state_hz=_rate_key("extended_sys_state_hz", "EXTENDED_SYS_STATE"),
@@ -98,6 +114,8 @@ class MavlinkBackend(Backend):
                  compid: int = 1, route: bool = True, stale_after_s: float = 3.0,
                  pad_altitude_amsl_m: float = 0.0, signing_key_file: str = "",
                  signing_passphrase: str = "", serial_queue_depth: int = 256,
+                 max_clients: int = DEFAULT_MAX_CLIENTS,
+                 client_timeout_s: float = DEFAULT_CLIENT_TIMEOUT_S,
                  name: str | None = None, **rates: float) -> None:
         super().__init__(name)
         unknown = set(rates) - set(DEFAULT_RATES)
@@ -113,6 +131,7 @@ class MavlinkBackend(Backend):
         self.signing_key_file = signing_key_file
         self.signing_passphrase = signing_passphrase
         self.serial_queue_depth = serial_queue_depth
+        self.limits = ClientLimits(max_clients, client_timeout_s, serial_queue_depth)
         # A key that cannot be read is a configuration error, reported before anything starts.
         self.signing_key = self._signing_key()
         self.vehicle = AuroraVehicle(sysid, compid, rates={**DEFAULT_RATES, **rates},
@@ -148,7 +167,7 @@ class MavlinkBackend(Backend):
         except ValueError as exc:
             raise BackendError(str(exc)) from None
         try:
-            endpoints = hub.open(self.specs, GCS, self.serial_queue_depth)
+            endpoints = hub.open(self.specs, GCS, self.serial_queue_depth, self.limits)
         except OSError as exc:
             hub.leave(self.vehicle)
             raise BackendError(str(exc)) from None
@@ -287,6 +306,9 @@ class MavlinkBackend(Backend):
         d: dict[str, Any] = {"sent": sent, "dropped": dropped, "errors": errors,
                              "link": int(up), "dropped_inbox": self.dropped_inbox,
                              "sysid": self.vehicle.sysid, "not_repeated": self.not_repeated,
+                             **server_stats(ep.server for ep in self.endpoints
+                                            if isinstance(ep, TcpServerEndpoint)
+                                            and ep.server is not None),
                              "endpoints": eps}
         if self.router is not None:
             rs = self.router.stats

@@ -43,6 +43,11 @@ from gateway.io.links import (
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
+from gateway.io.server import (
+    DEFAULT_CLIENT_TIMEOUT_S,
+    DEFAULT_MAX_CLIENTS,
+    ClientLimits,
+)
 from gateway.model import Battery, Position, SmUpdate, Status
 
 from .codec import Decoder, DecoderStats
@@ -178,12 +183,19 @@ class UavtalkBackend(Backend):
                         maximum=4096),
         inbox_depth=Key(int, 256, "gateway messages waiting for the loop before drops",
                         minimum=1, maximum=65536),
+        max_clients=Key(int, DEFAULT_MAX_CLIENTS, "clients a tcpin listener serves at once; "
+                        "more are refused (counted)", minimum=1, maximum=1024),
+        client_timeout_s=Key(float, DEFAULT_CLIENT_TIMEOUT_S, "a client that stops reading "
+                             "(or leaves a request incomplete) this long is cut", minimum=0.1,
+                             maximum=600),
     )
     EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None  # it listens on a port: opt in
 
     def __init__(self, endpoints: list[str] | None = None, board_type: int = DEFAULT_BOARD_TYPE,
                  tick_s: float = 0.02, queue_depth: int = 64, inbox_depth: int = 256,
-                 name: str | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 max_clients: int = DEFAULT_MAX_CLIENTS,
+                 client_timeout_s: float = DEFAULT_CLIENT_TIMEOUT_S, name: str | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
         self.specs = [parse_endpoint(e) for e in (endpoints or [])]
         if not self.specs:
@@ -199,7 +211,8 @@ class UavtalkBackend(Backend):
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
-            queue_depth=queue_depth, on_closed=self._retire, label="GCS")
+            queue_depth=queue_depth, on_closed=self._retire, label="GCS",
+            limits=ClientLimits(max_clients, client_timeout_s, queue_depth))
         self._inbox: deque[Any] = deque()
         self._inbox_lock = threading.Lock()
         self._drain_scheduled = False
@@ -334,4 +347,4 @@ class UavtalkBackend(Backend):
                 "dropped_queue": sum(d["dropped"] for d in per.values()) + t["dropped"],
                 "messages": self.messages, "clients": len(links), "connected": connected,
                 "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,
-                "links": per}
+                **self.linkset.server_stats(), "links": per}

@@ -102,6 +102,9 @@ SOCKET_BUFFER = 4 * 1024 * 1024
 #: mavlink-router keeps the system's default (208 KiB), the same order.
 UDP_RCVBUF = 256 * 1024
 MAX_UDP_PEERS = 16
+#: Connections the kernel queues for a listener before we accept them (a burst of connects
+#: waits here rather than being reset).
+LISTEN_BACKLOG = 128
 
 
 def resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
@@ -282,7 +285,7 @@ def _udp_socket(family: int, how: str, addr: Any, host: str, port: int) -> socke
     return sock
 
 
-def open_tcp_listener(host: str, port: int, backlog: int = 16) -> socket.socket:
+def open_tcp_listener(host: str, port: int, backlog: int = LISTEN_BACKLOG) -> socket.socket:
     """A non-blocking listening socket on ``host:port``; raises :class:`TransportError`."""
     family, addr = resolve(host, port, socket.SOCK_STREAM)
     sock = socket.socket(family, socket.SOCK_STREAM)
