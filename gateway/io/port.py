@@ -186,6 +186,7 @@ class PortEngine:
         self._outage_logged = False
         self._blocked_since: float | None = None  # a write has waited for room since then
         self._finish = False  # close once everything queued is written (finish())
+        self._abort_next = False  # cut(): close the port with a reset where it can
         #: Since when the peer's request has been incomplete (None: not waiting for one): set
         #: by the protocol of a served client; a :class:`~gateway.io.server.PortServer` cuts
         #: a client whose request stays incomplete too long.
@@ -285,6 +286,7 @@ class PortEngine:
         cuts once per burst)."""
         if self._port is not None:
             log.debug("%s: cut (%s)", self.name, why)
+            self._abort_next = True  # a reset: what is unsent is dropped (SocketPort.abort)
             self._fail(None, why)
 
     def finish(self) -> None:
@@ -769,8 +771,9 @@ class PortEngine:
                 handler(ev)
 
     def _close_port(self, port: Any) -> None:
+        abort, self._abort_next = self._abort_next, False
         try:
-            port.close()
+            getattr(port, "abort", port.close)() if abort else port.close()
         except Exception:
             log.debug("%s: error closing the port", self.name, exc_info=True)
 

@@ -7,9 +7,11 @@ through it, on an :class:`~gateway.io.ioloop.IoLoop`, with the same limits (:cla
   closed at once — with ``refusal`` written first (HTTP: a short ``503``) — so it never waits
   in the backlog; counted as ``clients_refused``.  A newcomer may take the slot of a client
   whose request is still incomplete (:attr:`~gateway.io.port.PortEngine.partial_since`) if
-  that one has been at it for ``SHED_AFTER_S`` or the newcomer already holds a whole request
-  (``ready(sock)``): slow talkers cannot lock out a client that has something to say;
-* **a listen backlog** of ``BACKLOG`` (128): a burst of connects is queued, not reset;
+  that one has been at it for ``SHED_AFTER_S`` or the newcomer holds a whole request
+  (``ready(sock)``; a newcomer whose request has not arrived yet waits up to ``WAIT_S`` for
+  it, ``MAX_WAITING`` at most): slow talkers cannot lock out a client that has something to
+  say;
+* **a listen backlog** of ``BACKLOG`` (1024; at least 128): a burst of connects is queued;
 * **a bounded write queue per client**: each client is a
   :class:`~gateway.io.port.PortEngine` (``queue_depth``) that the backend builds in
   ``on_client(sock, address)`` and returns;
@@ -56,6 +58,12 @@ BACKLOG = LISTEN_BACKLOG
 #: A client whose request has been incomplete this long gives its slot to a newcomer when
 #: the server is full.
 SHED_AFTER_S = 0.5
+#: At the cap, with incomplete clients to shed: how long a newcomer may take to show a whole
+#: request (then it takes the slot of the oldest incomplete one; else it is refused), and
+#: how many newcomers may wait so at once (past it: refused at once).
+WAIT_S = 0.1
+WAIT_CHECK_S = 0.01
+MAX_WAITING = 16
 #: Accepts handled per wake-up of the loop (a burst of connects is taken in a few passes).
 ACCEPT_BATCH = 64
 #: A refused connection is half-closed and read until the peer closes, at most this long, so
@@ -192,6 +200,7 @@ class PortServer:
         self._resume: Timer | None = None
         self._sweep: Timer | None = None
         self._lingering: dict[socket.socket, Timer] = {}
+        self._waiting: dict[socket.socket, tuple[Any, float]] = {}  # newcomers at the cap
         self._spare: int | None = None
         self._closing = False
         self._logged = False
@@ -298,8 +307,43 @@ class PortServer:
     def _admit(self, conn: socket.socket, addr: Any) -> None:
         self._prune()
         if len(self.clients) >= self.limits.max_clients and not self._shed_for(conn):
-            self._refuse(conn, addr)
+            if (self._ready is not None and len(self._waiting) < MAX_WAITING
+                    and any(e.partial_since is not None for e in self.clients)):
+                self._waiting[conn] = (addr, time.monotonic() + WAIT_S)
+                self.loop.call_later(WAIT_CHECK_S, lambda: self._wait_check(conn))
+            else:
+                self._refuse(conn, addr)
             return
+        self._serve(conn, addr)
+
+    def _wait_check(self, conn: socket.socket) -> None:
+        """A newcomer at the cap: admitted once its request is whole (if a slot can be shed
+        for it), refused when WAIT_S has passed, dropped if it left."""
+        entry = self._waiting.get(conn)
+        if entry is None:
+            return
+        addr, deadline = entry
+        try:
+            gone = conn.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+        except (BlockingIOError, InterruptedError):
+            gone = False  # nothing sent yet
+        except OSError:
+            gone = True
+        if gone:
+            del self._waiting[conn]
+            conn.close()
+            return
+        self._prune()
+        if len(self.clients) < self.limits.max_clients or self._shed_for(conn):
+            del self._waiting[conn]
+            self._serve(conn, addr)
+        elif time.monotonic() >= deadline or self._closing:
+            del self._waiting[conn]
+            self._refuse(conn, addr)
+        else:
+            self.loop.call_later(WAIT_CHECK_S, lambda: self._wait_check(conn))
+
+    def _serve(self, conn: socket.socket, addr: Any) -> None:
         self.stats.accepted += 1
         engine = self._on_client(conn, addr)
         if engine is not None:
@@ -308,16 +352,20 @@ class PortServer:
     def _shed_for(self, conn: socket.socket) -> bool:
         """At the cap: cut the client whose request has been incomplete longest, if it has
         been so for SHED_AFTER_S or the newcomer has a whole request; True if one was cut."""
-        now = time.monotonic()
+        ready = self._ready
         oldest: PortEngine | None = None
         for engine in self.clients:
             since = engine.partial_since
-            if since is not None and (oldest is None or since < (oldest.partial_since or 0)):
-                oldest = engine
+            if since is None or (oldest is not None and since >= (oldest.partial_since or 0)):
+                continue
+            sock = getattr(engine.port, "sock", None)
+            if ready is not None and sock is not None and ready(sock):
+                continue  # its request is here, not read yet (a burst): not a slow one
+            oldest = engine
         if oldest is None or oldest.partial_since is None:
             return False
-        if now - oldest.partial_since < SHED_AFTER_S and not (
-                self._ready is not None and self._ready(conn)):
+        if time.monotonic() - oldest.partial_since < SHED_AFTER_S and not (
+                ready is not None and ready(conn)):
             return False
         self._cut(oldest, "incomplete request, its slot taken by a newcomer")
         self.stats.clients_cut_partial += 1
@@ -429,6 +477,9 @@ class PortServer:
         self._drop_listener()
         for conn in list(self._lingering):
             self._unlinger(conn)
+        for conn in list(self._waiting):
+            conn.close()
+        self._waiting.clear()
         for burst in (self._refused_log, self._cut_log, self._accept_log):
             burst.cancel()
         if self._spare is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import select
 import socket
+import struct
 import time
 from collections import OrderedDict
 from typing import Any, Protocol
@@ -102,9 +103,10 @@ SOCKET_BUFFER = 4 * 1024 * 1024
 #: mavlink-router keeps the system's default (208 KiB), the same order.
 UDP_RCVBUF = 256 * 1024
 MAX_UDP_PEERS = 16
-#: Connections the kernel queues for a listener before we accept them (a burst of connects
-#: waits here rather than being reset).
-LISTEN_BACKLOG = 128
+#: Connections the kernel queues for a listener before we accept them: a burst of connects
+#: waits here (for the loop to accept or refuse them) rather than having its SYNs dropped and
+#: retried a second later.  (The kernel caps it at net.core.somaxconn, 4096 by default.)
+LISTEN_BACKLOG = 1024
 
 
 def resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
@@ -151,6 +153,17 @@ class SocketPort:
         with contextlib.suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
         self.sock.close()
+
+    def abort(self) -> None:
+        """Close with a reset, dropping what is unsent: a peer that stopped reading would
+        otherwise hold the connection (and the kernel's buffers) open behind our close, its
+        window shut to our FIN."""
+        with contextlib.suppress(OSError):
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_RESET)
+        self.sock.close()
+
+
+_LINGER_RESET = struct.pack("ii", 1, 0)
 
 
 def open_tcp_client(host: str, port: int, timeout: float = 2.0) -> SocketPort:
