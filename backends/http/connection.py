@@ -69,6 +69,7 @@ class HttpClient:
         self.h11 = h11.Connection(h11.SERVER, max_incomplete_event_size=MAX_HEAD)
         self.engine: PortEngine | None = None
         self.streaming = False
+        self.stream_started = 0.0
         self.events_dropped = 0
         self._request: h11.Request | None = None
         self._body = 0
@@ -160,7 +161,18 @@ class HttpClient:
                 self.engine.finish()
             return
         self.streaming = True
+        self.stream_started = time.monotonic()
         self._write(data + (self.h11.send(h11.Data(data=first)) or b""))
+
+    def end_stream(self) -> None:
+        """End the event stream (the viewer's EventSource reconnects by itself); the
+        connection closes once the end is written."""
+        if not self.streaming or self.engine is None:
+            return
+        self.streaming = False
+        self.site.stream_closed(self)
+        self._write(self.h11.send(h11.EndOfMessage()) or b"")
+        self.engine.finish()
 
     def send_event(self, event: bytes) -> Outcome:
         """One more event of the stream, through the bounded queue (QUEUE_FULL: dropped)."""

@@ -367,8 +367,8 @@ class PortServer:
         if time.monotonic() - oldest.partial_since < SHED_AFTER_S and not (
                 ready is not None and ready(conn)):
             return False
+        self.stats.clients_cut_partial += 1  # (counted before the peer can see it)
         self._cut(oldest, "incomplete request, its slot taken by a newcomer")
-        self.stats.clients_cut_partial += 1
         return True
 
     def _refuse(self, conn: socket.socket, addr: Any) -> None:
