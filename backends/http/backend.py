@@ -24,15 +24,18 @@ The hot path is O(1) and never blocks: a handler stores the message as the lates
 kind and counts it; nothing is queued, so nothing is dropped there.  The loop reads those
 values when it answers.  The listener is a :class:`~gateway.io.server.PortServer`: at most
 ``max_clients`` connections at once (more are answered ``503`` and closed), a request not
-complete within ``client_timeout_s`` is cut, and a client that stops reading (an event
-stream's viewer too: its events go through a bounded queue) is cut after
-``client_timeout_s``.  :meth:`HttpBackend.close` ends everything within a second.
+complete within ``client_timeout_s`` is cut, and a client that leaves an answer unread for
+``client_timeout_s`` is cut.  An event stream's events go through the same bounded queue
+(a full one drops them, counted); a stream lasts ``client_timeout_s`` and then ends, the
+viewer's EventSource reconnecting by itself (:data:`RETRY`), so a viewer that stopped
+reading holds its slot no longer than that.  :meth:`HttpBackend.close` ends everything
+within a second.
 
 Counters: ``sent`` (responses and events written), ``dropped`` (clients refused or cut, and
 events a full queue dropped), ``errors`` (failed requests), ``link`` (1 while serving),
 ``clients`` (connections now), ``streams`` (event streams now), ``clients_refused``,
 ``clients_cut_stalled``, ``clients_cut_partial``, ``accept_errors``, ``events_dropped``,
-``bad_requests``.
+``bad_requests``, ``streams_renewed`` (streams ended for the viewer to reconnect).
 """
 
 from __future__ import annotations

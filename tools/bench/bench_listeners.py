@@ -43,7 +43,6 @@ import os
 import resource
 import selectors
 import socket
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -76,7 +75,8 @@ def gateway(tree: Path, args: list[str], nofile: int | None = None) -> Iterator[
         if nofile is not None:
             resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))
 
-    log = tempfile.NamedTemporaryFile(prefix="bench-gw-", suffix=".log", delete=False)
+    log = tempfile.NamedTemporaryFile(prefix="bench-gw-", suffix=".log",  # noqa: SIM115
+                                      delete=False)  # (read back after the run)
     proc = subprocess.Popen([*command, "run", "--source", "sim", *args],
                             cwd=tree, stdout=subprocess.DEVNULL, stderr=log,
                             preexec_fn=limit)
