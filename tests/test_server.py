@@ -182,10 +182,12 @@ def test_a_client_that_stops_reading_is_cut_and_counted(loop: IoLoop) -> None:
         assert echoes(s, b"hi")
         engine = srv.engines[0]
         blob = b"x" * 65536
-        outcomes: list[Outcome] = []
-        # write until its queue is full: the client reads nothing
-        assert wait_for(lambda: outcomes.append(engine.submit(blob, rate_limited=False))
-                        or outcomes[-1] is Outcome.QUEUE_FULL or not engine.alive, DEADLINE_S)
+
+        def full() -> bool:  # write until its queue is full: the client reads nothing
+            return engine.submit(blob, rate_limited=False) is Outcome.QUEUE_FULL \
+                or not engine.alive
+
+        assert wait_for(full, DEADLINE_S)
         assert wait_for(lambda: not engine.alive, DEADLINE_S)
         assert wait_for(lambda: srv.server.client_count == 0, DEADLINE_S)
         st = srv.server.stats
@@ -271,7 +273,13 @@ def test_burst_log_is_one_line_then_a_count(loop: IoLoop,
     caplog.set_level(logging.INFO, logger="burst")
     burst = BurstLog(loop, "x: refusing", interval_s=0.1, logger=logging.getLogger("burst"))
     done = threading.Event()
-    loop.call_soon(lambda: ([burst.event() for _ in range(7)], done.set()))
+
+    def seven() -> None:
+        for _ in range(7):
+            burst.event()
+        done.set()
+
+    loop.call_soon(seven)
     assert done.wait(DEADLINE_S)
     assert wait_for(lambda: burst.lines == 2, DEADLINE_S)
     msgs = [r.getMessage() for r in caplog.records if r.name == "burst"]
@@ -387,3 +395,45 @@ def test_refusals_and_cuts_are_in_the_stop_report(tmp_path: Path) -> None:
 
 if sys.platform != "linux":  # RLIMIT juggling and MSG_PEEK|MSG_DONTWAIT are Linux-tested
     pytestmark = pytest.mark.skip("Linux only")
+
+
+# -- every listening backend holds to its max_clients ----------------------------------------
+
+def _tcpin_address(b: Any) -> Any:
+    if hasattr(b, "linkset"):
+        return b.address()
+    ep = next(e for e in b.endpoints if e.spec.kind == "tcpin")
+    return ep.address
+
+
+def _clients(b: Any) -> int:
+    st = b.stats()
+    if "endpoints" in st:  # mavlink: per endpoint
+        return sum(int(e.get("clients", 0)) for e in st["endpoints"].values())
+    return int(st["clients"])
+
+
+@pytest.mark.parametrize("name", ["uavtalk", "fprime", "mavlink"])
+def test_a_listening_backend_refuses_past_its_cap_and_counts_it(name: str) -> None:
+    from backends.fprime.backend import FprimeBackend
+    from backends.mavlink.backend import MavlinkBackend
+    from backends.uavtalk.backend import UavtalkBackend
+    from gateway.dispatcher import Dispatcher
+
+    make = {"uavtalk": UavtalkBackend, "fprime": FprimeBackend, "mavlink": MavlinkBackend}
+    b = make[name](endpoints=["tcpin:127.0.0.1:0"], max_clients=1, client_timeout_s=5.0)
+    d = Dispatcher([b])
+    assert d.start() == []
+    try:
+        with contextlib.ExitStack() as stack:
+            addr = _tcpin_address(b)[:2]
+            kept = connect(addr, stack)
+            assert wait_for(lambda: _clients(b) == 1, DEADLINE_S)
+            extra = connect(addr, stack)
+            assert closed_by_peer(extra) == b""  # closed at once, not left in the backlog
+            assert wait_for(lambda: b.stats()["clients_refused"] == 1, DEADLINE_S)
+            kept.settimeout(0.2)
+            with contextlib.suppress(TimeoutError):
+                assert kept.recv(1) != b""  # the first is still served
+    finally:
+        d.close()
