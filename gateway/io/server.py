@@ -17,7 +17,10 @@ through it, on an :class:`~gateway.io.ioloop.IoLoop`, with the same limits (:cla
   ``on_client(sock, address)`` and returns;
 * **timeouts** (``client_timeout_s``, default 5 s): a client that stops reading (something
   has waited to be written that long) is cut (``clients_cut_stalled``); a client whose
-  request stays incomplete that long is cut (``clients_cut_partial``);
+  request stays incomplete that long is cut (``clients_cut_partial``) — where the protocol
+  has requests and says so through ``partial_since`` (HTTP, the HC-12 control socket; a
+  telemetry stream's codec resyncs on its own and has none).  A cut is a reset: what the
+  peer did not read is dropped, the slot and the kernel's buffers are freed at once;
 * **accept failing** for want of descriptors (EMFILE/ENFILE…) is counted (``accept_errors``)
   and backed off (the listener is left alone for a while), never a busy loop; a spare
   descriptor is given up for a moment so the connection that could not be accepted is
