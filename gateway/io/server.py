@@ -376,7 +376,7 @@ class PortServer:
 
     def _refuse(self, conn: socket.socket, addr: Any) -> None:
         self.stats.clients_refused += 1
-        self._refused_log.event(f"{_peer(addr)} and others")
+        self._refused_log.event(_peer(addr))
         try:
             conn.setblocking(False)
             _discard_input(conn)
