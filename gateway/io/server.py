@@ -8,9 +8,9 @@ through it, on an :class:`~gateway.io.ioloop.IoLoop`, with the same limits (:cla
   in the backlog; counted as ``clients_refused``.  A newcomer may take the slot of a client
   whose request is still incomplete (:attr:`~gateway.io.port.PortEngine.partial_since`) if
   that one has been at it for ``SHED_AFTER_S`` or the newcomer holds a whole request
-  (``ready(sock)``; a newcomer whose request has not arrived yet waits up to ``WAIT_S`` for
-  it, ``MAX_WAITING`` at most): slow talkers cannot lock out a client that has something to
-  say;
+  (``ready(sock)``; a newcomer that has sent nothing yet waits up to ``WAIT_S`` for its
+  request, ``MAX_WAITING`` at most, and one that has sent part of one is refused at the next
+  look): slow talkers cannot lock out a client that has something to say;
 * **a listen backlog** of ``BACKLOG`` (1024; at least 128): a burst of connects is queued;
 * **a bounded write queue per client**: each client is a
   :class:`~gateway.io.port.PortEngine` (``queue_depth``) that the backend builds in
@@ -66,7 +66,7 @@ SHED_AFTER_S = 0.5
 #: how many newcomers may wait so at once (past it: refused at once).
 WAIT_S = 0.1
 WAIT_CHECK_S = 0.01
-MAX_WAITING = 16
+MAX_WAITING = 64
 #: Accepts handled per wake-up of the loop (a burst of connects is taken in a few passes).
 ACCEPT_BATCH = 64
 #: A refused connection is half-closed and read until the peer closes, at most this long, so
@@ -327,11 +327,12 @@ class PortServer:
             return
         addr, deadline = entry
         try:
-            gone = conn.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+            sent = conn.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT)
+            gone = not sent
         except (BlockingIOError, InterruptedError):
-            gone = False  # nothing sent yet
+            sent, gone = b"", False  # nothing sent yet
         except OSError:
-            gone = True
+            sent, gone = b"", True
         if gone:
             del self._waiting[conn]
             conn.close()
@@ -340,7 +341,9 @@ class PortServer:
         if len(self.clients) < self.limits.max_clients or self._shed_for(conn):
             del self._waiting[conn]
             self._serve(conn, addr)
-        elif time.monotonic() >= deadline or self._closing:
+        elif sent or time.monotonic() >= deadline or self._closing:
+            # (it sent part of a request and no more: a slow talker, its place goes to the
+            # next newcomer at once)
             del self._waiting[conn]
             self._refuse(conn, addr)
         else:
