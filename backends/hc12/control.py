@@ -211,7 +211,8 @@ class ControlServer:
 
         engine = PortEngine(_not_reopened, name=f"{self.name} control client",
                             protocol=client, loop=self.loop,
-                            queue_depth=self.limits.queue_depth, reopen=False, on_link=on_link)
+                            queue_depth=self.limits.queue_depth, reopen=False, on_link=on_link,
+                            hangup_level=logging.DEBUG)
         client.engine = engine
         engine.partial_since = time.monotonic()  # until its request line is complete
         engine.start_with(SocketPort(conn))

@@ -322,7 +322,8 @@ class HttpBackend(Backend):
         name = f"{self.name} <{addr[0]}:{addr[1]}>"
         client = HttpClient(self, name)
         engine = PortEngine(_not_reopened, name=name, protocol=client, loop=self.loop,
-                            queue_depth=EVENTS_QUEUED, reopen=False)
+                            queue_depth=EVENTS_QUEUED, reopen=False,
+                            hangup_level=logging.DEBUG)
         client.attach(engine)
         with contextlib.suppress(OSError):
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)

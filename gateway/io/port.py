@@ -143,6 +143,7 @@ class PortEngine:
         loop: IoLoop | None = None,
         reopen: bool = True,
         poll_s: float = DEFAULT_POLL_S,
+        hangup_level: int = logging.INFO,
     ) -> None:
         if queue_depth < 1:
             raise ValueError("queue_depth must be at least 1")
@@ -158,6 +159,9 @@ class PortEngine:
         self.stats = PortStats()
         self.reopen = reopen
         self.poll_s = poll_s
+        #: How a peer hanging up on an engine that is not reopened is logged (a served
+        #: client's end; DEBUG for a server whose clients come and go by the hundred).
+        self.hangup_level = hangup_level
         self._opener = opener
         self._backoff = backoff or Backoff(REOPEN_FIRST_S, REOPEN_MAX_S)
         self._clock = clock
@@ -723,7 +727,7 @@ class PortEngine:
         if exc is not None:
             # A peer hanging up on a connection we do not reopen (an accepted client) is the
             # normal end of it, not a fault.
-            level = (logging.INFO if not self.reopen and isinstance(exc, ConnectionError)
+            level = (self.hangup_level if not self.reopen and isinstance(exc, ConnectionError)
                      else logging.WARNING)
             log.log(level, "%s: %s (%s); %s", self.name, what, exc,
                     "reopening" if self.reopen else "closed (not reopened)")
