@@ -22,9 +22,12 @@ from typing import Any
 
 import pytest
 from helpers import Running, wait_for
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from test_http_backend import read_event
 
 from backends.http.backend import HttpBackend
+from backends.http.connection import HttpClient
 from gateway.io.ioloop import IoLoop
 from gateway.io.port import PortEngine
 from gateway.io.server import (
@@ -437,3 +440,56 @@ def test_a_listening_backend_refuses_past_its_cap_and_counts_it(name: str) -> No
                 assert kept.recv(1) != b""  # the first is still served
     finally:
         d.close()
+
+
+def test_every_listening_backend_has_the_same_two_keys_with_the_same_defaults() -> None:
+    from backends.fprime.backend import FprimeBackend
+    from backends.hc12.backend import Hc12Backend
+    from backends.mavlink.backend import MavlinkBackend
+    from backends.uavtalk.backend import UavtalkBackend
+
+    for cls in (HttpBackend, MavlinkBackend, UavtalkBackend, FprimeBackend, Hc12Backend):
+        keys = cls.CONFIG.keys
+        assert keys["max_clients"].default == ClientLimits().max_clients == 32, cls
+        assert keys["client_timeout_s"].default == ClientLimits().client_timeout_s == 5.0, cls
+
+
+class _Site:
+    """Answers every request as the page would (no engine: nothing is written)."""
+
+    def __init__(self) -> None:
+        self.answered: list[tuple[str, str]] = []
+        self.bad = 0
+
+    def answer(self, client: HttpClient, method: str, path: str) -> None:
+        self.answered.append((method, path))
+        client.respond(200, b"ok", "text/plain")
+
+    def bad_request(self) -> None:
+        self.bad += 1
+
+    def stream_closed(self, client: HttpClient) -> None:
+        pass
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=400), st.lists(st.integers(1, 50), max_size=10))
+def test_http_connection_takes_any_bytes_in_any_split_without_raising(
+        data: bytes, cuts: list[int]) -> None:
+    site = _Site()
+    client = HttpClient(site, "fuzz")
+    pos = 0
+    for n in [*cuts, len(data)]:
+        client.feed(data[pos:pos + n])
+        pos += n
+    assert len(site.answered) + site.bad <= 1  # one request per connection, or one refusal
+
+
+@pytest.mark.parametrize("split", [1, 3, 1000])
+def test_http_connection_answers_a_request_fed_in_pieces(split: int) -> None:
+    site = _Site()
+    client = HttpClient(site, "t")
+    request = b"GET /status.json?x=1 HTTP/1.1\r\nHost: x\r\n\r\nGET /second HTTP/1.1\r\n\r\n"
+    for i in range(0, len(request), split):
+        client.feed(request[i:i + split])
+    assert site.answered == [("GET", "/status.json")] and site.bad == 0

@@ -118,9 +118,10 @@ class HttpClient:
 
     def _answer(self) -> None:
         request = self._request
-        if request is None or self.engine is None:
+        if request is None:
             return
-        self.engine.partial_since = None
+        if self.engine is not None:
+            self.engine.partial_since = None
         method = request.method.decode("ascii", "replace")
         path = request.target.decode("latin-1").split("?", 1)[0]
         self.site.answer(self, method, path)
