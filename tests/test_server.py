@@ -73,13 +73,13 @@ class Served:
     """A server on ``loop`` whose clients are Echo engines (what a backend's on_client does)."""
 
     def __init__(self, loop: IoLoop, stack: contextlib.ExitStack, *, partial: bool = False,
-                 refusal: bytes = b"", **limits: Any) -> None:
+                 refusal: bytes = b"", ready: Any = None, **limits: Any) -> None:
         self.loop = loop
         self.partial = partial
         self.engines: list[PortEngine] = []
         self.server = PortServer(lambda: open_tcp_listener("127.0.0.1", 0), self.on_client,
                                  loop=loop, name="test server", refusal=refusal,
-                                 limits=ClientLimits(**limits))
+                                 ready=ready, limits=ClientLimits(**limits))
         stack.callback(self.close)
         self.server.start()
         assert self.server.wait_bound(DEADLINE_S)
@@ -221,11 +221,12 @@ def test_a_request_left_incomplete_is_cut_and_counted(loop: IoLoop) -> None:
 
 def test_at_the_cap_an_old_incomplete_request_gives_way_to_a_whole_one(loop: IoLoop) -> None:
     with contextlib.ExitStack() as stack:
-        srv = Served(loop, stack, partial=True, max_clients=1, client_timeout_s=30)
+        # line_ready: what the HTTP page's has_request is to a request head
+        srv = Served(loop, stack, partial=True, max_clients=1, client_timeout_s=30,
+                     ready=line_ready)
         slow = connect(srv.address, stack)
         slow.sendall(b"GE")
         assert wait_for(lambda: srv.server.client_count == 1, DEADLINE_S)
-        srv.server._ready = line_ready  # (what the HTTP page's has_request is to a head)
         fresh = connect(srv.address, stack)
         assert echoes(fresh, b"GET /\n")
         assert closed_by_peer(slow) == b"GE"
@@ -288,7 +289,7 @@ def test_burst_log_is_one_line_then_a_count(loop: IoLoop,
     msgs = [r.getMessage() for r in caplog.records if r.name == "burst"]
     assert msgs[0].startswith("x: refusing (more are counted")
     assert msgs[1] == "x: refusing: 6 more in the last 0 s"
-    assert wait_for(lambda: burst._timer is None, DEADLINE_S)  # the burst is over
+    assert wait_for(lambda: not burst.active, DEADLINE_S)  # the burst is over
 
 
 # -- the HTTP page on it ---------------------------------------------------------------------

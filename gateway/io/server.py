@@ -158,6 +158,11 @@ class BurstLog:
         self._more = 0
         self._timer = self.loop.call_later(self.interval_s, self._summary)
 
+    @property
+    def active(self) -> bool:
+        """A burst is on (its count will be logged)."""
+        return self._timer is not None
+
     def cancel(self) -> None:
         if self._timer is not None:
             self._timer.cancel()
