@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import contextlib
 import http.client
+import json
 import logging
 import os
 import resource
+import shutil
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -494,3 +497,47 @@ def test_http_connection_answers_a_request_fed_in_pieces(split: int) -> None:
     for i in range(0, len(request), split):
         client.feed(request[i:i + split])
     assert site.answered == [("GET", "/status.json")] and site.bad == 0
+
+
+NODE = shutil.which("node")
+EVENTSOURCE_JS = """
+const es = new EventSource(process.argv[1]);
+let opens = 0, messages = 0;
+es.onopen = () => { opens++; };
+es.onmessage = (e) => {
+  JSON.parse(e.data);
+  messages++;
+  if (opens >= 3) { console.log(JSON.stringify({opens, messages})); process.exit(0); }
+};
+setTimeout(() => { console.log(JSON.stringify({opens, messages})); process.exit(1); }, %d);
+"""
+
+
+def _node_has_eventsource() -> bool:
+    if NODE is None:
+        return False
+    r = subprocess.run([NODE, "--experimental-eventsource", "-e",
+                        "process.exit(typeof EventSource === 'function' ? 0 : 1)"],
+                       capture_output=True, timeout=30)
+    return r.returncode == 0
+
+
+@pytest.mark.skipif(not _node_has_eventsource(), reason="no Node.js with EventSource")
+def test_a_real_eventsource_reconnects_when_its_stream_ends() -> None:
+    """Node's EventSource (undici, the WHATWG one) as the viewer: each stream ends after
+    client_timeout_s and the viewer is back on a new one by itself (retry: 250 ms)."""
+    b = HttpBackend(port=0, event_interval_s=0.05, client_timeout_s=0.4)
+    b.init()
+    try:
+        host, port = b.address()
+        assert NODE is not None
+        r = subprocess.run([NODE, "--experimental-eventsource", "-e",
+                            EVENTSOURCE_JS % int(DEADLINE_S * 1000),
+                            f"http://{host}:{port}/events"],
+                           capture_output=True, text=True, timeout=3 * DEADLINE_S)
+        assert r.returncode == 0, (r.stdout, r.stderr)
+        seen = json.loads(r.stdout.strip().splitlines()[-1])
+        assert seen["opens"] >= 3 and seen["messages"] >= 3
+        assert b.stats()["streams_renewed"] >= 2
+    finally:
+        b.close()
