@@ -31,12 +31,12 @@ from test_http_backend import read_event
 
 from backends.http.backend import HttpBackend
 from backends.http.connection import HttpClient
+from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop
 from gateway.io.port import PortEngine
 from gateway.io.server import (
     BACKLOG,
     SERVER_KEYS,
-    BurstLog,
     ClientLimits,
     PortServer,
     server_stats,

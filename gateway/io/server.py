@@ -26,7 +26,7 @@ through it, on an :class:`~gateway.io.ioloop.IoLoop`, with the same limits (:cla
   descriptor is given up for a moment so the connection that could not be accepted is
   refused, not left hanging;
 * every refusal and cut is **logged once per burst**: one line when it starts, then one line
-  with the count per ``BURST_LOG_S`` while it lasts.
+  with the count per :data:`~gateway.io.burstlog.BURST_LOG_S` while it lasts.
 
 The counters are :class:`ServerStats`; :func:`server_stats` sums those of a backend's
 servers into the keys its ``stats()`` reports (and the stop report prints).
@@ -48,6 +48,7 @@ from typing import Any
 
 from gateway.counters import Counters
 from gateway.io.backoff import Backoff
+from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.port import DEFAULT_QUEUE_DEPTH, REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.io.transport import LISTEN_BACKLOG
@@ -77,8 +78,6 @@ MAX_LINGERING = 64
 #: Accept failing for want of descriptors: the listener rests this long, doubling to the max.
 ACCEPT_PAUSE_FIRST_S = 0.05
 ACCEPT_PAUSE_MAX_S = 1.0
-#: A burst of refusals or cuts: one line, then one line with the count per this interval.
-BURST_LOG_S = 10.0
 _NO_DESCRIPTORS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
 
 
@@ -122,51 +121,6 @@ def server_stats(servers: Iterable[PortServer]) -> dict[str, int]:
         for key in SERVER_KEYS:
             out[key] += getattr(st, key)
     return out
-
-
-class BurstLog:
-    """Log a kind of event once per burst: the first as a line of its own, the rest as one
-    line with their count per ``interval_s`` while they keep coming (on ``loop``'s thread)."""
-
-    def __init__(self, loop: IoLoop, text: str, *, level: int = logging.WARNING,
-                 interval_s: float = BURST_LOG_S, logger: logging.Logger = log) -> None:
-        self.loop = loop
-        self.text = text
-        self.level = level
-        self.interval_s = interval_s
-        self.logger = logger
-        self.lines = 0  # lines written (for tests)
-        self._more = 0
-        self._timer: Timer | None = None
-
-    def event(self, detail: str = "") -> None:
-        if self._timer is None:
-            self.lines += 1
-            self.logger.log(self.level, "%s%s (more are counted, one line per %.0f s)",
-                            self.text, f": {detail}" if detail else "", self.interval_s)
-            self._timer = self.loop.call_later(self.interval_s, self._summary)
-        else:
-            self._more += 1
-
-    def _summary(self) -> None:
-        if not self._more:
-            self._timer = None  # the burst is over
-            return
-        self.lines += 1
-        self.logger.log(self.level, "%s: %d more in the last %.0f s", self.text, self._more,
-                        self.interval_s)
-        self._more = 0
-        self._timer = self.loop.call_later(self.interval_s, self._summary)
-
-    @property
-    def active(self) -> bool:
-        """A burst is on (its count will be logged)."""
-        return self._timer is not None
-
-    def cancel(self) -> None:
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
 
 
 class PortServer:
@@ -213,9 +167,10 @@ class PortServer:
         self._closing = False
         self._logged = False
         self._refused_log = BurstLog(loop, f"{name}: refusing clients "
-                                     f"(at most {self.limits.max_clients})")
-        self._cut_log = BurstLog(loop, f"{name}: cutting clients", level=logging.INFO)
-        self._accept_log = BurstLog(loop, f"{name}: cannot accept")
+                                     f"(at most {self.limits.max_clients})", logger=log)
+        self._cut_log = BurstLog(loop, f"{name}: cutting clients", level=logging.INFO,
+                                 logger=log)
+        self._accept_log = BurstLog(loop, f"{name}: cannot accept", logger=log)
 
     # -- any thread --------------------------------------------------------------------------
 
