@@ -94,6 +94,9 @@ class Served:
                             loop=self.loop, reopen=False,
                             queue_depth=self.server.limits.queue_depth)
         proto.engine = engine
+        # a small send buffer: a client that stops reading is seen after kilobytes, not
+        # after the megabytes a loopback socket's buffer grows to
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
         if self.partial:
             engine.partial_since = time.monotonic()
         engine.start_with(SocketPort(sock))
