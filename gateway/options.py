@@ -458,3 +458,20 @@ def options_of(cls: Any) -> type[Options] | None:
     """The :class:`Options` class a backend or source class declares (``OPTIONS``), if any."""
     opts = getattr(cls, "OPTIONS", None)
     return opts if isinstance(opts, type) and issubclass(opts, Options) else None
+
+
+#: The defaults of every listener's ``max_clients`` / ``client_timeout_s`` (gateway.io.server).
+DEFAULT_MAX_CLIENTS = 32
+DEFAULT_CLIENT_TIMEOUT_S = 5.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class ListenerOptions(Options):
+    """The options every backend with a TCP listener shares (MAVLink ``tcpin``, UAVTalk, F´,
+    the HC-12 control socket, HTTP), declared once here and inherited."""
+
+    max_clients: int = option(DEFAULT_MAX_CLIENTS, "clients a listener serves at once; more "
+                              "are refused (counted)", minimum=1, maximum=1024)
+    client_timeout_s: float = option(DEFAULT_CLIENT_TIMEOUT_S, "a client that stops reading "
+                                     "(or leaves a request incomplete) this long is cut",
+                                     minimum=0.1, maximum=600)

@@ -209,7 +209,7 @@ def test_event_streams_are_capped_and_refusals_counted(gw: Any) -> None:
         code, headers, _ = request(b, "GET", "/events")
         assert code == 503 and "Retry-After" in headers
         st = b.stats()
-        assert st["dropped"] == 1 and st["dropped_clients_full"] == 1
+        assert st["dropped"] == 1 and st["clients_refused"] == 1
         responses.pop().close()
         conns[-1].close()
         assert wait_for(lambda: b.stats()["clients"] == 1), "a closed stream kept its slot"

@@ -39,8 +39,8 @@ from gateway.io.port import (
     DEFAULT_QUEUE_DEPTH,
     PortEngine,
     PortNotReady,
-    PortServer,
 )
+from gateway.io.server import PortServer
 from gateway.io.transport import (
     SocketPort,
     open_serial,

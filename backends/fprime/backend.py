@@ -35,6 +35,7 @@ from gateway.io.links import (
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
+from gateway.io.server import ClientLimits
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
 
 from .channels import ChannelCodec, Getter, codecs
@@ -125,7 +126,8 @@ class FprimeBackend(Backend):
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, _spec: Link(n, self),
-            queue_depth=options.queue_depth, on_closed=self._retire, label="ground system")
+            queue_depth=options.queue_depth, on_closed=self._retire, label="ground system",
+            limits=ClientLimits.of(options, options.queue_depth))
         self._running = False
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
                         "clients_closed": 0}
@@ -242,4 +244,5 @@ class FprimeBackend(Backend):
                 "channel_values": self.entries, "dropped_too_big": self.packer.too_big,
                 "time_resyncs": self.clock.resyncs, "clients": len(links),
                 "commands_not_supported": self.commands.not_supported,
-                "connected": connected, "clients_closed": t["clients_closed"], "links": per}
+                "connected": connected, "clients_closed": t["clients_closed"],
+                **self.linkset.server_stats(), "links": per}

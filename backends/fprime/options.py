@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import SERIAL, TCP, TCPIN, list_validator, text_of
-from gateway.options import Flag, Options, lazy, option
+from gateway.options import Flag, ListenerOptions, lazy, option
 
 #: The framings (``backends.fprime.framing.FRAMINGS``); the first is the default.
 FRAMINGS = ("ccsds", "fprime")
@@ -30,7 +30,7 @@ ENDPOINT_KINDS = (TCPIN, TCP, SERIAL)
 
 
 @dataclass(frozen=True, kw_only=True)
-class FprimeOptions(Options):
+class FprimeOptions(ListenerOptions):
     """``[backends.fprime]``: the rocket's channels to the F´ ground system, fprime-gds."""
 
     TITLE: ClassVar[str] = "F´ backend"
@@ -63,7 +63,3 @@ class FprimeOptions(Options):
                              maximum=TM_MAX_FRAME)
     queue_depth: int = option(64, "writes waiting per peer before drops", minimum=1,
                               maximum=4096)
-    max_clients: int = option(32, "clients served at once; more are refused (counted)",
-                              minimum=1)
-    client_timeout_s: float = option(5.0, "a client that stops reading (or never finishes a "
-                                     "request) is cut after this many seconds", minimum=0.1)

@@ -42,6 +42,7 @@ from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import VehicleWatch
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.io.port import PortEngine, PortNotReady
+from gateway.io.server import ClientLimits, server_stats
 from gateway.model import RawFrame, SmUpdate, Status
 from gateway.wire import encode
 
@@ -67,6 +68,7 @@ class Hc12Backend(Backend):
         self.at_baud = options.at_baud
         self.timing = Timing(reply_timeout_s=options.reply_timeout_s)
         self.control = options.control
+        self.control_limits = ClientLimits.of(options, queue_depth=2)
         self._clock = clock
         self.budget = AirBudget(figures(min(options.baudrate, options.air_baud),
                                         options.utilisation_pct, options.burst_bytes,
@@ -76,6 +78,7 @@ class Hc12Backend(Backend):
                                  min_interval_s=options.min_interval_s, clock=clock)
         self._set_line: SetLine | None = None
         self._control: ControlServer | None = None
+        self._served: ControlServer | None = None  # kept after close(): its counters
         self._provision_lock = threading.Lock()
         self.control_path: Any = None
         self.encoded = 0
@@ -98,9 +101,9 @@ class Hc12Backend(Backend):
             if path is not None:
                 # Served on the engine's loop: an exchange runs on the port's own thread.
                 server = ControlServer(path, self.handle_control, self.engine.loop,
-                                       name=self.name)
+                                       name=self.name, limits=self.control_limits)
                 server.start()
-                self._control = server
+                self._control = self._served = server
                 self.control_path = path
         except OSError as exc:
             if "served by another running gateway" in str(exc):
@@ -245,4 +248,5 @@ class Hc12Backend(Backend):
             "at_exchanges": self.at_exchanges,
             "at_failures": self.at_failures,
             "at_refused": self.at_refused,
+            **(self._served.stats() if self._served is not None else server_stats(())),
         }

@@ -14,10 +14,12 @@ applying its own knowledge of the vehicle (the latest SM_UPDATE/STATUS it relaye
 * One request per connection: a JSON object on one line (``{"op": "channel", "arg": "5",
   "bench": false}``), answered by one JSON line (a :class:`~backends.hc12.provision.Result`).
   Both ends read with the one sans-I/O :class:`JsonLines` reader.
-* The server is a :class:`~gateway.io.port.PortServer` on an :class:`~gateway.io.ioloop.IoLoop` —
-  the backend passes its port engine's, so a request runs on the thread that owns the port
-  and connections need no threads of their own.  A client that sends nothing is dropped
-  after ``REQUEST_TIMEOUT_S``.
+* The server is a :class:`~gateway.io.server.PortServer` on an
+  :class:`~gateway.io.ioloop.IoLoop` — the backend passes its port engine's, so a request runs
+  on the thread that owns the port and connections need no threads of their own; each is a
+  :class:`~gateway.io.port.PortEngine` writing its answer through a bounded queue.  At most
+  ``max_clients`` connections at once (more are refused, counted); a client that sends no
+  whole request, or does not read its answer, within ``client_timeout_s`` is cut.
 * If the client goes away mid-exchange (Ctrl-C), the backend still completes the exchange and
   restores the port itself.
 """
@@ -30,23 +32,33 @@ import json
 import logging
 import os
 import re
-import selectors
 import socket
 import stat
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from gateway.io.ioloop import IoLoop, Timer
-from gateway.io.port import PortServer
+from gateway.io.ioloop import IoLoop
+from gateway.io.port import PortEngine
+from gateway.io.server import (
+    BACKLOG,
+    DEFAULT_CLIENT_TIMEOUT_S,
+    ClientLimits,
+    PortServer,
+    server_stats,
+)
+from gateway.io.transport import SocketPort
 
 log = logging.getLogger(__name__)
 
 PROTOCOL_VERSION = 1
 MAX_REQUEST = 4096
 MAX_REPLY = 1 << 20
-REQUEST_TIMEOUT_S = 2.0
+#: How long a client may take to send its request (and to read the answer) when the server
+#: is not given :class:`~gateway.io.server.ClientLimits`.
+REQUEST_TIMEOUT_S = DEFAULT_CLIENT_TIMEOUT_S
 
 
 def runtime_dir(create: bool = True) -> Path:
@@ -141,8 +153,9 @@ class ControlServer:
     """Serves one-line JSON requests on a Unix socket, on ``loop`` (see the module doc)."""
 
     def __init__(self, path: Path, handler: Callable[[dict[str, Any]], dict[str, Any]],
-                 loop: IoLoop, name: str = "hc12") -> None:
+                 loop: IoLoop, name: str = "hc12", limits: ClientLimits | None = None) -> None:
         self.path = Path(path)
+        self.limits = limits or ClientLimits(client_timeout_s=REQUEST_TIMEOUT_S, queue_depth=2)
         self.handler = handler
         self.loop = loop
         self.name = name
@@ -151,14 +164,16 @@ class ControlServer:
         self._bound: socket.socket | None = None
         self._server: PortServer | None = None
         self._clients: set[_Client] = set()
+        self.listener: PortServer | None = None  # kept after close() for stats
 
     def start(self) -> None:
         """Bind (now, so a clash is known at once) and serve on the loop; raises OSError if
         another live server already answers there."""
         self._bound = self._listen()
         server = PortServer(self._listener, self._accepted, loop=self.loop,
-                            name=f"{self.name} control")
+                            name=f"{self.name} control", limits=self.limits)
         self._server = server
+        self.listener = server
         server.start()
 
     def _listen(self) -> socket.socket:
@@ -172,7 +187,7 @@ class ControlServer:
             sock.bind(str(self.path))
             os.chmod(self.path, 0o600)
             self._inode = self.path.stat().st_ino
-            sock.listen(4)
+            sock.listen(BACKLOG)
             sock.setblocking(False)
         except OSError:
             sock.close()
@@ -186,11 +201,22 @@ class ControlServer:
         sock, self._bound = self._bound, None
         return sock if sock is not None else self._listen()
 
-    def _accepted(self, conn: socket.socket, _addr: Any) -> None:
-        client = _Client(self, conn)
+    def _accepted(self, conn: socket.socket, _addr: Any) -> PortEngine:
+        client = _Client(self)
         self._clients.add(client)
-        self.loop.register(conn, selectors.EVENT_READ, client.on_ready)
-        client.timer = self.loop.call_later(REQUEST_TIMEOUT_S, client.close)
+
+        def on_link(up: bool) -> None:
+            if not up:
+                self._clients.discard(client)
+
+        engine = PortEngine(_not_reopened, name=f"{self.name} control client",
+                            protocol=client, loop=self.loop,
+                            queue_depth=self.limits.queue_depth, reopen=False, on_link=on_link,
+                            hangup_level=logging.DEBUG)
+        client.engine = engine
+        engine.partial_since = time.monotonic()  # until its request line is complete
+        engine.start_with(SocketPort(conn))
+        return engine
 
     def answer(self, request: dict[str, Any] | BadMessage) -> dict[str, Any]:
         """The reply to one request (on the loop's thread); never raises."""
@@ -223,50 +249,43 @@ class ControlServer:
 
     def _drop_clients(self) -> None:
         for client in list(self._clients):
-            client.close()
+            if client.engine is not None:
+                client.engine.close(0.2)
+        self._clients.clear()
+
+    def stats(self) -> dict[str, int]:
+        """The listener's refusals and cuts (see :func:`gateway.io.server.server_stats`)."""
+        server = self.listener
+        return server_stats((server,) if server is not None else ())
+
+
+def _not_reopened() -> Any:
+    raise OSError("a control connection is not reopened")
 
 
 class _Client:
-    """One control connection, read on the loop until its request line is complete."""
+    """One control connection (its engine's protocol): the request line, then the answer."""
 
-    def __init__(self, server: ControlServer, conn: socket.socket) -> None:
+    def __init__(self, server: ControlServer) -> None:
         self.server = server
-        self.conn = conn
         self.reader = JsonLines(MAX_REQUEST)
-        self.timer: Timer | None = None
-        conn.setblocking(False)
+        self.engine: PortEngine | None = None
+        self.answered = False
 
-    def on_ready(self, _mask: int) -> None:
-        try:
-            data = self.conn.recv(MAX_REQUEST)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError:
-            self.close()
-            return
-        events = self.reader.feed(data) if data else self.reader.flush()
-        if events:
+    def feed(self, data: bytes) -> list[Any]:
+        events = self.reader.feed(data)
+        if events and not self.answered:
             self.respond(events[0])
-        elif not data:
-            self.close()  # gone without a word (a liveness probe)
+        return []
 
     def respond(self, request: dict[str, Any] | BadMessage) -> None:
-        self.server.loop.unregister(self.conn)
-        if self.timer is not None:
-            self.timer.cancel()
+        engine = self.engine
+        assert engine is not None
+        self.answered = True
+        engine.partial_since = None
         reply = self.server.answer(request)  # may run an AT exchange: seconds
-        with contextlib.suppress(OSError):
-            self.conn.settimeout(REQUEST_TIMEOUT_S)
-            self.conn.sendall(encode_line(reply))
-        self.close()
-
-    def close(self) -> None:
-        if self.timer is not None:
-            self.timer.cancel()
-        self.server._clients.discard(self)
-        self.server.loop.unregister(self.conn)
-        with contextlib.suppress(OSError):
-            self.conn.close()
+        engine.submit(encode_line(reply), rate_limited=False)
+        engine.finish()
 
 
 def _on_loop(loop: IoLoop, fn: Callable[[], Any], timeout: float = 1.0) -> None:

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import SERIAL, check_serial_port, text_of
-from gateway.options import Flag, Options, option
+from gateway.options import Flag, ListenerOptions, option
 
 #: relay frames byte-identical, or generate them
 MODES = ("relay", "generate")
@@ -23,7 +23,7 @@ DEFAULT_MAX_AGE_S = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)
-class Hc12Options(Options):
+class Hc12Options(ListenerOptions):
     """``[backends.hc12]``: an HC-12 433 MHz UART radio."""
 
     TITLE: ClassVar[str] = "HC-12 backend"
@@ -60,7 +60,3 @@ class Hc12Options(Options):
                                    "for provisioning", minimum=0.1, maximum=600)
     control: str = option("auto", "control socket for `aurora-gateway hc12`: auto, off or a "
                           "path")
-    max_clients: int = option(32, "clients served at once; more are refused (counted)",
-                              minimum=1)
-    client_timeout_s: float = option(5.0, "a client that stops reading (or never finishes a "
-                                     "request) is cut after this many seconds", minimum=0.1)

@@ -1,7 +1,8 @@
 """The HTTP backend: a live status page and Prometheus metrics, read-only.
 
-``run --http [HOST:]PORT`` (off by default; HOST defaults to loopback) serves, from the
-standard library's :class:`http.server.ThreadingHTTPServer` on a thread of its own:
+``run --http [HOST:]PORT`` (off by default; HOST defaults to loopback) serves, on the
+gateway's port engine (one :class:`~gateway.io.ioloop.IoLoop` thread, an h11 parser per
+connection: :mod:`backends.http.connection`; no thread per connection):
 
 ``/``
     a small page (no framework) with the vehicle's state, armed, altitude, max altitude,
@@ -20,18 +21,26 @@ Only ``GET`` and ``HEAD``; any other method is 405, any other path 404.  Nothing
 the gateway's state.
 
 The hot path is O(1) and never blocks: a handler stores the message as the latest of its
-kind and counts it; nothing is queued, so nothing is dropped there.  The server's threads
-read those values when they answer.  At most ``max_clients`` event streams run at once (more
-are refused with 503, counted in ``dropped``); a client that stops reading is cut when a
-write waits ``client_timeout_s``.  :meth:`HttpBackend.close` ends everything within a
-second.
+kind and counts it; nothing is queued, so nothing is dropped there.  The loop reads those
+values when it answers.  The listener is a :class:`~gateway.io.server.PortServer`: at most
+``max_clients`` connections at once (more are answered ``503`` and closed), a request not
+complete within ``client_timeout_s`` is cut, and a client that leaves an answer unread for
+``client_timeout_s`` is cut.  An event stream's events go through the same bounded queue
+(a full one drops them, counted); a stream lasts ``client_timeout_s`` and then ends, the
+viewer's EventSource reconnecting by itself (:data:`RETRY`), so a viewer that stopped
+reading holds its slot no longer than that.  :meth:`HttpBackend.close` ends everything
+within a second.
 
-Counters: ``sent`` (responses and events written), ``dropped`` (clients refused or cut),
-``errors`` (failed requests), ``link`` (1 while serving), ``clients`` (event streams now).
+Counters: ``sent`` (responses and events written), ``dropped`` (clients refused or cut, and
+events a full queue dropped), ``errors`` (failed requests), ``link`` (1 while serving),
+``clients`` (connections now), ``streams`` (event streams now), ``clients_refused``,
+``clients_cut_stalled``, ``clients_cut_partial``, ``accept_errors``, ``events_dropped``,
+``bad_requests``, ``streams_renewed`` (streams ended for the viewer to reconnect).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import socket
@@ -40,11 +49,14 @@ import time
 from collections import Counter
 from collections.abc import Callable, Iterator
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, ClassVar
 
 from backends.http.options import HttpOptions
 from gateway.backend import STATS_KEYS, Backend, BackendError, Routes
+from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.port import PortEngine
+from gateway.io.server import ClientLimits, PortServer, server_stats
+from gateway.io.transport import SocketPort, TransportError, open_tcp_listener
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -56,10 +68,18 @@ from gateway.model import (
     kind,
     own_fields,
 )
+from gateway.outcome import Outcome
+
+from .connection import TEXT, HttpClient, has_request, refusal
 
 log = logging.getLogger(__name__)
 
-_JOIN_S = 0.8  # close(): what the server thread may take to stop
+_CLOSE_S = 0.8  # close(): what closing the connections on the loop may take
+#: Events waiting per viewer before they are dropped (a viewer that stops reading).
+EVENTS_QUEUED = 4
+#: The send buffer of a connection: small, so that a viewer that stops reading is seen
+#: (and cut) within seconds rather than after megabytes of events.
+SEND_BUFFER = 8192
 
 
 class HttpBackend(Backend):
@@ -82,17 +102,19 @@ class HttpBackend(Backend):
         self._links: dict[str, bool] = {}  # source → up, from LinkEvents
         self._max_altitude: float | None = None
         self.messages_in: Counter[str] = Counter()
-        self._lock = threading.Lock()  # the counters the server's threads write
-        self.sent = 0
-        self.dropped = 0
+        self.limits = ClientLimits.of(options, EVENTS_QUEUED)
+        self.sent = 0  # these counters are written on the loop's thread only
         self.errors = 0
-        self.clients = 0
         self.requests = 0
-        self.dropped_clients_full = 0
-        self.dropped_client_timeout = 0
-        self._server: ThreadingHTTPServer | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
+        self.bad_requests = 0
+        self.events_dropped = 0
+        self.streams_renewed = 0
+        self.streams: set[HttpClient] = set()
+        self.loop: IoLoop | None = None
+        self._server: PortServer | None = None
+        self._served: PortServer | None = None  # kept after close(): its counters
+        self._listener: socket.socket | None = None
+        self._ticker: Timer | None = None
         self._started = time.monotonic()
         self._collector: _Collector | None = None
         self._registry: Any = None
@@ -206,77 +228,150 @@ class HttpBackend(Backend):
         self._registry = CollectorRegistry(auto_describe=False)
         self._collector = _Collector(self)
         self._registry.register(self._collector)
-        server_cls = _Server6 if ":" in self.host else _Server
         try:
-            server = server_cls((self.host, self.port), _make_handler(self))
-        except OSError as exc:
-            raise BackendError(f"cannot listen on {self.host}:{self.port}: "
-                               f"{exc.strerror or exc}") from None
-        self._server = server
-        self._stop.clear()
-        self._thread = threading.Thread(target=server.serve_forever, kwargs={
-            "poll_interval": 0.1}, name=f"{self.name} http", daemon=True)
-        self._thread.start()
+            self._listener = open_tcp_listener(self.host, self.port)
+        except TransportError as exc:
+            raise BackendError(str(exc)) from None
+        loop = self.loop = IoLoop(self.name)
+        pending = [self._listener]
+        bound_port = self._listener.getsockname()[1]
+
+        def opener() -> socket.socket:  # bound again on the same port after a failure
+            return pending.pop() if pending else open_tcp_listener(self.host, bound_port)
+
+        self._server = self._served = PortServer(
+            opener, self._on_client, loop=loop, name=f"{self.name} http", limits=self.limits,
+            refusal=refusal(), ready=has_request)
+        loop.start()
+        self._server.start()
+        self._ticker = loop.call_every(self.event_interval_s, self._tick,
+                                       first=self.event_interval_s)
         host, port = self.address()
         log.info("%s: status page on http://%s:%d/", self.name,
                  f"[{host}]" if ":" in host else host, port)
 
     def address(self) -> tuple[str, int]:
         """The bound (host, port) (the port chosen when ``port`` is 0)."""
-        if self._server is None:
+        if self._server is None or self._listener is None:
             raise BackendError(f"{self.name} is not serving")
-        addr = self._server.server_address
+        addr = self._listener.getsockname()
         return str(addr[0]), int(addr[1])
 
     def close(self) -> None:
         server, self._server = self._server, None
-        self._stop.set()  # event streams end at their next tick
-        if server is None:
+        loop, self.loop = self.loop, None
+        if server is None or loop is None:
             return
-        server.shutdown()  # serve_forever ends within its poll interval
-        server.server_close()
-        if self._thread is not None:
-            self._thread.join(_JOIN_S)
-            self._thread = None
+        server.close()
+        done = threading.Event()
+
+        def close_all() -> None:
+            if self._ticker is not None:
+                self._ticker.cancel()
+            for engine in list(server.clients):
+                engine.close(0.1)
+            done.set()
+
+        loop.call_soon(close_all)
+        done.wait(_CLOSE_S)
+        loop.stop(0.2)
+        loop.close()
 
     @property
     def serving(self) -> bool:
         return self._server is not None
 
     def stats(self) -> dict[str, Any]:
-        return {"sent": self.sent, "dropped": self.dropped, "errors": self.errors,
-                "link": int(self.serving), "clients": self.clients,
-                "requests": self.requests,
-                "dropped_clients_full": self.dropped_clients_full,
-                "dropped_client_timeout": self.dropped_client_timeout}
+        served = self._served
+        listener = server_stats((served,) if served is not None else ())
+        cut = listener["clients_cut_stalled"] + listener["clients_cut_partial"]
+        return {"sent": self.sent,
+                "dropped": listener["clients_refused"] + cut + self.events_dropped,
+                "errors": self.errors, "link": int(self.serving),
+                "clients": served.client_count if self.serving and served else 0,
+                "streams": len(self.streams), "requests": self.requests, **listener,
+                "events_dropped": self.events_dropped, "bad_requests": self.bad_requests,
+                "streams_renewed": self.streams_renewed}
 
-    # -- the server's threads --------------------------------------------------------------------
+    # -- the loop's thread -------------------------------------------------------------------------
 
-    def count(self, **deltas: int) -> None:
-        with self._lock:
-            for name, n in deltas.items():
-                setattr(self, name, getattr(self, name) + n)
+    def _on_client(self, sock: socket.socket, addr: Any) -> PortEngine:
+        name = f"{self.name} <{addr[0]}:{addr[1]}>"
+        client = HttpClient(self, name)
+        engine = PortEngine(_not_reopened, name=name, protocol=client, loop=self.loop,
+                            queue_depth=EVENTS_QUEUED, reopen=False,
+                            hangup_level=logging.DEBUG)
+        client.attach(engine)
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER)
+        engine.start_with(SocketPort(sock, name))
+        return engine
 
-    def open_stream(self) -> bool:
-        """Take an event stream slot; False (counted) when all are taken."""
-        with self._lock:
-            if self.clients >= self.max_clients:
-                self.dropped += 1
-                self.dropped_clients_full += 1
-                return False
-            self.clients += 1
-            return True
+    def answer(self, client: HttpClient, method: str, path: str) -> None:
+        """Answer one request (see the module doc)."""
+        self.requests += 1
+        if method not in ("GET", "HEAD"):
+            client.respond(HTTPStatus.METHOD_NOT_ALLOWED, b"read-only: GET or HEAD\n", TEXT,
+                           extra=(("Allow", "GET, HEAD"),))
+            self.sent += 1
+            return
+        head = method == "HEAD"
+        try:
+            if path in ("/", "/index.html"):
+                client.respond(200, PAGE.encode(), "text/html; charset=utf-8", head=head)
+            elif path == "/status.json":
+                client.respond(200, self.status_bytes(), "application/json", head=head)
+            elif path == "/metrics":
+                body, ctype = self.metrics()
+                client.respond(200, body, ctype, head=head)
+            elif path == "/events":
+                client.start_stream(RETRY + self._event(), head=head)
+                if not head:
+                    self.streams.add(client)
+            else:
+                client.respond(404, b"not found\n", TEXT, head=head)
+        except Exception:
+            log.exception("%s: %s failed", self.name, path)
+            self.errors += 1
+            client.respond(500, b"internal error\n", TEXT, head=head)
+        self.sent += 1
 
-    def close_stream(self) -> None:
-        with self._lock:
-            self.clients -= 1
+    def bad_request(self) -> None:
+        self.bad_requests += 1
 
-    def events(self) -> Iterator[bytes]:
-        """The event stream: one event now, then one per interval until close()."""
-        while True:
-            yield b"data: " + self.status_bytes() + b"\n\n"
-            if self._stop.wait(self.event_interval_s):
-                return
+    def stream_closed(self, client: HttpClient) -> None:
+        self.streams.discard(client)
+        self.events_dropped += client.events_dropped
+
+    def _event(self) -> bytes:
+        return b"data: " + self.status_bytes() + b"\n\n"
+
+    def _tick(self) -> None:
+        """One event to every stream (computed once for all); a stream older than
+        ``client_timeout_s`` is ended (see :data:`RETRY`)."""
+        if not self.streams:
+            return
+        event = self._event()
+        oldest = time.monotonic() - self.client_timeout_s
+        for client in list(self.streams):
+            if client.stream_started <= oldest:
+                self.streams_renewed += 1
+                client.end_stream()
+            elif client.send_event(event) is _ACCEPTED:
+                self.sent += 1
+
+
+_ACCEPTED = Outcome.ACCEPTED
+#: An event stream lasts ``client_timeout_s``; then it ends and the viewer's EventSource
+#: reconnects after this many milliseconds.  A viewer that stopped reading is so let go
+#: within that time: a server cannot see it otherwise, as the viewer's kernel keeps taking
+#: events into its buffers for a minute or more (measured on loopback: a full window at
+#: 2.4 KB/s of events after 30 s) before a write would wait.
+RETRY = b"retry: 250\n\n"
+
+
+def _not_reopened() -> Any:
+    raise OSError("an accepted connection is not reopened")
 
 
 def _counters(stats: dict[str, Any]) -> dict[str, Any]:
@@ -303,15 +398,6 @@ def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
             v = v.hex()
         out[k] = v
     return out
-
-
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
-    block_on_close = False
-
-
-class _Server6(_Server):
-    address_family = socket.AF_INET6
 
 
 class _Collector:
@@ -359,95 +445,6 @@ class _Collector:
         for k, n in sorted(b.messages_in.items()):
             m.add_metric([k], float(n))
         yield m
-
-
-def _make_handler(backend: HttpBackend) -> type[BaseHTTPRequestHandler]:
-    class Handler(_Handler):
-        pass
-
-    Handler.backend = backend
-    Handler.timeout = backend.client_timeout_s
-    return Handler
-
-
-class _Handler(BaseHTTPRequestHandler):
-    backend: ClassVar[HttpBackend]
-    server_version = "aurora-gateway"
-    protocol_version = "HTTP/1.0"
-
-    def log_message(self, format: str, *args: Any) -> None:
-        log.debug("%s: %s %s", self.backend.name, self.address_string(), format % args)
-
-    def _send(self, code: int, body: bytes, ctype: str, head: bool = False,
-              extra: dict[str, str] | None = None) -> None:
-        self.send_response(code)
-        self.send_header("Content-Type", ctype)
-        self.send_header("Content-Length", str(len(body)))
-        self.send_header("Cache-Control", "no-store")
-        for k, val in (extra or {}).items():
-            self.send_header(k, val)
-        self.end_headers()
-        if not head:
-            self.wfile.write(body)
-        self.backend.count(sent=1)
-
-    def _get(self, head: bool) -> None:
-        b = self.backend
-        b.count(requests=1)
-        path = self.path.split("?", 1)[0]
-        try:
-            if path in ("/", "/index.html"):
-                self._send(200, PAGE.encode(), "text/html; charset=utf-8", head)
-            elif path == "/status.json":
-                self._send(200, b.status_bytes(), "application/json", head)
-            elif path == "/metrics":
-                body, ctype = b.metrics()
-                self._send(200, body, ctype, head)
-            elif path == "/events":
-                self._stream(head)
-            else:
-                self._send(404, b"not found\n", "text/plain; charset=utf-8", head)
-        except TimeoutError:  # a client that stopped reading: cut
-            b.count(dropped=1, dropped_client_timeout=1)
-        except ConnectionError:  # the client went away (closed its page)
-            pass
-        except Exception:
-            log.exception("%s: %s failed", b.name, path)
-            b.count(errors=1)
-
-    def _stream(self, head: bool) -> None:
-        b = self.backend
-        if not b.open_stream():
-            self._send(503, b"too many event streams\n", "text/plain; charset=utf-8", head,
-                       {"Retry-After": "5"})
-            return
-        try:
-            self.send_response(200)
-            self.send_header("Content-Type", "text/event-stream")
-            self.send_header("Cache-Control", "no-store")
-            self.end_headers()
-            if head:
-                return
-            self.wfile.write(b"retry: 1000\n\n")
-            for event in b.events():
-                self.wfile.write(event)
-                self.wfile.flush()
-                b.count(sent=1)
-        finally:
-            b.close_stream()
-
-    def do_GET(self) -> None:
-        self._get(head=False)
-
-    def do_HEAD(self) -> None:
-        self._get(head=True)
-
-    def _refuse(self) -> None:
-        self.backend.count(requests=1)
-        self._send(HTTPStatus.METHOD_NOT_ALLOWED, b"read-only: GET or HEAD\n",
-                   "text/plain; charset=utf-8", extra={"Allow": "GET, HEAD"})
-
-    do_POST = do_PUT = do_DELETE = do_PATCH = do_OPTIONS = _refuse
 
 
 PAGE = """<!doctype html>
@@ -503,8 +500,12 @@ function show(s) {
   }
 }
 const events = new EventSource("events");
-events.onopen = () => text("conn", "live");
-events.onerror = () => text("conn", "reconnecting…");
+let lost = null;  // a stream ends every few seconds and reconnects: say so only if it stays off
+events.onopen = () => { clearTimeout(lost); text("conn", "live"); };
+events.onerror = () => {
+  clearTimeout(lost);
+  lost = setTimeout(() => text("conn", "reconnecting…"), 2000);
+};
 events.onmessage = (e) => show(JSON.parse(e.data));
 </script>
 </body></html>

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from gateway.io.endpoints import TCPIN, check_host, check_port, parse_endpoint
-from gateway.options import Flag, Options, option
+from gateway.options import Flag, ListenerOptions, option
 
 #: The host ``--http PORT`` binds to: loopback, so the page is not on the field network
 #: unless asked for (``--http 0.0.0.0:8080``).
@@ -26,7 +26,7 @@ def _listen(text: str) -> dict[str, Any]:
 
 
 @dataclass(frozen=True, kw_only=True)
-class HttpOptions(Options):
+class HttpOptions(ListenerOptions):
     """``[backends.http]``: the status page, /status.json, /events and /metrics."""
 
     TITLE: ClassVar[str] = "HTTP backend"
@@ -38,9 +38,5 @@ class HttpOptions(Options):
                                  "/events (SSE) and /metrics (Prometheus) over HTTP; HOST "
                                  "defaults to 127.0.0.1 (0.0.0.0 to serve the field network; "
                                  "IPv6 as [::1]:PORT)", metavar="[HOST:]PORT", parse=_listen))
-    max_clients: int = option(16, "event streams (/events) served at once; more get 503",
-                              minimum=1, maximum=256)
     event_interval_s: float = option(0.25, "seconds between two events of a stream",
                                      minimum=0.05, maximum=10)
-    client_timeout_s: float = option(5.0, "a client that does not read for this long is cut",
-                                     minimum=0.1, maximum=60)

@@ -10,7 +10,12 @@ from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
-from backends.mavlink.endpoints import Endpoint, EndpointSpec, parse_endpoint
+from backends.mavlink.endpoints import (
+    Endpoint,
+    EndpointSpec,
+    TcpServerEndpoint,
+    parse_endpoint,
+)
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.options import QGC_UDP, MavlinkOptions
 from backends.mavlink.router import Router
@@ -19,6 +24,7 @@ from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.io.endpoints import KINDS, list_validator
 from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.server import ClientLimits, server_stats
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -67,6 +73,7 @@ class MavlinkBackend(Backend):
         self.signing_key_file = options.signing_key_file
         self.signing_passphrase = options.signing_passphrase
         self.serial_queue_depth = options.serial_queue_depth
+        self.limits = ClientLimits.of(options, options.serial_queue_depth)
         # A key that cannot be read is a configuration error, reported before anything starts.
         self.signing_key = self._signing_key()
         self.vehicle = AuroraVehicle(options.sysid, options.compid, rates=options.rates(),
@@ -102,7 +109,7 @@ class MavlinkBackend(Backend):
         except ValueError as exc:
             raise BackendError(str(exc)) from None
         try:
-            endpoints = hub.open(self.specs, GCS, self.serial_queue_depth)
+            endpoints = hub.open(self.specs, GCS, self.serial_queue_depth, self.limits)
         except OSError as exc:
             hub.leave(self.vehicle)
             raise BackendError(str(exc)) from None
@@ -241,6 +248,9 @@ class MavlinkBackend(Backend):
         d: dict[str, Any] = {"sent": sent, "dropped": dropped, "errors": errors,
                              "link": int(up), "dropped_inbox": self.dropped_inbox,
                              "sysid": self.vehicle.sysid, "not_repeated": self.not_repeated,
+                             **server_stats(ep.server for ep in self.endpoints
+                                            if isinstance(ep, TcpServerEndpoint)
+                                            and ep.server is not None),
                              "endpoints": eps}
         if self.router is not None:
             rs = self.router.stats

@@ -41,7 +41,8 @@ from gateway.io.endpoints import KINDS, usage
 from gateway.io.endpoints import Endpoint as EndpointSpec
 from gateway.io.endpoints import parse_endpoint as _parse
 from gateway.io.ioloop import IoLoop
-from gateway.io.port import PortEngine, PortServer
+from gateway.io.port import PortEngine
+from gateway.io.server import ClientLimits, PortServer, server_stats
 from gateway.io.transport import (
     SocketPort,
     TransportError,
@@ -300,13 +301,15 @@ def _not_reopened() -> Any:
 
 
 class TcpServerEndpoint(Endpoint):
-    """``tcpin:HOST:PORT``: accepts any number of clients, each routed as a link of its own
-    (a :class:`PortLink` on an engine that is not reopened: a client that leaves is gone)."""
+    """``tcpin:HOST:PORT``: accepts up to ``limits.max_clients`` clients (a
+    :class:`~gateway.io.server.PortServer`), each routed as a link of its own (a
+    :class:`PortLink` on an engine that is not reopened: a client that leaves is gone)."""
 
     def __init__(self, spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
-                 group: str = "") -> None:
+                 group: str = "", limits: ClientLimits | None = None) -> None:
         super().__init__(spec, group)
         self.queue_depth = queue_depth
+        self.limits = limits or ClientLimits(queue_depth=queue_depth)
         self.clients: list[PortLink] = []
         self.server: PortServer | None = None
         self.address: Any = None
@@ -333,7 +336,8 @@ class TcpServerEndpoint(Endpoint):
     def start(self, loop: IoLoop, router: Router) -> None:
         self._first = self._listen()  # raises (TransportError is an OSError) naming us
         self._loop, self._router = loop, router
-        self.server = PortServer(self._opener, self._on_client, loop=loop, name=self.name)
+        self.server = PortServer(self._opener, self._on_client, loop=loop, name=self.name,
+                                 limits=self.limits)
         self.server.start()
         self.server.wait_bound(START_WAIT_S)
 
@@ -341,13 +345,13 @@ class TcpServerEndpoint(Endpoint):
     def accepted(self) -> int:
         return self.server.accepted if self.server is not None else 0
 
-    def _on_client(self, sock: Any, addr: Any) -> None:  # the loop thread
+    def _on_client(self, sock: Any, addr: Any) -> PortEngine | None:  # the loop thread
         loop, router = self._loop, self._router
         assert loop is not None and router is not None
         name = f"{self.name}<{addr[0]}:{addr[1]}>"
         if self._closing:
             sock.close()
-            return
+            return None
         link = PortLink(name, self.group)
 
         def on_link(up: bool) -> None:
@@ -360,6 +364,7 @@ class TcpServerEndpoint(Endpoint):
         router.add_link(link)
         engine.start_with(SocketPort(sock, name))  # up at once: routed frames are not refused
         log.info("%s: client %s:%s connected", self.name, addr[0], addr[1])
+        return engine
 
     def _client_closed(self, link: PortLink) -> None:
         if link not in self.clients:
@@ -379,6 +384,8 @@ class TcpServerEndpoint(Endpoint):
             d.pop(k, None)
         d["clients"] = len(self.clients)
         d["accepted"] = self.accepted
+        if self.server is not None:
+            d.update(server_stats((self.server,)))
         return d
 
     def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
@@ -421,10 +428,10 @@ class StreamEndpoint(Endpoint, PortLink):
 
 
 def make_endpoint(spec: EndpointSpec, queue_depth: int = DEFAULT_QUEUE_DEPTH,
-                  group: str = "") -> Endpoint:
+                  group: str = "", limits: ClientLimits | None = None) -> Endpoint:
     """The endpoint for ``spec``; its links are in ``group`` (see :attr:`.router.Link.group`)."""
     if spec.kind in ("udpout", "udpin"):
         return UdpEndpoint(spec, queue_depth, group)
     if spec.kind == "tcpin":
-        return TcpServerEndpoint(spec, queue_depth, group)
+        return TcpServerEndpoint(spec, queue_depth, group, limits)
     return StreamEndpoint(spec, queue_depth, group)

@@ -19,6 +19,7 @@ from backends.mavlink.endpoints import Endpoint, EndpointSpec, make_endpoint
 from backends.mavlink.router import LocalNode, Router
 from gateway.backend import GatewayContext
 from gateway.io.ioloop import IoLoop
+from gateway.io.server import ClientLimits
 
 log = logging.getLogger(__name__)
 
@@ -76,14 +77,14 @@ class MavlinkHub:
             self.groups.add(group)
         router.add_node(node, (group,), step=step)
 
-    def open(self, specs: Sequence[EndpointSpec], group: str, queue_depth: int
-             ) -> list[Endpoint]:
+    def open(self, specs: Sequence[EndpointSpec], group: str, queue_depth: int,
+             limits: ClientLimits | None = None) -> list[Endpoint]:
         """Open ``specs`` as links of ``group`` on the hub's loop; OSError naming the first
         that cannot be opened (those opened before it are closed again)."""
         started: list[Endpoint] = []
         try:
             for spec in specs:
-                ep = make_endpoint(spec, queue_depth, group=group)
+                ep = make_endpoint(spec, queue_depth, group=group, limits=limits)
                 started.append(ep)
                 ep.start(self.loop, self.router)
         except OSError:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import KINDS, list_validator, text_of, validator
-from gateway.options import ConfigError, Flag, Options, option
+from gateway.options import ConfigError, Flag, ListenerOptions, Options, option
 
 #: The default endpoint: QGroundControl on this machine.
 QGC_UDP = "udpout:127.0.0.1:14550"
@@ -49,7 +49,7 @@ def _one_signing(options: MavlinkOptions | MavlinkSourceOptions) -> None:
 
 
 @dataclass(frozen=True, kw_only=True)
-class MavlinkOptions(Options):
+class MavlinkOptions(ListenerOptions):
     """``[backends.mavlink]``: the rocket to ground stations, and the router between them."""
 
     TITLE: ClassVar[str] = "MAVLink backend"
@@ -80,10 +80,6 @@ class MavlinkOptions(Options):
                                      "as MAVProxy and QGroundControl derive it)", secret=True)
     serial_queue_depth: int = option(256, "frames queued per link (every endpoint kind)",
                                      minimum=1)
-    max_clients: int = option(32, "clients served at once; more are refused (counted)",
-                              minimum=1)
-    client_timeout_s: float = option(5.0, "a client that stops reading (or never finishes a "
-                                     "request) is cut after this many seconds", minimum=0.1)
     heartbeat_hz: float = _rate("heartbeat_hz", "HEARTBEAT")
     sys_status_hz: float = _rate("sys_status_hz", "SYS_STATUS")
     extended_sys_state_hz: float = _rate("extended_sys_state_hz", "EXTENDED_SYS_STATE")

@@ -40,6 +40,7 @@ from gateway.io.links import (
     parse_stream_endpoint,
 )
 from gateway.io.port import PortEngine
+from gateway.io.server import ClientLimits
 from gateway.model import Battery, Position, SmUpdate, Status
 
 from .codec import Decoder, DecoderStats
@@ -181,7 +182,8 @@ class UavtalkBackend(Backend):
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
-            queue_depth=options.queue_depth, on_closed=self._retire, label="GCS")
+            queue_depth=options.queue_depth, on_closed=self._retire, label="GCS",
+            limits=ClientLimits.of(options, options.queue_depth))
         self._inbox: deque[Any] = deque()
         self._inbox_lock = threading.Lock()
         self._drain_scheduled = False
@@ -316,4 +318,4 @@ class UavtalkBackend(Backend):
                 "dropped_queue": sum(d["dropped"] for d in per.values()) + t["dropped"],
                 "messages": self.messages, "clients": len(links), "connected": connected,
                 "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,
-                "links": per}
+                **self.linkset.server_stats(), "links": per}

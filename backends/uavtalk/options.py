@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import SERIAL, TCP, TCPIN, list_validator, text_of, validator
-from gateway.options import Flag, Options, option
+from gateway.options import Flag, ListenerOptions, Options, option
 
 #: A serial endpoint's baud rate when it names none (LibrePilot's telemetry port).
 DEFAULT_SERIAL_BAUD = 57600
@@ -24,7 +24,7 @@ URL_KINDS = (TCP, SERIAL)
 
 
 @dataclass(frozen=True, kw_only=True)
-class UavtalkOptions(Options):
+class UavtalkOptions(ListenerOptions):
     """``[backends.uavtalk]``: the rocket to LibrePilot ground stations."""
 
     TITLE: ClassVar[str] = "UAVTalk backend"
@@ -47,10 +47,6 @@ class UavtalkOptions(Options):
                               maximum=4096)
     inbox_depth: int = option(256, "gateway messages waiting for the loop before drops",
                               minimum=1, maximum=65536)
-    max_clients: int = option(32, "clients served at once; more are refused (counted)",
-                              minimum=1)
-    client_timeout_s: float = option(5.0, "a client that stops reading (or never finishes a "
-                                     "request) is cut after this many seconds", minimum=0.1)
 
 
 @dataclass(frozen=True, kw_only=True)

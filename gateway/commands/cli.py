@@ -27,6 +27,7 @@ from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
 from gateway.io.backoff import Backoff
+from gateway.io.server import SERVER_KEYS
 from gateway.options import Options, add_flag, options_of
 from gateway.sources import check_serial_url, parse_source_url
 
@@ -471,6 +472,11 @@ def _report(summary: dict[str, Any]) -> None:
     for path in summary.get("recordings") or ():
         print(f"recording: {path}", file=sys.stderr)
     print("dropped: " + ("; ".join(drops) if drops else "nothing"), file=sys.stderr)
+    refusals = [f"{name} " + " ".join(f"{k}={st[k]}" for k in SERVER_KEYS if st.get(k))
+                for name, st in summary["backends"].items()
+                if any(isinstance(st.get(k), int) and st.get(k) for k in SERVER_KEYS)]
+    if refusals:  # a listener refused or cut clients (gateway.io.server)
+        print("clients: " + "; ".join(refusals), file=sys.stderr)
 
 
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:

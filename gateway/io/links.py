@@ -15,7 +15,9 @@ A link is the backend's own object (its engine's protocol: ``feed(data)`` return
 optionally ``flush()``; ``on_link(up)`` is called when a stream's port goes up or down) with an
 ``engine`` attribute that :class:`LinkSet` sets.  Every engine shares the set's loop (one
 thread); a client that leaves is closed and handed to ``on_closed`` so the backend can keep
-its counters.
+its counters.  Every ``tcpin`` listener is a :class:`~gateway.io.server.PortServer` held to
+the backend's :class:`~gateway.io.server.ClientLimits` (``max_clients``,
+``client_timeout_s``): :meth:`LinkSet.server_stats` counts its refusals and cuts.
 """
 
 from __future__ import annotations
@@ -35,7 +37,8 @@ from gateway.io.endpoints import (
     usage,
 )
 from gateway.io.ioloop import IoLoop
-from gateway.io.port import PortEngine, PortServer
+from gateway.io.port import PortEngine
+from gateway.io.server import ClientLimits, PortServer, server_stats
 from gateway.io.transport import (
     SocketPort,
     open_serial_nonblocking,
@@ -79,7 +82,7 @@ class LinkSet(Generic[L]):
     def __init__(self, name: str, specs: list[Endpoint], *, loop: IoLoop,
                  new_link: Callable[[str, Endpoint], L], queue_depth: int,
                  on_closed: Callable[[L], Any] | None = None,
-                 label: str = "client") -> None:
+                 label: str = "client", limits: ClientLimits | None = None) -> None:
         self.name = name
         self.specs = specs
         self.loop = loop
@@ -87,6 +90,7 @@ class LinkSet(Generic[L]):
         self.queue_depth = queue_depth
         self.on_closed = on_closed
         self.label = label
+        self.limits = limits or ClientLimits(queue_depth=queue_depth)
         self.links: list[L] = []  # mutated on the loop thread only; read anywhere as a copy
         self.servers: list[tuple[Endpoint, PortServer]] = []
         self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
@@ -130,15 +134,21 @@ class LinkSet(Generic[L]):
             return pending.pop() if pending else open_tcp_listener(spec.host, address[1])
 
         server = PortServer(opener, lambda sock, addr: self._on_client(spec, sock, addr),
-                            loop=self.loop, name=f"{self.name} {spec.text}")
+                            loop=self.loop, name=f"{self.name} {spec.text}",
+                            limits=self.limits)
         self.servers.append((spec, server))
         server.start()
 
-    def _on_client(self, spec: Endpoint, sock: Any, addr: Any) -> None:  # loop thread
+    def server_stats(self) -> dict[str, int]:
+        """The listeners' refusals and cuts (see :func:`gateway.io.server.server_stats`)."""
+        return server_stats(server for _, server in self.servers)
+
+    def _on_client(self, spec: Endpoint, sock: Any,
+                   addr: Any) -> PortEngine | None:  # loop thread
         name = f"{spec.text}<{addr[0]}:{addr[1]}>"
         if not self._running:
             sock.close()
-            return
+            return None
         link = self.new_link(name, spec)
 
         def on_link(up: bool) -> None:
@@ -153,6 +163,7 @@ class LinkSet(Generic[L]):
         self.links.append(link)
         link.engine.start_with(SocketPort(sock, name))
         log.info("%s: %s %s:%s connected", self.name, self.label, addr[0], addr[1])
+        return link.engine
 
     def _client_closed(self, link: L) -> None:
         if link not in self.links:

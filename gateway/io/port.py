@@ -145,6 +145,7 @@ class PortEngine:
         loop: IoLoop | None = None,
         reopen: bool = True,
         poll_s: float = DEFAULT_POLL_S,
+        hangup_level: int = logging.INFO,
     ) -> None:
         if queue_depth < 1:
             raise ValueError("queue_depth must be at least 1")
@@ -160,6 +161,9 @@ class PortEngine:
         self.stats = PortStats()
         self.reopen = reopen
         self.poll_s = poll_s
+        #: How a peer hanging up on an engine that is not reopened is logged (a served
+        #: client's end; DEBUG for a server whose clients come and go by the hundred).
+        self.hangup_level = hangup_level
         self._opener = opener
         self._backoff = backoff or Backoff(REOPEN_FIRST_S, REOPEN_MAX_S)
         self._clock = clock
@@ -186,6 +190,13 @@ class PortEngine:
         self._shut = threading.Event()
         self._last_accepted: float | None = None
         self._outage_logged = False
+        self._blocked_since: float | None = None  # a write has waited for room since then
+        self._finish = False  # close once everything queued is written (finish())
+        self._abort_next = False  # cut(): close the port with a reset where it can
+        #: Since when the peer's request has been incomplete (None: not waiting for one): set
+        #: by the protocol of a served client; a :class:`~gateway.io.server.PortServer` cuts
+        #: a client whose request stays incomplete too long.
+        self.partial_since: float | None = None
 
     # -- any thread --------------------------------------------------------------------------
 
@@ -273,6 +284,38 @@ class PortEngine:
 
     def queued(self) -> int:
         return len(self._queue)
+
+    @property
+    def alive(self) -> bool:
+        """Started, not closed and its port attached (or being opened): a server's client
+        that still holds its slot."""
+        return self._started and not self._closing and (self._port is not None
+                                                       or self.reopen)
+
+    def stalled_for(self, now: float) -> float:
+        """How long something has waited for the port to take it (0: nothing waits): a
+        client that stopped reading."""
+        since = self._blocked_since
+        return 0.0 if since is None else now - since
+
+    def cut(self, why: str) -> None:
+        """Close the port now, dropping what is queued (a server cutting a client); on the
+        engine's thread.  ``on_link(False)`` follows; nothing is logged (the server logs its
+        cuts once per burst)."""
+        if self._port is not None:
+            log.debug("%s: cut (%s)", self.name, why)
+            self._abort_next = True  # a reset: what is unsent is dropped (SocketPort.abort)
+            self._fail(None, why)
+
+    def finish(self) -> None:
+        """Close the port once everything queued has been written (an answer, then the end
+        of the connection); on the engine's thread."""
+        if self._port is None:
+            return
+        if self._queue or self._pending or self._writing or self._flush_scheduled:
+            self._finish = True
+        else:
+            self._fail(None, "finished")
 
     def stats_dict(self) -> dict[str, int]:
         """The counters with the totals (``dropped``, ``errors``) and ``link`` (1 up, 0 down)."""
@@ -630,7 +673,8 @@ class PortEngine:
                 else:
                     self._flush_scheduled = False
                     self._idle.notify_all()
-                    return
+                    finish = self._finish
+                    break
                 self._writing = True
             try:
                 n = port.write(data)
@@ -647,11 +691,16 @@ class PortEngine:
                     st.sent_bytes += len(data)
                 if n is not None and n < len(data):
                     self._pending = data[n:]  # a non-blocking socket took part: wait for room
+                    if self._blocked_since is None:
+                        self._blocked_since = time.monotonic()
                     self._set_interest(write=True)
                     return
                 if self._pending:
                     self._pending = b""
                     self._set_interest(write=False)
+                self._blocked_since = None
+        if finish:
+            self._fail(None, "finished")
 
     def _write_now(self, data: bytes) -> None:
         """Write one frame submitted on the engine's thread while nothing was queued or
@@ -671,6 +720,8 @@ class PortEngine:
         if n is not None and n < len(data):
             with self._lock:
                 self._pending = data[n:]  # the rest when the port has room, before the queue
+                if self._blocked_since is None:
+                    self._blocked_since = time.monotonic()
                 self._flush_scheduled = True
                 self._writing = False
                 self._set_interest(write=True)
@@ -691,7 +742,7 @@ class PortEngine:
         if exc is not None:
             # A peer hanging up on a connection we do not reopen (an accepted client) is the
             # normal end of it, not a fault.
-            level = (logging.INFO if not self.reopen and isinstance(exc, ConnectionError)
+            level = (self.hangup_level if not self.reopen and isinstance(exc, ConnectionError)
                      else logging.WARNING)
             log.log(level, "%s: %s (%s); %s", self.name, what, exc,
                     "reopening" if self.reopen else "closed (not reopened)")
@@ -708,6 +759,8 @@ class PortEngine:
             self.stats.dropped_not_ready += len(self._queue)
             self._queue.clear()
             self._pending = b""
+            self._blocked_since = None
+            self._finish = False
             self._flush_scheduled = False
             self._idle.notify_all()
         if self._fd is not None:
@@ -737,8 +790,9 @@ class PortEngine:
                 handler(ev)
 
     def _close_port(self, port: Any) -> None:
+        abort, self._abort_next = self._abort_next, False
         try:
-            port.close()
+            getattr(port, "abort", port.close)() if abort else port.close()
         except Exception:
             log.debug("%s: error closing the port", self.name, exc_info=True)
 
@@ -798,109 +852,3 @@ def _lent_settings(port: Any) -> dict[str, Any]:
                 saved[name] = getattr(port, name)
     return saved
 
-
-class PortServer:
-    """A TCP listener on a loop: bound (and re-bound after a failure) with backoff; every
-    client it accepts is handed to ``on_client(sock, address)``, which typically wraps it in a
-    :class:`PortEngine` on the same loop with ``reopen=False``."""
-
-    def __init__(
-        self,
-        opener: Callable[[], Any],
-        on_client: Callable[[Any, Any], Any],
-        *,
-        loop: IoLoop,
-        name: str = "server",
-        backoff: Backoff | None = None,
-    ) -> None:
-        self.name = name
-        self.loop = loop
-        self.accepted = 0
-        self.bind_failures = 0
-        self.sock: Any = None
-        self._opener = opener
-        self._on_client = on_client
-        self._backoff = backoff or Backoff(REOPEN_FIRST_S, REOPEN_MAX_S)
-        self._bound = threading.Event()
-        self._retry: Timer | None = None
-        self._closing = False
-        self._logged = False
-
-    @property
-    def address(self) -> Any:
-        sock = self.sock
-        return sock.getsockname() if sock is not None else None
-
-    def start(self) -> None:
-        self._closing = False
-        self.loop.call_soon(self._bind)
-
-    def wait_bound(self, timeout: float) -> bool:
-        return self._bound.wait(timeout)
-
-    def _bind(self) -> None:
-        self._retry = None
-        if self._closing or self.sock is not None:
-            return
-        try:
-            sock = self._opener()
-        except Exception as exc:
-            self.bind_failures += 1
-            if not self._logged:
-                self._logged = True
-                log.warning("%s: %s; retrying", self.name, exc)
-            self._retry = self.loop.call_later(self._backoff.next(), self._bind)
-            return
-        if self._logged:
-            log.info("%s: listening", self.name)
-        self._logged = False
-        self._backoff.reset()
-        self.sock = sock
-        self.loop.register(sock, selectors.EVENT_READ, self._on_accept)
-        self._bound.set()
-
-    def _on_accept(self, mask: int) -> None:
-        sock = self.sock
-        if sock is None:
-            return
-        try:
-            conn, addr = sock.accept()
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:  # the listener itself failed: bind it again
-            log.warning("%s: accept failed (%s); listening again", self.name, exc)
-            self._drop_listener()
-            self._retry = self.loop.call_later(self._backoff.next(), self._bind)
-            return
-        self.accepted += 1
-        self._on_client(conn, addr)
-
-    def _drop_listener(self) -> None:
-        sock, self.sock = self.sock, None
-        self._bound.clear()
-        if sock is not None:
-            self.loop.unregister(sock)
-            with contextlib.suppress(OSError):
-                sock.close()
-
-    def close(self) -> None:
-        """Stop listening (clients are their engines' to close); safe twice, any thread."""
-        self._closing = True
-        if self.loop.in_loop_thread or not self.loop.running:
-            self._close_now()
-        else:
-            done = threading.Event()
-
-            def close_now() -> None:
-                self._close_now()
-                done.set()
-
-            self.loop.call_soon(close_now)
-            if not done.wait(1.0):
-                self._close_now()
-
-    def _close_now(self) -> None:
-        if self._retry is not None:
-            self._retry.cancel()
-            self._retry = None
-        self._drop_listener()

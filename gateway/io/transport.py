@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import select
 import socket
+import struct
 import time
 from collections import OrderedDict
 from typing import Any, Protocol
@@ -102,6 +103,10 @@ SOCKET_BUFFER = 4 * 1024 * 1024
 #: mavlink-router keeps the system's default (208 KiB), the same order.
 UDP_RCVBUF = 256 * 1024
 MAX_UDP_PEERS = 16
+#: Connections the kernel queues for a listener before we accept them: a burst of connects
+#: waits here (for the loop to accept or refuse them) rather than having its SYNs dropped and
+#: retried a second later.  (The kernel caps it at net.core.somaxconn, 4096 by default.)
+LISTEN_BACKLOG = 1024
 
 
 def resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
@@ -148,6 +153,17 @@ class SocketPort:
         with contextlib.suppress(OSError):
             self.sock.shutdown(socket.SHUT_RDWR)
         self.sock.close()
+
+    def abort(self) -> None:
+        """Close with a reset, dropping what is unsent: a peer that stopped reading would
+        otherwise hold the connection (and the kernel's buffers) open behind our close, its
+        window shut to our FIN."""
+        with contextlib.suppress(OSError):
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, _LINGER_RESET)
+        self.sock.close()
+
+
+_LINGER_RESET = struct.pack("ii", 1, 0)
 
 
 def open_tcp_client(host: str, port: int, timeout: float = 2.0) -> SocketPort:
@@ -282,7 +298,7 @@ def _udp_socket(family: int, how: str, addr: Any, host: str, port: int) -> socke
     return sock
 
 
-def open_tcp_listener(host: str, port: int, backlog: int = 16) -> socket.socket:
+def open_tcp_listener(host: str, port: int, backlog: int = LISTEN_BACKLOG) -> socket.socket:
     """A non-blocking listening socket on ``host:port``; raises :class:`TransportError`."""
     family, addr = resolve(host, port, socket.SOCK_STREAM)
     sock = socket.socket(family, socket.SOCK_STREAM)
