@@ -157,3 +157,13 @@ class Running:
     def text(self, name: str) -> str:
         with self.cond:
             return "\n".join(self.lines[name])
+
+
+def post(backend: Any, msg: Any) -> Any:
+    """Hand ``msg`` to ``backend`` as the dispatcher does: its routed handler, through the
+    routes' hand-over when they name one (then the handler runs on the backend's loop); the
+    outcome."""
+    routes = backend.routes()
+    handler = dict(routes)[type(msg)]
+    handover = routes.handover
+    return handler(msg) if handover is None else handover.post(handler, msg)
