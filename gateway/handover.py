@@ -23,7 +23,9 @@ and the dispatcher, instead of calling ``_on_sm_update`` in its own thread, call
 * **isolated**: a handler that raises is logged (once per kind of error) and counted
   (``handler_errors``); the next message is handled as usual;
 * ``after_batch`` (optional) runs on the loop after each drained batch: a backend that
-  coalesces (one store update per batch, not per message) flushes there.
+  coalesces (one store update or one send per batch, not per message) flushes there;
+* ``lock`` (optional) is held around each batch and its ``after_batch``: a backend whose
+  state another thread also touches takes its lock once per batch, not once per message.
 
 :meth:`Handover.close` stops accepting, then runs what is queued within its time bound;
 what it could not run is discarded and counted (``dropped_closed``).
@@ -31,6 +33,7 @@ what it could not run is discarded and counted (``dropped_closed``).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import threading
@@ -62,13 +65,15 @@ class Handover:
 
     def __init__(self, name: str, depth: int = DEFAULT_DEPTH, *,
                  ready: Callable[[], bool] | None = None,
-                 after_batch: Callable[[], Any] | None = None) -> None:
+                 after_batch: Callable[[], Any] | None = None,
+                 lock: contextlib.AbstractContextManager[Any] | None = None) -> None:
         if depth < 1:
             raise ValueError("a hand-over's depth must be at least 1")
         self.name = name
         self.depth = depth
         self.ready = ready
         self.after_batch = after_batch
+        self.lock = lock  # may be set until open()
         self._loop: IoLoop | None = None
         self._queue: deque[tuple[AnyHandler, Any]] = deque()
         self._scheduled = False  # a drain is scheduled and has not started
@@ -183,6 +188,10 @@ class Handover:
         """Handle the batch queued when the drain starts (later posts schedule another);
         closing, stop at ``deadline``."""
         self._scheduled = False
+        with self.lock or contextlib.nullcontext():
+            self._batch(deadline)
+
+    def _batch(self, deadline: float | None) -> None:
         q = self._queue
         pop = q.popleft
         n = 0

@@ -196,3 +196,35 @@ def test_close_discards_counted_within_its_bound_when_the_loop_is_stuck(loop: Io
 def test_a_depth_below_one_is_refused() -> None:
     with pytest.raises(ValueError, match="depth"):
         Handover("x", 0)
+
+
+class CountingLock:
+    """A context manager that says whether it is held and how often it was taken."""
+
+    def __init__(self) -> None:
+        self.held = False
+        self.taken = 0
+
+    def __enter__(self) -> None:
+        self.held = True
+        self.taken += 1
+
+    def __exit__(self, *exc: object) -> None:
+        self.held = False
+
+
+def test_the_lock_is_held_once_per_batch_around_the_handlers(loop: IoLoop) -> None:
+    lock = CountingLock()
+    seen: list[bool] = []
+    h = Handover("locked", 64, lock=lock, after_batch=lambda: seen.append(lock.held))
+    h.open(loop)
+
+    def handler(msg: SmUpdate) -> None:
+        seen.append(lock.held)
+
+    with HeldLoop(loop):
+        for i in range(10):
+            h.post(handler, sm(i))
+    assert h.barrier(DEADLINE_S)
+    assert seen == [True] * 11 and lock.taken == 1 and not lock.held
+    h.close()

@@ -6,8 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Callable
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 from backends.mavlink import signing
 from backends.mavlink.endpoints import Endpoint, EndpointSpec, parse_endpoint
@@ -31,8 +30,6 @@ from gateway.model import (
 )
 
 log = logging.getLogger(__name__)
-
-M = TypeVar("M")
 
 QGC_UDP = "udpout:127.0.0.1:14550"
 #: Gateway messages waiting for the loop before drops (QUEUE_FULL, counted).
@@ -128,7 +125,9 @@ class MavlinkBackend(Backend):
         self.router: Router | None = None
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
-        self.handover = Handover(self.name, INBOX_DEPTH)
+        # the messages a batch of the gateway's makes, sent once after the batch
+        self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out)
+        self._out: list[Any] = []
         self._ticker: Timer | None = None
         self._spoken = False
         self._started_at = 0.0
@@ -157,6 +156,7 @@ class MavlinkBackend(Backend):
             raise BackendError(str(exc)) from None
         self.hub, self.loop, self.router, self.endpoints = hub, hub.loop, hub.router, endpoints
         self._started_at = time.monotonic()
+        self.handover.lock = hub.router.lock  # the vehicle's state is the router's too
         self.handover.open(hub.loop)
         self._ticker = hub.loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
         log.info("%s: MAVLink system %d on %s%s", self.name, self.sysid,
@@ -201,15 +201,13 @@ class MavlinkBackend(Backend):
             if out and self._may_speak():
                 router.broadcast(out, self.vehicle)
 
-    def _stream(self, update: Callable[[M], list[Any]], msg: M) -> None:
-        """``update(msg)`` under the router's lock, its messages to the ground stations."""
+    def _send_out(self) -> None:
+        """After a batch of the gateway's messages (under the router's lock): what they made,
+        to the ground stations."""
+        out, self._out = self._out, []
         router = self.router
-        if router is None:
-            return
-        with router.lock:
-            out = update(msg)
-            if out and self._may_speak():
-                router.broadcast(out, self.vehicle)
+        if out and router is not None and self._may_speak():
+            router.broadcast(out, self.vehicle)
 
     def _repeats(self, msg: Any) -> bool:
         """``msg`` came from a MAVLink system on our router: its own frames are routed to the
@@ -219,7 +217,7 @@ class MavlinkBackend(Backend):
             return True
         return False
 
-    # -- handlers (on the loop, handed over by the dispatcher) -----------------------------------
+    # -- handlers (on the loop, handed over by the dispatcher, under the router's lock) ---------
 
     def routes(self) -> Routes:
         return (Routes(handover=self.handover).on(SmUpdate, self.send_sm_update)
@@ -231,7 +229,7 @@ class MavlinkBackend(Backend):
     def send_rc_channels(self, msg: RcChannels) -> None:
         if msg.origin == self.name or self._repeats(msg):
             return  # a ground station's override: not the rocket's to repeat
-        self._stream(self.vehicle.on_rc_channels, msg)
+        self._out += self.vehicle.on_rc_channels(msg)
 
     def _on_rc(self, channels: tuple[int | None, ...]) -> None:
         """A ground station's RC override or manual control for the rocket (the loop's
@@ -240,29 +238,29 @@ class MavlinkBackend(Backend):
 
     def send_sm_update(self, msg: SmUpdate) -> None:
         if not self._repeats(msg):
-            self._stream(self.vehicle.on_sm_update, msg)
+            self._out += self.vehicle.on_sm_update(msg)
 
     def send_status(self, msg: Status) -> None:
         if not self._repeats(msg):
-            self._stream(self.vehicle.on_status, msg)
+            self._out += self.vehicle.on_status(msg)
 
     def send_position(self, msg: Position) -> None:
         if msg.via.startswith(VIA_MAVLINK) or self._repeats(msg):
             return  # it came from a MAVLink vehicle: it speaks for itself
-        self._stream(self.vehicle.on_position, msg)
+        self._out += self.vehicle.on_position(msg)
 
     def send_battery(self, msg: Battery) -> None:
         if msg.via.startswith(VIA_MAVLINK) or self._repeats(msg):
             return
-        self._stream(self.vehicle.on_battery, msg)
+        self._out += self.vehicle.on_battery(msg)
 
     def send_vehicle_state(self, msg: VehicleState) -> None:
         if not self._repeats(msg):  # a non-Aurora vehicle (UAVTalk): shown as this system
-            self._stream(self.vehicle.on_vehicle_state, msg)
+            self._out += self.vehicle.on_vehicle_state(msg)
 
     def send_link_stats(self, msg: LinkStats) -> None:
         if not self._repeats(msg):
-            self._stream(self.vehicle.on_link_stats, msg)  # → RADIO_STATUS
+            self._out += self.vehicle.on_link_stats(msg)  # → RADIO_STATUS
 
     def on_link(self, ev: LinkEvent) -> Outcome:
         return Outcome.ACCEPTED  # staleness is judged from the updates themselves
