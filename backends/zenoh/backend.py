@@ -215,23 +215,34 @@ class ZenohBackend(Backend):
     # -- handlers (on the backend's loop, handed over by the dispatcher) ------------------------
 
     def routes(self) -> Routes:
-        routes = Routes(handover=self.handover).on(RawFrame, self.send_raw)
-        for cls in MESSAGE_TYPES:  # every message of the model is published
-            if cls is not RawFrame:
+        routes = (Routes(handover=self.handover).on(RawFrame, self.send_raw)
+                  .on(SmUpdate, self.send_framed).on(Status, self.send_framed))
+        for cls in MESSAGE_TYPES:  # every other message of the model: its document
+            if cls not in (RawFrame, SmUpdate, Status):
                 routes.on(cls, self.publish)
         return routes
 
-    def publish(self, msg: Any) -> None:
-        """Publish one message (the handler of every routed type but RawFrame)."""
-        if msg.via.startswith(VIA_ZENOH):  # it came in over Zenoh: publishing it would loop
+    def _loops(self, msg: Any) -> bool:
+        """It came in over Zenoh: publishing it would loop (counted)."""
+        if msg.via.startswith(VIA_ZENOH):
             self.skipped_from_zenoh += 1
-            return
-        self._publish(msg)
+            return True
+        return False
+
+    def publish(self, msg: Any) -> None:
+        """A message of the model: its document on its kind's key."""
+        if not self._loops(msg):
+            self._publish(msg, doc=True, raw=False)
+
+    def send_framed(self, msg: SmUpdate | Status) -> None:
+        """An SM update or STATUS: its document, and its wire frame on raw/<type> (if raw)."""
+        if not self._loops(msg):
+            self._publish(msg, doc=True, raw=self.publish_raw)
 
     def send_raw(self, msg: RawFrame) -> None:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
-        if self.publish_raw:
-            self.publish(msg)
+        if self.publish_raw and not self._loops(msg):
+            self._publish(msg, doc=False, raw=True)
 
     @property
     def accepted(self) -> int:
@@ -349,25 +360,23 @@ class ZenohBackend(Backend):
         self._latest[key] = (payload, self._encodings[encoding], att)
         return True
 
-    def _publish(self, msg: Any) -> None:
+    def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
+        """Put ``msg``'s document and/or its wire frame; a message that cannot be encoded is
+        skipped, counted (``publish_errors``)."""
         try:
-            self._publish_one(msg)
-        except Exception as exc:  # e.g. a message that cannot be encoded: skip it, go on
+            ok = False
+            if doc:
+                payload, encoding = enc.encode(msg, self.encoding)
+                ok = self._put(self.layout.kind(kind(msg)), payload, encoding)
+            if raw:
+                frame = enc.wire_frame(msg)
+                ok = self._put(self.layout.raw(frame[2]), frame, enc.WIRE) or ok
+        except Exception as exc:
             self.publish_errors += 1
             if self.publish_errors == 1:
                 log.warning("zenoh %s: cannot publish %s: %s: %s", self.name,
                             type(msg).__name__, type(exc).__name__, exc)
-
-    def _publish_one(self, msg: Any) -> None:
-        ok = False
-        t = type(msg)
-        layout = self.layout
-        if t is not RawFrame:
-            payload, encoding = enc.encode(msg, self.encoding)
-            ok = self._put(layout.kind(kind(msg)), payload, encoding)
-        if self.publish_raw and (t is RawFrame or t is SmUpdate or t is Status):
-            frame = enc.wire_frame(msg)
-            ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok
+            return
         if ok:
             self.sent += 1
 
