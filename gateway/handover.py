@@ -25,7 +25,11 @@ and the dispatcher, instead of calling ``_on_sm_update`` in its own thread, call
 * ``after_batch`` (optional) runs on the loop after each drained batch: a backend that
   coalesces (one store update or one send per batch, not per message) flushes there;
 * ``lock`` (optional) is held around each batch and its ``after_batch``: a backend whose
-  state another thread also touches takes its lock once per batch, not once per message.
+  state another thread also touches takes its lock once per batch, not once per message;
+* ``skip`` (optional) is asked in the poster's thread, before anything is queued: a message
+  it says yes to is not the backend's to handle (it came from where the backend would send
+  it: loop prevention) and is accepted at once, without waking the loop.  It must be cheap,
+  never block, and count what it skips itself.
 
 :meth:`Handover.close` stops accepting, then runs what is queued within its time bound;
 what it could not run is discarded and counted (``dropped_closed``).
@@ -66,7 +70,8 @@ class Handover:
     def __init__(self, name: str, depth: int = DEFAULT_DEPTH, *,
                  ready: Callable[[], bool] | None = None,
                  after_batch: Callable[[], Any] | None = None,
-                 lock: contextlib.AbstractContextManager[Any] | None = None) -> None:
+                 lock: contextlib.AbstractContextManager[Any] | None = None,
+                 skip: Callable[[Any], bool] | None = None) -> None:
         if depth < 1:
             raise ValueError("a hand-over's depth must be at least 1")
         self.name = name
@@ -74,6 +79,7 @@ class Handover:
         self.ready = ready
         self.after_batch = after_batch
         self.lock = lock  # may be set until open()
+        self.skip = skip
         self._loop: IoLoop | None = None
         self._queue: deque[tuple[AnyHandler, Any]] = deque()
         self._scheduled = False  # a drain is scheduled and has not started
@@ -141,6 +147,9 @@ class Handover:
 
     def post(self, handler: AnyHandler, msg: Any) -> Outcome:
         """Queue ``handler(msg)`` for the loop; never blocks."""
+        skip = self.skip
+        if skip is not None and skip(msg):
+            return _ACCEPTED
         loop = self._loop
         if loop is None or (self.ready is not None and not self.ready()):
             self.dropped_not_ready += 1

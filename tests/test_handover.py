@@ -228,3 +228,25 @@ def test_the_lock_is_held_once_per_batch_around_the_handlers(loop: IoLoop) -> No
     assert h.barrier(DEADLINE_S)
     assert seen == [True] * 11 and lock.taken == 1 and not lock.held
     h.close()
+
+
+def test_skipped_messages_are_accepted_in_the_posters_thread_never_queued(loop: IoLoop) -> None:
+    skipped: list[SmUpdate] = []
+
+    def mine(msg: SmUpdate) -> bool:  # e.g. it came from where the backend would send it
+        if msg.timestamp_ms % 2:
+            skipped.append(msg)
+            return True
+        return False
+
+    h = Handover("skipping", 4, skip=mine)
+    h.open(loop)
+    got: list[SmUpdate] = []
+    with HeldLoop(loop):
+        outcomes = [h.post(got.append, sm(i)) for i in range(10)]
+        assert h.queued() == 4  # the odd ones take no room: four even fit, the fifth is refused
+    assert outcomes == [Outcome.ACCEPTED] * 8 + [Outcome.QUEUE_FULL, Outcome.ACCEPTED]
+    assert h.barrier(DEADLINE_S)
+    assert [m.timestamp_ms for m in got] == [0, 2, 4, 6]
+    assert [m.timestamp_ms for m in skipped] == [1, 3, 5, 7, 9]
+    h.close()

@@ -126,7 +126,9 @@ class MavlinkBackend(Backend):
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
         # the messages a batch of the gateway's makes, sent once after the batch
-        self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out)
+        # (what came from a MAVLink system on our router is skipped in the dispatcher's thread)
+        self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out,
+                                 skip=self._repeats)
         self._out: list[Any] = []
         self._ticker: Timer | None = None
         self._spoken = False
@@ -211,7 +213,8 @@ class MavlinkBackend(Backend):
 
     def _repeats(self, msg: Any) -> bool:
         """``msg`` came from a MAVLink system on our router: its own frames are routed to the
-        ground stations already; repeating them as the rocket's would show it twice."""
+        ground stations already; repeating them as the rocket's would show it twice (the
+        hand-over's ``skip``: the dispatcher's thread)."""
         if self.route and msg.via.startswith(VIA_MAVLINK):
             self.not_repeated += 1
             return True
@@ -227,7 +230,7 @@ class MavlinkBackend(Backend):
                 .on(RcChannels, self.send_rc_channels))
 
     def send_rc_channels(self, msg: RcChannels) -> None:
-        if msg.origin == self.name or self._repeats(msg):
+        if msg.origin == self.name:
             return  # a ground station's override: not the rocket's to repeat
         self._out += self.vehicle.on_rc_channels(msg)
 
@@ -237,30 +240,27 @@ class MavlinkBackend(Backend):
         self.emit(RcChannels(channels, origin=self.name))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
-        if not self._repeats(msg):
-            self._out += self.vehicle.on_sm_update(msg)
+        self._out += self.vehicle.on_sm_update(msg)
 
     def send_status(self, msg: Status) -> None:
-        if not self._repeats(msg):
-            self._out += self.vehicle.on_status(msg)
+        self._out += self.vehicle.on_status(msg)
 
     def send_position(self, msg: Position) -> None:
-        if msg.via.startswith(VIA_MAVLINK) or self._repeats(msg):
+        if msg.via.startswith(VIA_MAVLINK):
             return  # it came from a MAVLink vehicle: it speaks for itself
         self._out += self.vehicle.on_position(msg)
 
     def send_battery(self, msg: Battery) -> None:
-        if msg.via.startswith(VIA_MAVLINK) or self._repeats(msg):
+        if msg.via.startswith(VIA_MAVLINK):
             return
         self._out += self.vehicle.on_battery(msg)
 
     def send_vehicle_state(self, msg: VehicleState) -> None:
-        if not self._repeats(msg):  # a non-Aurora vehicle (UAVTalk): shown as this system
-            self._out += self.vehicle.on_vehicle_state(msg)
+        # a non-Aurora vehicle (UAVTalk): shown as this system
+        self._out += self.vehicle.on_vehicle_state(msg)
 
     def send_link_stats(self, msg: LinkStats) -> None:
-        if not self._repeats(msg):
-            self._out += self.vehicle.on_link_stats(msg)  # → RADIO_STATUS
+        self._out += self.vehicle.on_link_stats(msg)  # → RADIO_STATUS
 
     def on_link(self, ev: LinkEvent) -> Outcome:
         return Outcome.ACCEPTED  # staleness is judged from the updates themselves

@@ -123,7 +123,8 @@ class ZenohBackend(Backend):
 
         self._stop = threading.Event()
         self._ready = threading.Event()
-        self.handover = Handover(self.name, queue_depth, ready=self._ready.is_set)
+        self.handover = Handover(self.name, queue_depth, ready=self._ready.is_set,
+                                 skip=self._loops)
         self._loop: IoLoop | None = None
         self._timers: list[Timer] = []
         self._session: Any = None
@@ -223,7 +224,8 @@ class ZenohBackend(Backend):
         return routes
 
     def _loops(self, msg: Any) -> bool:
-        """It came in over Zenoh: publishing it would loop (counted)."""
+        """It came in over Zenoh: publishing it would loop (counted; the hand-over's ``skip``,
+        in the dispatcher's thread)."""
         if msg.via.startswith(VIA_ZENOH):
             self.skipped_from_zenoh += 1
             return True
@@ -231,17 +233,15 @@ class ZenohBackend(Backend):
 
     def publish(self, msg: Any) -> None:
         """A message of the model: its document on its kind's key."""
-        if not self._loops(msg):
-            self._publish(msg, doc=True, raw=False)
+        self._publish(msg, doc=True, raw=False)
 
     def send_framed(self, msg: SmUpdate | Status) -> None:
         """An SM update or STATUS: its document, and its wire frame on raw/<type> (if raw)."""
-        if not self._loops(msg):
-            self._publish(msg, doc=True, raw=self.publish_raw)
+        self._publish(msg, doc=True, raw=self.publish_raw)
 
     def send_raw(self, msg: RawFrame) -> None:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
-        if self.publish_raw and not self._loops(msg):
+        if self.publish_raw:
             self._publish(msg, doc=False, raw=True)
 
     @property
