@@ -137,19 +137,23 @@ class _Waker:
         return self._efd if self._pair is None else self._pair[0].fileno()
 
     def wake(self) -> None:
-        with contextlib.suppress(BlockingIOError, OSError):  # full: a wake-up is pending
+        try:  # (no context manager: this is every cross-thread hand-over's cost)
             if self._pair is None:
                 os.eventfd_write(self._efd, 1)
             else:
                 self._pair[1].send(b"\0")
+        except OSError:  # full (a wake-up is pending) or closed
+            pass
 
     def clear(self) -> None:
-        with contextlib.suppress(BlockingIOError, OSError):
+        try:
             if self._pair is None:
                 os.eventfd_read(self._efd)  # the whole count at once
             else:
                 while self._pair[0].recv(4096):
                     pass
+        except OSError:  # nothing (more) to read
+            pass
 
     def close(self) -> None:
         if self._pair is None:

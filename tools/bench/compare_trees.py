@@ -55,15 +55,24 @@ def _figures(kind: str, text: str) -> dict[str, str]:
     return out
 
 
+def _number(value: str) -> tuple[float, str] | None:
+    """``"7.5k"`` → (7500, "k"), ``"2.84"`` → (2.84, ""), ``"0.54 ms"`` → (0.54, "ms");
+    a lower bound (``"≥ 10k"``) counts as its bound; None when there is no number."""
+    m = re.match(r"(?:[≥<]\s*)?([-+]?[\d.]+)\s*(k\b)?\s*(.*)$", value.strip())
+    if m is None:
+        return None
+    scale = 1000.0 if m.group(2) else 1.0
+    return float(m.group(1)) * scale, (m.group(2) or "") + (m.group(3) or "")
+
+
 def _median(values: list[str]) -> str:
-    nums = []
-    for v in values:
-        m = re.match(r"[-+]?[\d.]+", v)
-        if m is None:
-            return " / ".join(values)
-        nums.append(float(m.group(0)))
-    med = statistics.median(nums)
-    unit = re.sub(r"^[-+]?[\d.]+", "", values[0]).strip()
+    nums = [_number(v) for v in values]
+    if any(n is None for n in nums):
+        return " / ".join(values)
+    med = statistics.median(n[0] for n in nums if n is not None)
+    unit = nums[0][1] if nums[0] is not None else ""
+    if unit.startswith("k"):
+        return f"{med / 1000:g}k{unit[1:]}"
     return f"{med:g}{(' ' + unit) if unit else ''}"
 
 
