@@ -95,7 +95,8 @@ class Handover:
     # -- life cycle ----------------------------------------------------------------------------
 
     def open(self, loop: IoLoop) -> None:
-        """Accept messages from now on, handled on ``loop``."""
+        """Accept messages from now on, handled on ``loop`` (again after :meth:`close`)."""
+        self._scheduled = False  # a drain left on a loop that stopped will never run
         self._loop = loop
 
     @property

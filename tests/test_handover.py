@@ -250,3 +250,24 @@ def test_skipped_messages_are_accepted_in_the_posters_thread_never_queued(loop: 
     assert [m.timestamp_ms for m in got] == [0, 2, 4, 6]
     assert [m.timestamp_ms for m in skipped] == [1, 3, 5, 7, 9]
     h.close()
+
+
+def test_it_opens_again_on_a_new_loop_after_close(loop: IoLoop) -> None:
+    h = Handover("reopened", 8)
+    h.open(loop)
+    got: list[SmUpdate] = []
+    with HeldLoop(loop):
+        h.post(got.append, sm(0))  # a drain is scheduled on this loop ...
+        loop.stop(0.1)  # ... which stops before it runs (the hold ends it after the deadline)
+        h.close(timeout=0.1)
+    assert h.dropped_closed == 1
+    second = IoLoop("second")
+    second.start()
+    try:
+        h.open(second)
+        assert h.post(got.append, sm(1)) is Outcome.ACCEPTED
+        assert h.barrier(DEADLINE_S) and got == [sm(1)]
+    finally:
+        h.close()
+        second.stop()
+        second.close()
