@@ -90,12 +90,16 @@ class XbeeBackend(Backend):
 
     def routes(self) -> Routes:
         """Handled on the radio's thread (its hand-over: NOT_READY while the port is down)."""
-        return (Routes(handover=self.radio.handover).on(SmUpdate, self.send_telemetry)
-                .on(Status, self.send_telemetry))
+        return (Routes(handover=self.radio.handover).on(SmUpdate, self.send_sm_update)
+                .on(Status, self.send_status))
 
-    def send_telemetry(self, msg: SmUpdate | Status) -> None:
+    def send_sm_update(self, msg: SmUpdate) -> None:
         radio = self.radio
-        radio.perform(self.link.telemetry(msg, radio.clock()))
+        radio.perform(self.link.sm_update(msg, radio.clock()))
+
+    def send_status(self, msg: Status) -> None:
+        radio = self.radio
+        radio.perform(self.link.status(msg, radio.clock()))
 
     def stats(self) -> dict[str, Any]:
         c = self.link.counters
