@@ -50,6 +50,7 @@ lint: $(STAMP)
 bench: bytecode
 	$(BIN)/python tools/bench/bench_decode.py
 	$(BIN)/python tools/bench/bench_fanout.py
+	$(BIN)/python tools/bench/bench_handover.py
 	$(BIN)/python tools/bench/bench_mavlink_router.py
 	$(BIN)/python tools/bench/bench_zenoh.py
 	$(BIN)/python tools/bench/bench_uavtalk.py

@@ -7,9 +7,13 @@ A backend **must**:
   message type → handler, which the dispatcher reads once at start.  The table is typed:
   ``Routes().on(SmUpdate, self.send_sm_update)`` is checked by mypy, so a misspelled handler
   or one that takes another message type fails ``make lint``, not silently at run time;
-* never block in a handler: a backend that does I/O hands the work to a
-  :class:`gateway.io.port.PortEngine` (or a bounded queue of its own) and drops, counted, when it
-  is full.  A handler returns an :class:`Outcome` (``None`` counts as accepted).
+* never block in a handler: a backend that does its work on an
+  :class:`~gateway.io.ioloop.IoLoop` says so in its routes — ``Routes(handover=h)`` with a
+  :class:`gateway.handover.Handover` — and its handlers then run on that loop, handed over
+  (bounded, coalesced, drops counted as ``QUEUE_FULL``); a handler without a hand-over runs in
+  the dispatcher's thread and at most submits to a :class:`gateway.io.port.PortEngine`.  A
+  handler returns an :class:`Outcome` (``None`` counts as accepted; on a loop the outcome is
+  the hand-over's).
 
 A backend **may** implement:
 
@@ -50,10 +54,13 @@ import os
 import socket
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 from gateway.options import Options, options_of
 from gateway.outcome import Outcome
+
+if TYPE_CHECKING:
+    from gateway.handover import Handover
 
 #: The stats keys every built-in backend reports (see the module docstring).
 STATS_KEYS = ("sent", "dropped", "errors", "link")
@@ -71,12 +78,16 @@ class Routes:
     """A backend's routing table: message type → handler (see the module docstring).
 
     Routing is by exact type: a message is handed to the handlers registered for
-    ``type(msg)``.  A backend package may route message types it defines itself."""
+    ``type(msg)``.  A backend package may route message types it defines itself.
 
-    __slots__ = ("_table",)
+    With ``handover``, the handlers run on the hand-over's loop: the dispatcher posts each
+    message to it (bounded; never blocking) and the loop calls the handler."""
 
-    def __init__(self) -> None:
+    __slots__ = ("_table", "handover")
+
+    def __init__(self, handover: Handover | None = None) -> None:
         self._table: dict[type, Handler] = {}
+        self.handover = handover
 
     def on(self, cls: type[M], handler: Callable[[M], Outcome | None]) -> Routes:
         """Route messages of type ``cls`` to ``handler``; returns the table (chainable)."""

@@ -2,7 +2,9 @@
 
 The seed's contract, in Python:
 
-* it runs in the caller's thread and never blocks (backends that do I/O own a queue);
+* it runs in the caller's thread and never blocks (a backend that does I/O has its handlers
+  run on its loop: its routes name a :class:`~gateway.handover.Handover`, and what the
+  dispatcher calls is that hand-over's bounded, non-blocking post);
 * every backend whose :class:`~gateway.backend.Routes` take the message's type is called, in
   registration order (the table is built once, at :meth:`Dispatcher.start`);
 * it returns the first outcome that is not ``ACCEPTED`` and still tries every backend;
@@ -121,8 +123,10 @@ class Dispatcher:
             except Exception:
                 log.exception("backend %s: routes() failed; it receives nothing", rec.name)
                 continue
+            handover = table.handover
             for cls, handler in table:
-                routes.setdefault(cls, []).append((rec, handler))
+                hook = handler if handover is None else handover.hook(handler)
+                routes.setdefault(cls, []).append((rec, hook))
         with self._lock:
             self._routes = routes
 

@@ -157,3 +157,34 @@ class Running:
     def text(self, name: str) -> str:
         with self.cond:
             return "\n".join(self.lines[name])
+
+
+def post(backend: Any, msg: Any) -> Any:
+    """Hand ``msg`` to ``backend`` as the dispatcher does: its routed handler, through the
+    routes' hand-over when they name one (then the handler runs on the backend's loop); the
+    outcome."""
+    routes = backend.routes()
+    handler = dict(routes)[type(msg)]
+    handover = routes.handover
+    return handler(msg) if handover is None else handover.post(handler, msg)
+
+
+class HeldLoop:
+    """Keeps an :class:`~gateway.io.ioloop.IoLoop` busy (in a callback) until the ``with``
+    block ends: what is handed to it meanwhile waits."""
+
+    def __init__(self, loop: Any) -> None:
+        self.entered = threading.Event()
+        self.release = threading.Event()
+        loop.call_soon(self._hold)
+        assert self.entered.wait(DEADLINE_S), "the loop did not run the hold"
+
+    def _hold(self) -> None:
+        self.entered.set()
+        self.release.wait(DEADLINE_S)
+
+    def __enter__(self) -> HeldLoop:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release.set()

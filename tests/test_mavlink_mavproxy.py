@@ -309,9 +309,9 @@ def test_sys_status_before_any_status_shows_nothing_failed() -> None:
 
 def test_sys_status_health_is_every_bit_but_the_failed_ones() -> None:
     v = AuroraVehicle()
-    v.update(Status(1000, SimpleState.IDLE, 0, ALL_OK))
+    v.on_status(Status(1000, SimpleState.IDLE, 0, ALL_OK))
     assert _bits(v) == (ROCKET, ROCKET, NOT_FAILED)  # geofence, RC … healthy: not failed
-    v.update(Status(2000, SimpleState.IDLE, 0, Status.make_flags(imu_ok=True, calibrated=True)))
+    v.on_status(Status(2000, SimpleState.IDLE, 0, Status.make_flags(imu_ok=True, calibrated=True)))
     present, enabled, health = _bits(v)
     assert (present, enabled) == (ROCKET, ROCKET)
     assert health == NOT_FAILED & ~(BARO | LOG | PREARM)
@@ -320,10 +320,10 @@ def test_sys_status_health_is_every_bit_but_the_failed_ones() -> None:
 
 def test_sys_status_adds_gps_and_battery_once_the_rocket_has_them() -> None:
     v = AuroraVehicle()
-    v.update(Status(1000, SimpleState.IDLE, 0, ALL_OK))
-    v.update(Battery(7.9, battery_id=0))
+    v.on_status(Status(1000, SimpleState.IDLE, 0, ALL_OK))
+    v.on_battery(Battery(7.9, battery_id=0))
     assert _bits(v) == (ROCKET | BATTERY, ROCKET | BATTERY, NOT_FAILED)
-    v.update(Position(47.0, 8.0, fix_type=aurora.GPS_FIX_TYPE_3D_FIX))
+    v.on_position(Position(47.0, 8.0, fix_type=aurora.GPS_FIX_TYPE_3D_FIX))
     assert _bits(v) == (ROCKET | BATTERY | GPS, ROCKET | BATTERY | GPS, NOT_FAILED)
-    v.update(Position(47.0, 8.0, fix_type=aurora.GPS_FIX_TYPE_NO_FIX))
+    v.on_position(Position(47.0, 8.0, fix_type=aurora.GPS_FIX_TYPE_NO_FIX))
     assert _bits(v)[2] == NOT_FAILED & ~GPS

@@ -348,7 +348,7 @@ def test_objects_from_messages() -> None:
 
 def test_gcs_connects_reads_board_type_attitude_armed_and_nack(gateway: Any) -> None:
     d, b = gateway
-    assert b.send_battery(Battery(voltage_v=8.0)) is Outcome.ACCEPTED
+    assert d.dispatch(Battery(voltage_v=8.0)) is Outcome.ACCEPTED
     gcs: SpecGcs | None = None
     try:
         with Feed(d) as feed:
@@ -522,7 +522,7 @@ def test_garbage_is_counted_and_the_link_goes_on(gateway: Any) -> None:
 
 
 def test_hooks_never_block_a_full_inbox_drops(gateway: Any) -> None:
-    _, b = gateway
+    d, b = gateway
     release = threading.Event()
     busy = threading.Event()
 
@@ -533,21 +533,24 @@ def test_hooks_never_block_a_full_inbox_drops(gateway: Any) -> None:
     b.loop.call_soon(hold)  # the loop is busy: nothing drains the inbox
     assert busy.wait(DEADLINE_S)
     try:
-        outcomes = [b.send_sm_update(sm(t=k)) for k in range(b.inbox_depth + 5)]
+        outcomes = [d.dispatch(sm(t=k)) for k in range(b.inbox_depth + 5)]
     finally:
         release.set()
     assert outcomes.count(Outcome.ACCEPTED) == b.inbox_depth
-    assert outcomes.count(Outcome.QUEUE_FULL) == 5 and b.stats()["dropped_inbox"] == 5
+    assert outcomes.count(Outcome.QUEUE_FULL) == 5 and b.stats()["dropped_queue_full"] == 5
     assert wait_for(lambda: b.stats()["messages"] == b.inbox_depth)
 
 
 def test_not_ready_before_start_and_close_twice() -> None:
     b = UavtalkBackend(UavtalkOptions(endpoints=["tcpin:127.0.0.1:0"]))
-    assert b.send_status(STATUS_OK) is Outcome.NOT_READY
-    b.init()
+    d = Dispatcher([b])
+    post = b.handover.hook(b.send_status)  # what the dispatcher calls, before start
+    assert post(STATUS_OK) is Outcome.NOT_READY
+    assert d.start() == []
+    assert d.dispatch(STATUS_OK) is Outcome.ACCEPTED
     b.close()
     b.close()
-    assert b.send_status(STATUS_OK) is Outcome.NOT_READY
+    assert d.dispatch(STATUS_OK) is Outcome.NOT_READY
 
 
 # --- the command line -----------------------------------------------------------------------

@@ -137,11 +137,11 @@ class Sim:
             if self.step % 10 == 0:  # SM updates at 20 Hz, STATUS at 1 Hz
                 msg = sm(len(self.sm_sent))
                 self.sm_sent.append(msg)
-                self._air_out(self.air.telemetry(msg, self.t))
+                self._air_out(self.air.sm_update(msg, self.t))
             if self.step % 200 == 0:
                 st = status(len(self.status_sent))
                 self.status_sent.append(st)
-                self._air_out(self.air.telemetry(st, self.t))
+                self._air_out(self.air.status(st, self.t))
             if servos and self.t < servo_until:  # sticks sampled every 5 ms, moving every 100
                 k = self.step // 20
                 self._ground_out(self.ground.set_servos(
@@ -324,7 +324,7 @@ def test_grouping_never_exceeds_max_payload() -> None:
     assert all(len(s.payload) <= 30 for _, s in sim.air_sends)
     assert all(len(s.payload) <= 30 for _, s in sim.ground_sends)
     air = AirLink(max_payload=40)
-    out = [o for i in range(10) for o in air.telemetry(sm(i), 0.0)] + air.tick(1.0)
+    out = [o for i in range(10) for o in air.sm_update(sm(i), 0.0)] + air.tick(1.0)
     sends = [o for o in out if isinstance(o, Send)]
     assert all(len(s.payload) <= 40 for s in sends)
     got = [p.timestamp_ms for s in sends for p in iter_decode(s.payload)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from helpers import ROOT as REPO
+from helpers import post
 from zenoh_peer import (
     Recorder,
     RouterProcess,
@@ -167,7 +168,7 @@ def test_acl_dashboards_may_subscribe_but_not_publish():
         # observer would have received it first.
         m = next(m for _, m in flight_messages(FlightModel(), 10, 0, 1)
                  if isinstance(m, SmUpdate))
-        gw.publish(m)
+        post(gw, m)
         assert seen.wait_for(lambda s: any(x.gateway == "gw" for x in s), 20)
         assert [x.payload for x in seen.snapshot() if b"forged" in x.payload] == []
         assert all(x.gateway == "gw" for x in seen.snapshot())
@@ -265,7 +266,7 @@ def test_mutual_tls_between_gateway_and_router(tmp_path):
         wait_for_gateway(sub, "aurora", "rocket1")
         m = next(m for _, m in flight_messages(FlightModel(), 10, 0, 1)
                  if isinstance(m, SmUpdate))
-        gw.publish(m)
+        post(gw, m)
         assert rec.wait_for(lambda s: any(x.key == "aurora/rocket1/sm_update" for x in s))
     finally:
         if sub is not None:

@@ -13,18 +13,17 @@ nothing):
 ``/aurora/link``      JSON: LinkStats fields (``null`` = not reported)
 ``/aurora/status``    JSON: STATUS flags byte and the named health booleans
 
-The dispatcher's thread only stamps the message with the wall clock and puts it in a bounded
-queue (full: dropped, counted); the backend's worker thread encodes and logs it to the
-channels, and the SDK's own threads serve the clients.  The log time is the wall-clock time
-the update reached the gateway (the flight computer's clock counts from its boot: it is in the
-messages as ``timestamp_ms``).
+The dispatcher hands each message over to the backend's :class:`~gateway.io.ioloop.IoLoop`
+(:class:`~gateway.handover.Handover`: bounded by ``queue_depth``, full: ``QUEUE_FULL``,
+counted); there the message's own handler encodes it and logs it to its channels, and the
+SDK's own threads serve the clients.  The log time is the wall-clock time the backend handled
+the update (its hand-over adds well under a millisecond to its arrival; the flight computer's
+clock counts from its boot: it is in the messages as ``timestamp_ms``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import queue
 import threading
 import time
 from typing import Any, ClassVar
@@ -37,7 +36,9 @@ from foxglove.websocket import ServerListener
 
 from backends.foxglove.options import FoxgloveOptions
 from gateway.attitude import quaternion_xyzw
-from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.backend import Backend, BackendError, Routes
+from gateway.handover import Handover
+from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import LinkStats, Position, SmUpdate, Status
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ TOPIC_STATUS = "/aurora/status"
 TOPIC_BACKENDS = "/aurora/backends"
 #: Seconds between two logs of the gateway's counters on ``/aurora/backends``.
 COUNTERS_INTERVAL_S = 1.0
-_IDLE: tuple[int, Any] = (0, None)  # the worker woke for the counters, not for a message
+CLOSE_TIMEOUT_S = 0.5
 
 #: Frames of the attitude transform (the 3D panel's display frame is ``world``).
 PARENT_FRAME = "world"
@@ -98,6 +99,10 @@ def quaternion_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float,
     """(x, y, z, w) of the rotation yaw about Z, then pitch about Y, then roll about X
     (aerospace Z-Y-X order: body → world): FrameTransform's order."""
     return quaternion_xyzw(roll, pitch, yaw)
+
+
+def _stamp(log_time_ns: int) -> Timestamp:
+    return Timestamp(log_time_ns // 1_000_000_000, log_time_ns % 1_000_000_000)
 
 
 class _Listener(ServerListener):
@@ -150,18 +155,15 @@ class FoxgloveBackend(Backend):
         self.host = options.host
         self.port = options.port
         self.backlog = options.backlog
-        self._queue: queue.Queue[tuple[int, Any] | None] = queue.Queue(maxsize=options.queue_depth)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self.handover = Handover(self.name, options.queue_depth)
+        self._loop: IoLoop | None = None
+        self._counters: Timer | None = None
         self._server: Any = None
         self._context: Any = None
         self._channels: dict[str, Any] = {}
         self._listener = _Listener()
-        self._running = False
         self.sent = 0
         self.errors = 0
-        self.dropped_queue_full = 0
-        self.dropped_not_ready = 0
 
     # --- life cycle -------------------------------------------------------------------------
 
@@ -185,22 +187,23 @@ class FoxgloveBackend(Backend):
             raise BackendError(f"{self.name}: cannot serve on {self.host}:{self.port}: "
                                f"{exc}") from exc
         self.port = self._server.port  # the one bound, when 0 asked for any
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._work, name=f"{self.name}-worker",
-                                        daemon=True)
-        self._running = True
-        self._thread.start()
+        self._loop = loop = IoLoop(self.name)
+        loop.start()
+        self._counters = loop.call_every(COUNTERS_INTERVAL_S, self._log_counters,
+                                         first=COUNTERS_INTERVAL_S)
+        self.handover.open(loop)
         log.info("%s: Foxglove WebSocket server on ws://%s:%d", self.name, self.host,
                  self.port)
 
     def close(self) -> None:
-        self._running = False
-        self._stop.set()
-        with contextlib.suppress(queue.Full):  # wake the worker; if full, the event ends it
-            self._queue.put_nowait(None)
-        if self._thread is not None:
-            self._thread.join(0.5)
-            self._thread = None
+        """Log what is queued (within 0.5 s), then stop the server; safe twice."""
+        self.handover.close(CLOSE_TIMEOUT_S)
+        if self._counters is not None:
+            self._counters.cancel()
+            self._counters = None
+        loop, self._loop = self._loop, None
+        if loop is not None and loop.stop(CLOSE_TIMEOUT_S):
+            loop.close()
         if self._server is not None:
             server, self._server = self._server, None
             server.stop()
@@ -212,57 +215,47 @@ class FoxgloveBackend(Backend):
         self._channels.clear()
         self._context = None
 
-    # --- the dispatcher's side: never blocks --------------------------------------------------
+    # --- the handlers (on the backend's loop, handed over by the dispatcher) -------------------
 
     def routes(self) -> Routes:
-        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
-                .on(Position, self.send_position).on(LinkStats, self.send_link_stats))
+        return (Routes(handover=self.handover).on(SmUpdate, self.send_sm_update)
+                .on(Status, self.send_status).on(Position, self.send_position)
+                .on(LinkStats, self.send_link_stats))
 
-    def _enqueue(self, msg: Any) -> Outcome:
-        if not self._running:
-            self.dropped_not_ready += 1
-            return Outcome.NOT_READY
-        try:
-            self._queue.put_nowait((time.time_ns(), msg))
-        except queue.Full:
-            self.dropped_queue_full += 1
-            return Outcome.QUEUE_FULL
-        return Outcome.ACCEPTED
+    def send_sm_update(self, msg: SmUpdate) -> None:
+        log_time = time.time_ns()
+        self._json(TOPIC_STATE, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
+                                 "state_name": msg.state_name, "armed": msg.armed,
+                                 "sm_type": msg.sm_type}, log_time)
+        self._json(TOPIC_ALTITUDE, {"timestamp_ms": msg.timestamp_ms,
+                                    "altitude_m": msg.altitude_m,
+                                    "velocity_mps": msg.velocity_mps,
+                                    "acceleration_mps2": msg.acceleration_mps2,
+                                    "accel_vert_mps2": msg.accel_vert_mps2}, log_time)
+        x, y, z, w = quaternion_from_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
+        self._channels[TOPIC_ATTITUDE].log(FrameTransform(
+            timestamp=_stamp(log_time), parent_frame_id=PARENT_FRAME,
+            child_frame_id=CHILD_FRAME, translation=Vector3(x=0.0, y=0.0, z=msg.altitude_m),
+            rotation=Quaternion(x=x, y=y, z=z, w=w)), log_time=log_time)
+        self.sent += 3
 
-    def send_sm_update(self, msg: SmUpdate) -> Outcome:
-        return self._enqueue(msg)
+    def send_status(self, msg: Status) -> None:
+        self._json(TOPIC_STATUS, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
+                                  "state_name": msg.state_name, "sm_type": msg.sm_type,
+                                  "flags": msg.flags, **msg.health()}, time.time_ns())
+        self.sent += 1
 
-    def send_status(self, msg: Status) -> Outcome:
-        return self._enqueue(msg)
+    def send_position(self, msg: Position) -> None:
+        log_time = time.time_ns()
+        alt = msg.alt_amsl_m if msg.alt_amsl_m is not None else 0.0
+        self._channels[TOPIC_POSITION].log(LocationFix(
+            timestamp=_stamp(log_time), frame_id=CHILD_FRAME, latitude=msg.lat_deg,
+            longitude=msg.lon_deg, altitude=alt), log_time=log_time)
+        self.sent += 1
 
-    def send_position(self, msg: Position) -> Outcome:
-        return self._enqueue(msg)
-
-    def send_link_stats(self, msg: LinkStats) -> Outcome:
-        return self._enqueue(msg)
-
-    # --- the worker ---------------------------------------------------------------------------
-
-    def _work(self) -> None:
-        due = time.monotonic() + COUNTERS_INTERVAL_S
-        while not self._stop.is_set():
-            try:
-                item = self._queue.get(timeout=max(0.0, due - time.monotonic()))
-            except queue.Empty:
-                item = _IDLE  # only the counters are due
-            if time.monotonic() >= due:
-                due = time.monotonic() + COUNTERS_INTERVAL_S
-                self._log_counters()
-            if item is None:
-                return
-            if item is _IDLE:
-                continue
-            log_time, msg = item
-            try:
-                self.sent += self._log(msg, log_time)
-            except Exception:
-                self.errors += 1
-                log.exception("%s: cannot log %s", self.name, type(msg).__name__)
+    def send_link_stats(self, msg: LinkStats) -> None:
+        self._json(TOPIC_LINK, {**msg.fields(), "origin": msg.origin}, time.time_ns())
+        self.sent += 1
 
     def _log_counters(self) -> None:
         """The gateway's backends' and sources' counters on ``/aurora/backends``."""
@@ -280,40 +273,9 @@ class FoxgloveBackend(Backend):
     def _json(self, topic: str, data: dict[str, Any], log_time: int) -> None:
         self._channels[topic].log(orjson.dumps(data), log_time=log_time)
 
-    def _log(self, msg: Any, log_time: int) -> int:
-        """Log ``msg`` on its channels; returns how many channel messages it made."""
-        if isinstance(msg, SmUpdate):
-            self._json(TOPIC_STATE, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
-                                     "state_name": msg.state_name, "armed": msg.armed,
-                                     "sm_type": msg.sm_type}, log_time)
-            self._json(TOPIC_ALTITUDE, {"timestamp_ms": msg.timestamp_ms,
-                                        "altitude_m": msg.altitude_m,
-                                        "velocity_mps": msg.velocity_mps,
-                                        "acceleration_mps2": msg.acceleration_mps2,
-                                        "accel_vert_mps2": msg.accel_vert_mps2}, log_time)
-            x, y, z, w = quaternion_from_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
-            stamp = Timestamp(log_time // 1_000_000_000, log_time % 1_000_000_000)
-            self._channels[TOPIC_ATTITUDE].log(FrameTransform(
-                timestamp=stamp, parent_frame_id=PARENT_FRAME, child_frame_id=CHILD_FRAME,
-                translation=Vector3(x=0.0, y=0.0, z=msg.altitude_m),
-                rotation=Quaternion(x=x, y=y, z=z, w=w)), log_time=log_time)
-            return 3
-        if isinstance(msg, Status):
-            self._json(TOPIC_STATUS, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
-                                      "state_name": msg.state_name, "sm_type": msg.sm_type,
-                                      "flags": msg.flags, **msg.health()}, log_time)
-            return 1
-        if isinstance(msg, Position):
-            stamp = Timestamp(log_time // 1_000_000_000, log_time % 1_000_000_000)
-            alt = msg.alt_amsl_m if msg.alt_amsl_m is not None else 0.0
-            self._channels[TOPIC_POSITION].log(LocationFix(
-                timestamp=stamp, frame_id=CHILD_FRAME, latitude=msg.lat_deg,
-                longitude=msg.lon_deg, altitude=alt), log_time=log_time)
-            return 1
-        if isinstance(msg, LinkStats):
-            self._json(TOPIC_LINK, {**msg.fields(), "origin": msg.origin}, log_time)
-            return 1
-        return 0
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every update handed over so far is logged (for tools and benchmarks)."""
+        return self.handover.barrier(timeout)
 
     def wait_subscriptions(self, count: int, timeout: float) -> bool:
         """Wait until clients hold exactly ``count`` channel subscriptions in all; False on
@@ -323,9 +285,7 @@ class FoxgloveBackend(Backend):
     # --- counters -----------------------------------------------------------------------------
 
     def stats(self) -> dict[str, Any]:
-        return {"sent": self.sent, "dropped": self.dropped_queue_full + self.dropped_not_ready,
-                "errors": self.errors, "link": int(self._server is not None),
-                "clients": self._listener.clients(),
-                "dropped_queue_full": self.dropped_queue_full,
-                "dropped_not_ready": self.dropped_not_ready,
-                "port": self.port}
+        h = self.handover
+        return {"sent": self.sent, "dropped": h.dropped,
+                "errors": self.errors + h.handler_errors, "link": int(self._server is not None),
+                "clients": self._listener.clients(), **h.stats(), "port": self.port}

@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections import deque
 from typing import Any, ClassVar
 
 from backends.mavlink import signing
@@ -22,6 +21,7 @@ from backends.mavlink.router import Router
 from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__
 from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.handover import Handover
 from gateway.io.endpoints import KINDS, list_validator
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.server import ClientLimits, server_stats
@@ -38,6 +38,7 @@ from gateway.model import (
 
 log = logging.getLogger(__name__)
 
+#: Gateway messages waiting for the loop before drops (QUEUE_FULL, counted).
 INBOX_DEPTH = 256
 POLL_S = 0.02
 #: Routing a vehicle, the rocket takes its system id once the vehicle has been heard, or
@@ -85,11 +86,14 @@ class MavlinkBackend(Backend):
         self.router: Router | None = None
         self.loop: IoLoop | None = None
         self.endpoints: list[Endpoint] = []
-        self._inbox: deque[Any] = deque()
+        # the messages a batch of the gateway's makes, sent once after the batch
+        # (what came from a MAVLink system on our router is skipped in the dispatcher's thread)
+        self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out,
+                                 skip=self._repeats)
+        self._out: list[Any] = []
         self._ticker: Timer | None = None
         self._spoken = False
         self._started_at = 0.0
-        self.dropped_inbox = 0
         self.not_repeated = 0
 
     # -- life cycle ----------------------------------------------------------------------------
@@ -115,6 +119,8 @@ class MavlinkBackend(Backend):
             raise BackendError(str(exc)) from None
         self.hub, self.loop, self.router, self.endpoints = hub, hub.loop, hub.router, endpoints
         self._started_at = time.monotonic()
+        self.handover.lock = hub.router.lock  # the vehicle's state is the router's too
+        self.handover.open(hub.loop)
         self._ticker = hub.loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
         log.info("%s: MAVLink system %d on %s%s", self.name, self.sysid,
                  ", ".join(s.text for s in self.specs), " (signed)" if self.signing_key else "")
@@ -123,6 +129,7 @@ class MavlinkBackend(Backend):
         hub, self.hub = self.hub, None
         if hub is None:
             return
+        self.handover.close()  # what is queued goes out first (within its bound)
         self.loop = None
         if self._ticker is not None:
             self._ticker.cancel()
@@ -153,83 +160,68 @@ class MavlinkBackend(Backend):
         if router is None:
             return
         with router.lock:
-            out = self._drain()
-            out.extend(self.vehicle.poll())
+            out = self.vehicle.poll()
             if out and self._may_speak():
                 router.broadcast(out, self.vehicle)
 
-    def _drain(self) -> list[Any]:
-        out: list[Any] = []
-        inbox = self._inbox
-        update = self.vehicle.update
-        while inbox:
-            out.extend(update(inbox.popleft()))
-        return out
-
-    def _flush_inbox(self) -> None:
+    def _send_out(self) -> None:
+        """After a batch of the gateway's messages (under the router's lock): what they made,
+        to the ground stations."""
+        out, self._out = self._out, []
         router = self.router
-        if router is None:
-            return
-        with router.lock:
-            out = self._drain()
-            if out and self._may_speak():
-                router.broadcast(out, self.vehicle)
+        if out and router is not None and self._may_speak():
+            router.broadcast(out, self.vehicle)
 
-    # -- hooks (the dispatcher's thread: never block) ------------------------------------------
-
-    def _post(self, msg: Any) -> Outcome:
-        loop = self.loop
-        if loop is None:
-            return Outcome.NOT_READY
+    def _repeats(self, msg: Any) -> bool:
+        """``msg`` came from a MAVLink system on our router: its own frames are routed to the
+        ground stations already; repeating them as the rocket's would show it twice (the
+        hand-over's ``skip``: the dispatcher's thread)."""
         if self.route and msg.via.startswith(VIA_MAVLINK):
-            # It came from a MAVLink system on our router: its own frames are routed to the
-            # ground stations already; repeating them as the rocket's would show it twice.
             self.not_repeated += 1
-            return Outcome.ACCEPTED
-        if len(self._inbox) >= INBOX_DEPTH:
-            self.dropped_inbox += 1
-            return Outcome.QUEUE_FULL
-        self._inbox.append(msg)
-        loop.call_soon(self._flush_inbox)
-        return Outcome.ACCEPTED
+            return True
+        return False
+
+    # -- handlers (on the loop, handed over by the dispatcher, under the router's lock) ---------
 
     def routes(self) -> Routes:
-        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
-                .on(Position, self.send_position).on(Battery, self.send_battery)
-                .on(LinkStats, self.send_link_stats).on(VehicleState, self.send_vehicle_state)
+        return (Routes(handover=self.handover).on(SmUpdate, self.send_sm_update)
+                .on(Status, self.send_status).on(Position, self.send_position)
+                .on(Battery, self.send_battery).on(LinkStats, self.send_link_stats)
+                .on(VehicleState, self.send_vehicle_state)
                 .on(RcChannels, self.send_rc_channels))
 
-    def send_rc_channels(self, msg: RcChannels) -> Outcome:
+    def send_rc_channels(self, msg: RcChannels) -> None:
         if msg.origin == self.name:
-            return Outcome.ACCEPTED  # a ground station's override: not the rocket's to repeat
-        return self._post(msg)
+            return  # a ground station's override: not the rocket's to repeat
+        self._out += self.vehicle.on_rc_channels(msg)
 
     def _on_rc(self, channels: tuple[int | None, ...]) -> None:
         """A ground station's RC override or manual control for the rocket (the loop's
         thread): to the gateway, e.g. for an XBee ground link to send up."""
         self.emit(RcChannels(channels, origin=self.name))
 
-    def send_sm_update(self, msg: SmUpdate) -> Outcome:
-        return self._post(msg)
+    def send_sm_update(self, msg: SmUpdate) -> None:
+        self._out += self.vehicle.on_sm_update(msg)
 
-    def send_status(self, msg: Status) -> Outcome:
-        return self._post(msg)
+    def send_status(self, msg: Status) -> None:
+        self._out += self.vehicle.on_status(msg)
 
-    def send_position(self, msg: Position) -> Outcome:
+    def send_position(self, msg: Position) -> None:
         if msg.via.startswith(VIA_MAVLINK):
-            return Outcome.ACCEPTED  # it came from a MAVLink vehicle: it speaks for itself
-        return self._post(msg)
+            return  # it came from a MAVLink vehicle: it speaks for itself
+        self._out += self.vehicle.on_position(msg)
 
-    def send_battery(self, msg: Battery) -> Outcome:
+    def send_battery(self, msg: Battery) -> None:
         if msg.via.startswith(VIA_MAVLINK):
-            return Outcome.ACCEPTED
-        return self._post(msg)
+            return
+        self._out += self.vehicle.on_battery(msg)
 
-    def send_vehicle_state(self, msg: VehicleState) -> Outcome:
-        return self._post(msg)  # a non-Aurora vehicle (UAVTalk): shown as this system
+    def send_vehicle_state(self, msg: VehicleState) -> None:
+        # a non-Aurora vehicle (UAVTalk): shown as this system
+        self._out += self.vehicle.on_vehicle_state(msg)
 
-    def send_link_stats(self, msg: LinkStats) -> Outcome:
-        return self._post(msg)  # → RADIO_STATUS
+    def send_link_stats(self, msg: LinkStats) -> None:
+        self._out += self.vehicle.on_link_stats(msg)  # → RADIO_STATUS
 
     def on_link(self, ev: LinkEvent) -> Outcome:
         return Outcome.ACCEPTED  # staleness is judged from the updates themselves
@@ -242,11 +234,15 @@ class MavlinkBackend(Backend):
             eps = {ep.name: ep.stats() for ep in self.endpoints}  # sets change under routing
             up = any(link.up for ep in self.endpoints for link in ep.links())
         sent = sum(s.get("tx_frames", 0) for s in eps.values())
-        dropped = sum(s.get("tx_dropped", 0) for s in eps.values()) + self.dropped_inbox
+        h = self.handover
+        dropped = sum(s.get("tx_dropped", 0) for s in eps.values()) + h.dropped
         errors = sum(s.get(k, 0) for s in eps.values()
                      for k in ("tx_errors", "crc_errors", "decode_errors"))
-        d: dict[str, Any] = {"sent": sent, "dropped": dropped, "errors": errors,
-                             "link": int(up), "dropped_inbox": self.dropped_inbox,
+        d: dict[str, Any] = {"sent": sent, "dropped": dropped,
+                             "errors": errors + h.handler_errors, "link": int(up),
+                             "dropped_queue_full": h.dropped_queue_full,
+                             "dropped_not_ready": h.dropped_not_ready,
+                             "dropped_closed": h.dropped_closed,
                              "sysid": self.vehicle.sysid, "not_repeated": self.not_repeated,
                              **server_stats(ep.server for ep in self.endpoints
                                             if isinstance(ep, TcpServerEndpoint)

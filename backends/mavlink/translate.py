@@ -1,11 +1,12 @@
 """The rocket as a MAVLink vehicle: the gateway's messages in, MAVLink messages out (sans-I/O).
 
 :class:`AuroraVehicle` keeps what it has heard of the rocket and builds pymavlink message
-objects; it never touches a socket or a thread.  Three entry points, all returning the
+objects; it never touches a socket or a thread.  Three kinds of entry point, all returning the
 messages to send:
 
-* :meth:`AuroraVehicle.update` — a gateway message arrived (SM_UPDATE, STATUS, position,
-  battery): the event-driven streams (ATTITUDE, ALTITUDE, VFR_HUD, NAMED_VALUE_FLOAT, the
+* :meth:`AuroraVehicle.on_sm_update`, :meth:`~AuroraVehicle.on_status`,
+  :meth:`~AuroraVehicle.on_position` … (one per gateway message type) — a message arrived:
+  the event-driven streams (ATTITUDE, ALTITUDE, VFR_HUD, NAMED_VALUE_FLOAT, the
   dialect's AURORA_* messages, STATUSTEXT on a state change), each capped at its rate;
 * :meth:`AuroraVehicle.poll` — the periodic streams due now (HEARTBEAT, SYS_STATUS,
   EXTENDED_SYS_STATE, AVAILABLE_MODES_MONITOR after a change of state machine);
@@ -366,25 +367,10 @@ class AuroraVehicle:
 
     # -- event-driven streams ----------------------------------------------------------------
 
-    def update(self, msg: Any) -> list[Any]:
-        """Take in one gateway message; the messages it triggers now."""
-        if isinstance(msg, SmUpdate):
-            return self._on_sm_update(msg)
-        if isinstance(msg, Status):
-            return self._on_status(msg)
-        if isinstance(msg, Position):
-            return self._on_position(msg)
-        if isinstance(msg, Battery):
-            return self._on_battery(msg)
-        if isinstance(msg, LinkStats):
-            return self._on_link_stats(msg)
-        if isinstance(msg, VehicleState):
-            return self._on_vehicle_state(msg)
-        if isinstance(msg, RcChannels):
-            return self._on_rc_channels(msg)
-        return []
+    # One entry point per gateway message type (the backend routes each type to its own):
+    # each takes the message in and returns the messages it triggers now.
 
-    def _on_rc_channels(self, rc: RcChannels) -> list[Any]:
+    def on_rc_channels(self, rc: RcChannels) -> list[Any]:
         """Commands the rocket's link received (an XBee air link's servo values): RC_CHANNELS,
         so a ground station shows what the rocket was told."""
         if not self._gates["rc_channels_hz"].ready(self.clock()):
@@ -396,7 +382,7 @@ class AuroraVehicle:
         raw += [UINT16_MAX] * (RC_CHANNELS_MAX - len(raw))
         return [mav.MAVLink_rc_channels_message(self._boot_ms(), count, *raw, UINT8_MAX)]
 
-    def _on_vehicle_state(self, v: VehicleState) -> list[Any]:
+    def on_vehicle_state(self, v: VehicleState) -> list[Any]:
         """A vehicle that is not an Aurora state machine (e.g. a LibrePilot flight controller
         through the UAVTalk source) shown as this system: arming, its mode by name (spoken),
         attitude and altitude."""
@@ -456,7 +442,7 @@ class AuroraVehicle:
         # A leading '#' makes QGroundControl speak the text (without the '#').
         return mav.MAVLink_statustext_message(severity, _text(f"#{name}", 50), 0, 0)
 
-    def _on_sm_update(self, m: SmUpdate) -> list[Any]:
+    def on_sm_update(self, m: SmUpdate) -> list[Any]:
         self.stats.updates += 1
         self.sm = m
         out: list[Any] = []
@@ -498,7 +484,7 @@ class AuroraVehicle:
                                            f32(m.altitude_m + self.pad_altitude_amsl_m),
                                            f32(m.velocity_mps))
 
-    def _on_status(self, m: Status) -> list[Any]:
+    def on_status(self, m: Status) -> list[Any]:
         self.stats.updates += 1
         self.status = m
         out: list[Any] = []
@@ -509,7 +495,7 @@ class AuroraVehicle:
             out.append(aurora_status(m))
         return out
 
-    def _on_position(self, p: Position) -> list[Any]:
+    def on_position(self, p: Position) -> list[Any]:
         self.position = p
         if not self._gates["position_hz"].ready(self.clock()):
             return []
@@ -549,13 +535,13 @@ class AuroraVehicle:
             self._boot_ms() * 1000, fix, _e7(p.lat_deg), _e7(p.lon_deg), _mm(alt), UINT16_MAX,
             UINT16_MAX, vel, cog, sats, 0, 0, 0, 0, 0, 0)
 
-    def _on_battery(self, b: Battery) -> list[Any]:
+    def on_battery(self, b: Battery) -> list[Any]:
         self.batteries[b.battery_id] = b
         if not self._gates["battery_hz"].ready(self.clock()):
             return []
         return [battery_status(b)]
 
-    def _on_link_stats(self, ls: LinkStats) -> list[Any]:
+    def on_link_stats(self, ls: LinkStats) -> list[Any]:
         if not self._gates["radio_status_hz"].ready(self.clock()):
             return []
         return [radio_status(ls)]

@@ -19,20 +19,21 @@ own queue and loses packets (``dropped``), nobody else waits.  A stream link (``
 serial) starts a fresh session each time its port comes up.
 
 One :class:`~.telemetry.ObjectStore` (the vehicle) serves every session; it is filled from
-the gateway's messages by :class:`~.translate.Vehicle` on the loop's thread: the dispatcher's
-hooks only post the message to a bounded inbox (full: ``QUEUE_FULL``, counted).
+the gateway's messages by :class:`~.translate.Vehicle` on the loop's thread: the routes run on
+the loop through the gateway's :class:`~gateway.handover.Handover` (bounded, ``inbox_depth``;
+full: ``QUEUE_FULL``, counted), and the objects a batch of messages changed are stored once
+after the batch.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.handover import Handover
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.links import (
@@ -55,7 +56,6 @@ log = logging.getLogger(__name__)
 #: priority queue of 32).
 FLUSH_EVERY = 16
 _ACCEPTED = Outcome.ACCEPTED
-_NOT_READY = Outcome.NOT_READY
 
 
 def parse_endpoint(text: str) -> Endpoint:
@@ -184,14 +184,12 @@ class UavtalkBackend(Backend):
             self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
             queue_depth=options.queue_depth, on_closed=self._retire, label="GCS",
             limits=ClientLimits.of(options, options.queue_depth))
-        self._inbox: deque[Any] = deque()
-        self._inbox_lock = threading.Lock()
-        self._drain_scheduled = False
+        self.handover = Handover(self.name, options.inbox_depth, after_batch=self._store_changes)
+        self._changed: dict[str, dict[str, Any]] = {}
         self._timer: Timer | None = None
         self._running = False
         self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
                               "garbage_bytes": 0}
-        self.dropped_inbox = 0
         self.messages = 0
 
     # -- sessions --------------------------------------------------------------------------------
@@ -213,6 +211,7 @@ class UavtalkBackend(Backend):
             raise BackendError(f"{self.name}: {exc}") from exc
         self.loop.start()
         self._running = True
+        self.handover.open(self.loop)
         self.linkset.start()
         self._timer = self.loop.call_every(self.tick_s, self._tick)
 
@@ -228,6 +227,7 @@ class UavtalkBackend(Backend):
         if not self._running:
             return
         self._running = False
+        self.handover.close()
         if self._timer is not None:
             self._timer.cancel()
         self.linkset.close()
@@ -241,37 +241,9 @@ class UavtalkBackend(Backend):
         for link in self.links:
             link.flush_out(now)
 
-    def _post(self, msg: Any) -> Outcome:
-        if not self._running:
-            return _NOT_READY
-        with self._inbox_lock:
-            if len(self._inbox) >= self.inbox_depth:
-                self.dropped_inbox += 1
-                return Outcome.QUEUE_FULL
-            self._inbox.append(msg)
-            schedule = not self._drain_scheduled
-            self._drain_scheduled = True
-        if schedule:
-            self.loop.call_soon(self._drain)
-        return _ACCEPTED
-
-    def _drain(self) -> None:
-        with self._inbox_lock:
-            batch = list(self._inbox)
-            self._inbox.clear()
-            self._drain_scheduled = False
-        changed: dict[str, dict[str, Any]] = {}
-        v = self.vehicle
-        for msg in batch:
-            self.messages += 1
-            if isinstance(msg, SmUpdate):
-                changed.update(v.sm_update(msg))
-            elif isinstance(msg, Status):
-                changed.update(v.status(msg))
-            elif isinstance(msg, Position):
-                changed.update(v.position(msg))
-            elif isinstance(msg, Battery):
-                changed.update(v.battery(msg))
+    def _store_changes(self) -> None:
+        """After a batch of messages: the objects they changed, stored once each."""
+        changed, self._changed = self._changed, {}
         now = self.clock()
         for name, values in changed.items():
             if self.store.get(name) == values:
@@ -280,23 +252,28 @@ class UavtalkBackend(Backend):
             for link in self.links:
                 link.updated(name, now)
 
-    # -- routes ----------------------------------------------------------------------------------
+    # -- routes (handlers on the loop, handed over by the dispatcher) ----------------------------
 
     def routes(self) -> Routes:
-        return (Routes().on(SmUpdate, self.send_sm_update).on(Status, self.send_status)
-                .on(Position, self.send_position).on(Battery, self.send_battery))
+        return (Routes(handover=self.handover).on(SmUpdate, self.send_sm_update)
+                .on(Status, self.send_status).on(Position, self.send_position)
+                .on(Battery, self.send_battery))
 
-    def send_sm_update(self, msg: SmUpdate) -> Outcome:
-        return self._post(msg)
+    def send_sm_update(self, msg: SmUpdate) -> None:
+        self.messages += 1
+        self._changed.update(self.vehicle.sm_update(msg))
 
-    def send_status(self, msg: Status) -> Outcome:
-        return self._post(msg)
+    def send_status(self, msg: Status) -> None:
+        self.messages += 1
+        self._changed.update(self.vehicle.status(msg))
 
-    def send_position(self, msg: Position) -> Outcome:
-        return self._post(msg)
+    def send_position(self, msg: Position) -> None:
+        self.messages += 1
+        self._changed.update(self.vehicle.position(msg))
 
-    def send_battery(self, msg: Battery) -> Outcome:
-        return self._post(msg)
+    def send_battery(self, msg: Battery) -> None:
+        self.messages += 1
+        self._changed.update(self.vehicle.battery(msg))
 
     # -- stats -----------------------------------------------------------------------------------
 
@@ -309,12 +286,14 @@ class UavtalkBackend(Backend):
         links = list(self.links)
         per = {link.name: link.stats() for link in links}
         sent = t["sent"] + sum(d["sent"] for d in per.values())
-        dropped = t["dropped"] + sum(d["dropped"] for d in per.values()) + self.dropped_inbox
-        errors = t["errors"] + sum(_errors(link) for link in links)
+        h = self.handover
+        dropped = t["dropped"] + sum(d["dropped"] for d in per.values()) + h.dropped
+        errors = t["errors"] + sum(_errors(link) for link in links) + h.handler_errors
         garbage = t["garbage_bytes"] + sum(d["rx_garbage_bytes"] for d in per.values())
         connected = sum(1 for d in per.values() if d["state"] == "connected")
         return {"sent": sent, "dropped": dropped, "errors": errors,
-                "link": int(connected > 0), "dropped_inbox": self.dropped_inbox,
+                "link": int(connected > 0), "dropped_queue_full": h.dropped_queue_full,
+                "dropped_not_ready": h.dropped_not_ready, "dropped_closed": h.dropped_closed,
                 "dropped_queue": sum(d["dropped"] for d in per.values()) + t["dropped"],
                 "messages": self.messages, "clients": len(links), "connected": connected,
                 "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,

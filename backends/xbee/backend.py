@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any, ClassVar
 
-from gateway.backend import Backend, Outcome, Routes
+from gateway.backend import Backend, Routes
 from gateway.model import SmUpdate, Status
 
 from .link import AirLink, RcCommand, Send
@@ -70,16 +70,23 @@ class XbeeBackend(Backend):
         self.radio.close()
 
     def routes(self) -> Routes:
-        return Routes().on(SmUpdate, self.send_telemetry).on(Status, self.send_telemetry)
+        """Handled on the radio's thread (its hand-over: NOT_READY while the port is down)."""
+        return (Routes(handover=self.radio.handover).on(SmUpdate, self.send_sm_update)
+                .on(Status, self.send_status))
 
-    def send_telemetry(self, msg: SmUpdate | Status) -> Outcome:
-        link = self.link
-        return self.radio.call(lambda now: link.telemetry(msg, now))
+    def send_sm_update(self, msg: SmUpdate) -> None:
+        radio = self.radio
+        radio.perform(self.link.sm_update(msg, radio.clock()))
+
+    def send_status(self, msg: Status) -> None:
+        radio = self.radio
+        radio.perform(self.link.status(msg, radio.clock()))
 
     def stats(self) -> dict[str, Any]:
         c = self.link.counters
         r = self.radio.stats()
-        return {"sent": r["payloads_sent"], "dropped": r["payloads_refused"] + r["dropped_inbox"],
+        return {"sent": r["payloads_sent"],
+                "dropped": r["payloads_refused"] + r["dropped_handover"],
                 "errors": r["errors"] + r["at_errors"], "link": r["link"],
                 "commands_applied": self.commands, **r,
                 **{f"air_{k}": v for k, v in c.as_dict().items()}}

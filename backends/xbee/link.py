@@ -319,14 +319,18 @@ class AirLink:
             self._last_ack = now
             self._queue(Ack(p.seq, p.power), now, "ack")
 
-    def telemetry(self, msg: SmUpdate | Status, now: float) -> list[AirOutput]:
-        """Queue one message for the downlink; returns what is due now."""
+    def sm_update(self, msg: SmUpdate, now: float) -> list[AirOutput]:
+        """Queue an SM update for the downlink; returns what is due now."""
         power = self.telemetry_power(now)
-        packet: Packet
-        if isinstance(msg, SmUpdate):
-            packet = SmTelemetry.from_sm_update(msg, self._bump("sm"), power)
-        else:
-            packet = StatusTelemetry.from_status(msg, self._bump("status"), power)
+        return self._telemetry(SmTelemetry.from_sm_update(msg, self._bump("sm"), power), now)
+
+    def status(self, msg: Status, now: float) -> list[AirOutput]:
+        """Queue a STATUS for the downlink; returns what is due now."""
+        power = self.telemetry_power(now)
+        return self._telemetry(StatusTelemetry.from_status(msg, self._bump("status"), power),
+                               now)
+
+    def _telemetry(self, packet: Packet, now: float) -> list[AirOutput]:
         queued = [i for i in self._outbox if i.kind == "telemetry"]
         if len(queued) >= self.max_queued:
             self._outbox.remove(queued[0])

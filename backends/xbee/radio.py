@@ -2,22 +2,22 @@
 role's outputs carried out, the periodic tick and poll, servo values ↔ pulse widths.
 
 One :class:`Radio` runs on its engine's thread: the role (:mod:`.link`) is only ever called
-there, so it needs no lock; other threads hand it work with :meth:`Radio.call`, bounded.
+there, so it needs no lock; the gateway's messages reach it through :attr:`Radio.handover`
+(the routes of the backend or source that owns the radio name it), bounded.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
 
+from gateway.handover import Handover
 from gateway.io.backoff import Backoff
 from gateway.io.port import REOPEN_FIRST_S, REOPEN_MAX_S, PortEngine
 from gateway.io.transport import open_serial_nonblocking
 from gateway.model import RcChannels
-from gateway.outcome import Outcome
 
 from . import frames as f
 from .link import QueryRssi, RcCommand, Send
@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 DEFAULT_BAUD = 9600  # an XBee's factory rate (BD = 3)
 TICK_S = 0.01
 POLL_S = 1.0
-#: Work other threads may queue for the radio's thread before it is refused (QUEUE_FULL).
+#: Gateway messages that may wait for the radio's thread before they are refused (QUEUE_FULL).
 INBOX_DEPTH = 256
 SERVOS = 6
 SERVO_MAX = 0x3FF
@@ -96,9 +96,9 @@ class Radio:
                                  backoff=Backoff(REOPEN_FIRST_S, REOPEN_MAX_S))
         self.module.engine = self.engine
         self._timers: list[Any] = []
-        self._queued = 0
-        self._lock = threading.Lock()
-        self.dropped_inbox = 0
+        #: The gateway's messages to this radio's handlers, on its thread; refused while the
+        #: module's port is down (NOT_READY).
+        self.handover = Handover(name, INBOX_DEPTH, ready=lambda: self.engine.connected)
         self.errors = 0
 
     def _open(self) -> Any:
@@ -110,6 +110,7 @@ class Radio:
             log.info("%s: XBee on %s (API %d)", self.name, self.url, self.module.api_mode)
 
     def start(self) -> None:
+        self.handover.open(self.engine.loop)
         self.engine.start()
         self._timers = [self.engine.call_every(self.tick_s, self._run_tick, first=self.tick_s),
                         self.engine.call_every(self.poll_s, self.module.poll, first=self.poll_s)]
@@ -117,7 +118,8 @@ class Radio:
     def close(self, timeout: float = 1.0) -> None:
         for timer in self._timers:
             timer.cancel()
-        self.engine.close(timeout)
+        self.handover.close(timeout / 2)
+        self.engine.close(timeout / 2)
 
     # -- the engine's thread ---------------------------------------------------------------
 
@@ -145,6 +147,10 @@ class Radio:
 
             self._guarded(reading)
 
+    def perform(self, outputs: Iterable[Any]) -> None:
+        """Carry out what the role returned (a handler on the radio's thread)."""
+        self._perform(outputs)
+
     def send(self, out: Send) -> None:
         self.module.send(out.payload, out.power)
 
@@ -153,26 +159,12 @@ class Radio:
 
     # -- any thread -------------------------------------------------------------------------
 
-    def call(self, fn: Callable[[float], Iterable[Any]]) -> Outcome:
-        """Run ``fn(now)`` on the radio's thread and carry out what it returns; never blocks."""
-        if not self.engine.connected:
-            return Outcome.NOT_READY
-        with self._lock:
-            if self._queued >= INBOX_DEPTH:
-                self.dropped_inbox += 1
-                return Outcome.QUEUE_FULL
-            self._queued += 1
-
-        def run() -> None:
-            with self._lock:
-                self._queued -= 1
-            self._guarded(lambda: fn(self.clock()))
-
-        self.engine.call_soon(run)
-        return Outcome.ACCEPTED
-
     def stats(self) -> dict[str, Any]:
         es = self.engine.stats
+        h = self.handover
         return {**self.module.stats(), "link": int(self.engine.connected),
-                "dropped_inbox": self.dropped_inbox, "errors": self.errors + es.errors,
+                "dropped_queue_full": h.dropped_queue_full,
+                "dropped_not_ready": h.dropped_not_ready, "dropped_closed": h.dropped_closed,
+                "dropped_handover": h.dropped,
+                "errors": self.errors + es.errors + h.handler_errors,
                 "opens": es.connects, "open_failures": es.connect_failures}

@@ -17,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from gateway.backend import Outcome, Routes
+from gateway.backend import Routes
 from gateway.model import LinkStats, RcChannels, SmUpdate, Status
 from gateway.sources import Source
 
@@ -69,22 +69,24 @@ class XbeeSource(Source):
     def _on_rssi(self, token: int, dbm: float, now: float) -> None:
         self.link.ping_rssi(token, dbm, now)
 
-    # -- the pilot's commands (the dispatcher's thread) --------------------------------------
+    # -- the pilot's commands (handed over to the radio's thread) ----------------------------
 
     def routes(self) -> Routes:
-        return Routes().on(RcChannels, self.send_rc)
+        return Routes(handover=self.radio.handover).on(RcChannels, self.send_rc)
 
-    def send_rc(self, msg: RcChannels) -> Outcome:
+    def send_rc(self, msg: RcChannels) -> None:
         if msg.origin == self.name:
-            return Outcome.ACCEPTED
+            return
         values = {i: servo_from_us(us) for i, us in enumerate(msg.channels_us[:SERVOS])
                   if us is not None}
         self.commands_in += 1
-        link = self.link
-        return self.radio.call(lambda now: link.set_servos(values, now))
+        radio = self.radio
+        radio.perform(self.link.set_servos(values, radio.clock()))
 
     def inbox_stats(self) -> dict[str, Any]:
-        return {"sent": self.commands_in, "dropped": self.radio.dropped_inbox, "errors": 0,
+        h = self.radio.handover
+        return {"sent": self.commands_in, "dropped": h.dropped,
+                "dropped_queue_full": h.dropped_queue_full, "errors": h.handler_errors,
                 "link": int(self.radio.engine.connected)}
 
     # -- life cycle --------------------------------------------------------------------------

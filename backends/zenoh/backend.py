@@ -1,17 +1,20 @@
 """Zenoh backend: every update the gateway handles, published on Zenoh.
 
-Hooks never block: they hand the message to a bounded queue (``queue_depth``) and return.
-One worker thread opens the session (retrying with backoff while, e.g., a client's router
-is down), encodes, and puts.  Where messages can be lost, and how each loss is counted:
+The dispatcher hands each message over to the backend's :class:`~gateway.io.ioloop.IoLoop`
+(:class:`~gateway.handover.Handover`, bounded by ``queue_depth``; never blocking).  On that
+loop the backend opens the session (retrying with backoff while, e.g., a client's router is
+down), and its handler encodes and puts each message.  Where messages can be lost, and how
+each loss is counted:
 
-* the hand-off queue is full → ``dropped_queue_full`` (the hook returns QUEUE_FULL);
+* the hand-over is full → ``dropped_queue_full`` (QUEUE_FULL);
 * no session yet (router down at start-up) → ``dropped_not_ready`` (NOT_READY);
+* closing: what could not be published within the close's time bound → ``dropped_closed``;
 * ``congestion_control = "drop"`` (default): Zenoh drops inside its own transmit queue when
   the network cannot keep up; ``put`` does not report it, so the backend cannot count it.
   Subscribers can: every publication carries ``seq`` (per key) in its attachment, and
   ``aurora-gateway listen`` reports the gaps;
-* ``congestion_control = "block"``: Zenoh never drops; the worker waits instead, the queue
-  fills, and every loss is a counted ``dropped_queue_full``;
+* ``congestion_control = "block"``: Zenoh never drops; the loop waits in ``put`` instead, the
+  hand-over fills, and every loss is a counted ``dropped_queue_full``;
 * the session has no connection at all (a client whose router is down, a peer nobody
   listens to): the put reaches no one outside this process; counted as ``unrouted`` (not a
   drop: with nobody listening there is nothing to lose).
@@ -28,9 +31,7 @@ gateway, and the id goes into the gateway's context so its own Zenoh sources ign
 from __future__ import annotations
 
 import logging
-import queue
 import threading
-import time
 from typing import Any, ClassVar
 
 from backends.zenoh import encoding as enc
@@ -42,19 +43,17 @@ from backends.zenoh.keys import (
 )
 from backends.zenoh.options import ZenohOptions
 from backends.zenoh.session import SessionOptions, zerror_text
-from gateway.backend import Backend, GatewayContext, Outcome, Routes
+from gateway.backend import Backend, GatewayContext, Routes
 from gateway.config import ConfigError
+from gateway.handover import Handover
 from gateway.io.backoff import Backoff
+from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
 
 log = logging.getLogger(__name__)
 
 START_WAIT_S = 1.0  # init() waits this long for the session so the first updates are not lost
-_STOP = object()
-
-ACCEPTED = Outcome.ACCEPTED
-QUEUE_FULL = Outcome.QUEUE_FULL
-NOT_READY = Outcome.NOT_READY
+CLOSE_TIMEOUT_S = 0.5
 
 
 class _Key:
@@ -90,13 +89,14 @@ class ZenohBackend(Backend):
         self.declare_token = options.liveliness
         self.declare_queryable = options.queryable
         self.stats_interval_s = options.stats_interval_s
-        self._stats_due = 0.0
         self.stats_published = 0
 
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._ready = threading.Event()
-        self._thread: threading.Thread | None = None
+        self.handover = Handover(self.name, options.queue_depth, ready=self._ready.is_set,
+                                 skip=self._loops)
+        self._loop: IoLoop | None = None
+        self._timers: list[Timer] = []
         self._session: Any = None
         self._keys: dict[str, _Key] = {}
         self._encodings: dict[str, Any] = {}
@@ -104,15 +104,10 @@ class ZenohBackend(Backend):
         self._entities: list[Any] = []
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
         # counters
-        self.submitted = 0
-        self.accepted = 0
-        self.processed = 0
         self.sent = 0
         self.puts = 0
         self.put_errors = 0
         self.publish_errors = 0
-        self.dropped_queue_full = 0
-        self.dropped_not_ready = 0
         self.skipped_from_zenoh = 0
         self.queries = 0
         self.session_opens = 0
@@ -131,14 +126,18 @@ class ZenohBackend(Backend):
             self.gateway_id = context.gateway_id
 
     def init(self) -> None:
-        """Start the worker (it opens the session); wait briefly for the session."""
-        if self._thread is not None:
+        """Start the backend's loop (it opens the session); wait briefly for the session."""
+        if self._loop is not None:
             return
         self.context.own_ids.add(self.gateway_id)  # this gateway's Zenoh sources skip it
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(self._stop,),
-                                        name=f"zenoh-{self.name}", daemon=True)
-        self._thread.start()
+        self._loop = loop = IoLoop(f"zenoh-{self.name}")
+        loop.start()
+        self.handover.open(loop)
+        loop.call_soon(self._connect)
+        if self.stats_interval_s:
+            self._timers.append(loop.call_every(self.stats_interval_s,
+                                                self._publish_gateway_stats))
         self._ready.wait(START_WAIT_S)
 
     def wait_ready(self, timeout: float) -> bool:
@@ -149,28 +148,22 @@ class ZenohBackend(Backend):
     def ready(self) -> bool:
         return self._ready.is_set()
 
-    def close(self, timeout: float = 0.5) -> None:
+    def close(self, timeout: float = CLOSE_TIMEOUT_S) -> None:
         """Publish what is queued (within ``timeout``), then close the session; safe twice."""
-        thread = self._thread
-        if thread is None:
+        loop, self._loop = self._loop, None
+        if loop is None:
             return
-        self._thread = None
+        self.handover.close(timeout)  # what it could not publish in time: dropped_closed
         self._stop.set()
-        self._queue.put(_STOP)
-        thread.join(timeout)
-        if thread.is_alive():
-            log.warning("zenoh %s: worker still busy after %.1f s; closing the session under "
-                        "it", self.name, timeout)
+        for timer in self._timers:
+            timer.cancel()
+        self._timers = []
+        if loop.stop(timeout):
+            loop.close()
+        else:
+            log.warning("zenoh %s: its loop still busy after %.1f s; closing the session "
+                        "under it", self.name, timeout)
         self._close_session()
-        leftover = 0
-        while True:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if item is not _STOP:
-                leftover += 1
-        self.dropped_not_ready += leftover
         self.context.own_ids.discard(self.gateway_id)
 
     def _close_session(self) -> None:
@@ -190,77 +183,62 @@ class ZenohBackend(Backend):
         except Exception:
             log.debug("zenoh %s: session close failed", self.name, exc_info=True)
 
-    # -- hooks (dispatcher thread; never block) -------------------------------------------------
-
-    def publish(self, msg: Any) -> Outcome:
-        """Queue one message for publication; never blocks (the handler of every routed
-        type but RawFrame)."""
-        self.submitted += 1
-        if msg.via.startswith(VIA_ZENOH):  # it came in over Zenoh: publishing it would loop
-            self.skipped_from_zenoh += 1
-            return ACCEPTED
-        if not self._ready.is_set():
-            self.dropped_not_ready += 1
-            return NOT_READY
-        q = self._queue
-        if q.qsize() >= self.queue_depth:
-            self.dropped_queue_full += 1
-            return QUEUE_FULL
-        q.put(msg)
-        self.accepted += 1
-        return ACCEPTED
+    # -- handlers (on the backend's loop, handed over by the dispatcher) ------------------------
 
     def routes(self) -> Routes:
-        submit = self.publish
-        routes = Routes().on(RawFrame, self.send_raw)
-        for cls in MESSAGE_TYPES:  # every message of the model is published
-            if cls is not RawFrame:
-                routes.on(cls, submit)
+        routes = (Routes(handover=self.handover).on(RawFrame, self.send_raw)
+                  .on(SmUpdate, self.send_framed).on(Status, self.send_framed))
+        for cls in MESSAGE_TYPES:  # every other message of the model: its document
+            if cls not in (RawFrame, SmUpdate, Status):
+                routes.on(cls, self.publish)
         return routes
 
-    def send_raw(self, msg: RawFrame) -> Outcome:
+    def _loops(self, msg: Any) -> bool:
+        """It came in over Zenoh: publishing it would loop (counted; the hand-over's ``skip``,
+        in the dispatcher's thread)."""
+        if msg.via.startswith(VIA_ZENOH):
+            self.skipped_from_zenoh += 1
+            return True
+        return False
+
+    def publish(self, msg: Any) -> None:
+        """A message of the model: its document on its kind's key."""
+        self._publish(msg, doc=True, raw=False)
+
+    def send_framed(self, msg: SmUpdate | Status) -> None:
+        """An SM update or STATUS: its document, and its wire frame on raw/<type> (if raw)."""
+        self._publish(msg, doc=True, raw=self.publish_raw)
+
+    def send_raw(self, msg: RawFrame) -> None:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
-        if not self.publish_raw:
-            return ACCEPTED
-        return self.publish(msg)
+        if self.publish_raw:
+            self._publish(msg, doc=False, raw=True)
 
-    # -- worker --------------------------------------------------------------------------------
+    @property
+    def accepted(self) -> int:
+        """Messages handed over so far (for tools and tests; see :attr:`processed`)."""
+        return self.handover.posted
 
-    def _run(self, stop: threading.Event) -> None:
-        try:
-            while not stop.is_set():
-                if self._session is None and not self._open(stop):
-                    stop.wait(self._backoff.next())
-                    continue
-                self._maybe_publish_stats()
-                try:
-                    item = self._queue.get(timeout=0.25)
-                except queue.Empty:
-                    continue
-                if item is _STOP:
-                    break
-                self._publish(item)
-            # Stopping: publish what is already queued, then leave.
-            while self._session is not None:
-                try:
-                    item = self._queue.get_nowait()
-                except queue.Empty:
-                    break
-                if item is not _STOP:
-                    self._publish(item)
-        except Exception:
-            log.exception("zenoh %s: worker failed", self.name)
-            self._ready.clear()
+    @property
+    def processed(self) -> int:
+        """Messages handled so far (published, skipped or failed)."""
+        return self.handover.handled
 
-    def _maybe_publish_stats(self) -> None:
+    # -- the loop ------------------------------------------------------------------------------
+
+    def _connect(self) -> None:
+        """Open the session (blocking this backend's loop only); on failure, again later."""
+        loop = self._loop
+        if self._session is not None or loop is None or self._stop.is_set():
+            return
+        if not self._open(self._stop):
+            loop.call_later(self._backoff.next(), self._connect)
+
+    def _publish_gateway_stats(self) -> None:
         """This gateway's counters on ``gateway_stats`` every ``stats_interval_s`` (the
-        worker's thread; the counters are read as the status line reads them)."""
-        if not self.stats_interval_s:
+        loop's thread; the counters are read as the status line reads them)."""
+        if self._session is None:
             return
-        now = time.monotonic()
-        if now < self._stats_due:
-            return
-        self._stats_due = now + self.stats_interval_s
         stats = self.context.services.get("gateway.stats")
         if stats is None:
             return
@@ -352,27 +330,23 @@ class ZenohBackend(Backend):
         self._latest[key] = (payload, self._encodings[encoding], att)
         return True
 
-    def _publish(self, msg: Any) -> None:
+    def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
+        """Put ``msg``'s document and/or its wire frame; a message that cannot be encoded is
+        skipped, counted (``publish_errors``)."""
         try:
-            self._publish_one(msg)
-        except Exception as exc:  # e.g. a message that cannot be encoded: skip it, go on
+            ok = False
+            if doc:
+                payload, encoding = enc.encode(msg, self.encoding)
+                ok = self._put(self.layout.kind(kind(msg)), payload, encoding)
+            if raw:
+                frame = enc.wire_frame(msg)
+                ok = self._put(self.layout.raw(frame[2]), frame, enc.WIRE) or ok
+        except Exception as exc:
             self.publish_errors += 1
             if self.publish_errors == 1:
                 log.warning("zenoh %s: cannot publish %s: %s: %s", self.name,
                             type(msg).__name__, type(exc).__name__, exc)
-        finally:
-            self.processed += 1
-
-    def _publish_one(self, msg: Any) -> None:
-        ok = False
-        t = type(msg)
-        layout = self.layout
-        if t is not RawFrame:
-            payload, encoding = enc.encode(msg, self.encoding)
-            ok = self._put(layout.kind(kind(msg)), payload, encoding)
-        if self.publish_raw and (t is RawFrame or t is SmUpdate or t is Status):
-            frame = enc.wire_frame(msg)
-            ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok
+            return
         if ok:
             self.sent += 1
 
@@ -407,18 +381,16 @@ class ZenohBackend(Backend):
     def stats(self) -> dict[str, Any]:
         return {
             "sent": self.sent,
-            "dropped": (self.dropped_queue_full + self.dropped_not_ready + self.put_errors
-                        + self.publish_errors),
-            "dropped_queue_full": self.dropped_queue_full,
-            "dropped_not_ready": self.dropped_not_ready,
-            "errors": self.put_errors + self.publish_errors + self.open_failures,
+            "dropped": self.handover.dropped + self.put_errors + self.publish_errors,
+            **self.handover.stats(),
+            "errors": (self.put_errors + self.publish_errors + self.open_failures
+                       + self.handover.handler_errors),
             "link": int(self._ready.is_set()),
             "put_errors": self.put_errors,
             "publish_errors": self.publish_errors,
             "puts": self.puts, "stats_published": self.stats_published,
             "unrouted": self.unrouted,
             "skipped_from_zenoh": self.skipped_from_zenoh,
-            "queued": self._queue.qsize(),
             "queries": self.queries,
             "connected": self.transports,
             "session_opens": self.session_opens,
@@ -431,9 +403,4 @@ class ZenohBackend(Backend):
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until everything accepted so far is published (for tools and benchmarks)."""
-        deadline = time.monotonic() + timeout
-        while self.processed < self.accepted:
-            if time.monotonic() >= deadline or self._thread is None:
-                return False
-            time.sleep(0.002)
-        return True
+        return self.handover.barrier(timeout)

@@ -2,8 +2,8 @@
 
 File descriptors are registered with a callback; timers (``call_later``/``call_every``) run on
 the loop thread; any other thread hands work over with :meth:`IoLoop.call_soon`, which wakes
-the loop through a socket pair and never blocks.  A callback that raises is logged (the first
-few times) and counted; the loop carries on.
+the loop through an eventfd (a socket pair where there is none) and never blocks.  A callback
+that raises is logged (the first few times) and counted; the loop carries on.
 
 Work that blocks and cannot be made non-blocking (an open that may wait seconds for a host,
 a recording's close and fsync, a third-party source's blocking loop) goes to
@@ -262,6 +262,53 @@ class BlockingCalls:
 BLOCKING = BlockingCalls()
 
 
+class _Waker:
+    """What another thread writes to wake the loop: an eventfd (one cheap syscall each way),
+    or a socket pair where there is none."""
+
+    def __init__(self) -> None:
+        self._efd = -1
+        self._pair: tuple[socket.socket, socket.socket] | None = None
+        if hasattr(os, "eventfd"):
+            self._efd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+        else:
+            r, w = socket.socketpair()
+            r.setblocking(False)
+            w.setblocking(False)
+            self._pair = (r, w)
+
+    def fileno(self) -> int:
+        return self._efd if self._pair is None else self._pair[0].fileno()
+
+    def wake(self) -> None:
+        try:  # (no context manager: this is every cross-thread hand-over's cost)
+            if self._pair is None:
+                os.eventfd_write(self._efd, 1)
+            else:
+                self._pair[1].send(b"\0")
+        except OSError:  # full (a wake-up is pending) or closed
+            pass
+
+    def clear(self) -> None:
+        try:
+            if self._pair is None:
+                os.eventfd_read(self._efd)  # the whole count at once
+            else:
+                while self._pair[0].recv(4096):
+                    pass
+        except OSError:  # nothing (more) to read
+            pass
+
+    def close(self) -> None:
+        if self._pair is None:
+            if self._efd >= 0:
+                os.close(self._efd)
+                self._efd = -1
+        else:
+            for sock in self._pair:
+                sock.close()
+
+
 class IoLoop:
     """A selector loop on a thread of its own (see the module docstring)."""
 
@@ -270,10 +317,8 @@ class IoLoop:
         self.blocking = blocking if blocking is not None else BLOCKING
         self._sel: _EpollPoller | _SelectorPoller = (
             _EpollPoller() if hasattr(select, "epoll") else _SelectorPoller())
-        self._rsock, self._wsock = socket.socketpair()
-        self._rsock.setblocking(False)
-        self._wsock.setblocking(False)
-        self._sel.register(self._rsock, selectors.EVENT_READ, self._on_wake)
+        self._waker = _Waker()
+        self._sel.register(self._waker.fileno(), selectors.EVENT_READ, self._on_wake)
         self._calls: deque[Callable[[], Any]] = deque()
         self._timers: list[tuple[float, int, Timer]] = []
         self._counter = itertools.count()
@@ -294,8 +339,7 @@ class IoLoop:
         if self._woken:
             return
         self._woken = True
-        with contextlib.suppress(BlockingIOError, OSError):
-            self._wsock.send(b"\0")  # a full pair already holds a pending wake-up
+        self._waker.wake()
 
     def run_blocking(self, fn: Callable[[], Any],
                      then: Callable[[Any, BaseException | None], Any] | None = None, *,
@@ -414,13 +458,10 @@ class IoLoop:
         self._closed = True
         with contextlib.suppress(OSError):
             self._sel.close()
-        self._rsock.close()
-        self._wsock.close()
+        self._waker.close()
 
     def _on_wake(self, mask: int) -> None:
-        with contextlib.suppress(BlockingIOError, OSError):
-            while self._rsock.recv(4096):
-                pass
+        self._waker.clear()
 
     def _run(self) -> None:
         sel = self._sel

@@ -69,6 +69,7 @@ from backends.zenoh import encoding as enc  # noqa: E402
 from backends.zenoh.backend import ZenohBackend  # noqa: E402
 from backends.zenoh.keys import SeqTracker, make_attachment, parse_attachment  # noqa: E402
 from gateway import wire  # noqa: E402
+from gateway.dispatcher import Dispatcher  # noqa: E402
 from gateway.flight import FlightModel  # noqa: E402
 from gateway.model import SmUpdate  # noqa: E402
 from gateway.sources.sim import flight_messages  # noqa: E402
@@ -185,7 +186,9 @@ def run_backend(msgs: list[SmUpdate], *, depth: int, congestion: str = "drop",
     b = ZenohBackend(ZenohOptions(listen=[ep], vehicle=VEHICLE, encoding=encoding, raw=raw,
                                   queue_depth=depth, congestion_control=congestion,
                                   liveliness=True))
-    b.init()
+    dispatcher = Dispatcher([b])  # the hook is what the dispatcher calls (a hand-over)
+    dispatcher.start()
+    dispatch = dispatcher.dispatch
     if not b.wait_ready(30):
         raise RuntimeError("backend session did not open")
     sub = Subscriber(ep, slow_s)
@@ -193,7 +196,7 @@ def run_backend(msgs: list[SmUpdate], *, depth: int, congestion: str = "drop",
         gc.collect()
         gc.disable()
         t0 = time.monotonic()
-        outcomes = offer(b.send_sm_update, msgs, rate)
+        outcomes = offer(dispatch, msgs, rate)
         if not b.wait_idle(600):
             raise RuntimeError("backend did not drain")
         t1 = time.monotonic()
