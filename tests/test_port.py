@@ -1156,3 +1156,15 @@ def test_backoff_factor_is_configurable() -> None:
 def test_backoff_refuses_bad_parameters(initial: float, maximum: float, factor: float) -> None:
     with pytest.raises(ValueError):
         Backoff(initial, maximum, factor)
+
+
+def test_a_stopped_loop_can_be_woken_and_stopped_again() -> None:
+    """stop() after close() (a source stopped twice, a late call_soon) is a no-op, never an
+    exception from the closed wake-up descriptor."""
+    loop = IoLoop("twice")
+    loop.start()
+    assert loop.stop(1.0)
+    loop.close()
+    loop.wake()
+    loop.call_soon(lambda: None)
+    assert loop.stop(1.0)

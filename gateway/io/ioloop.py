@@ -286,7 +286,7 @@ class _Waker:
                 os.eventfd_write(self._efd, 1)
             else:
                 self._pair[1].send(b"\0")
-        except OSError:  # full (a wake-up is pending) or closed
+        except (OSError, ValueError):  # full (a wake-up is pending) or closed (fd -1)
             pass
 
     def clear(self) -> None:
@@ -296,7 +296,7 @@ class _Waker:
             else:
                 while self._pair[0].recv(4096):
                     pass
-        except OSError:  # nothing (more) to read
+        except (OSError, ValueError):  # nothing (more) to read, or closed (fd -1)
             pass
 
     def close(self) -> None:
