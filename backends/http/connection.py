@@ -18,7 +18,11 @@ import time
 from http import HTTPStatus
 from typing import Any, Protocol
 
-import h11
+try:
+    import h11
+except ImportError as exc:  # an install without the extra: say which
+    raise ImportError("the http backend needs h11 and prometheus-client: "
+                      "pip install 'aurora-gateway[http]'") from exc
 
 from gateway.io.port import PortEngine
 from gateway.outcome import Outcome
