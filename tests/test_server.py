@@ -547,3 +547,31 @@ def test_a_real_eventsource_reconnects_when_its_stream_ends() -> None:
         assert b.stats()["streams_renewed"] >= 2
     finally:
         b.close()
+
+
+@pytest.mark.parametrize("name", ["uavtalk", "mavlink"])
+def test_clients_connecting_in_a_loop_are_logged_once_per_burst(
+        name: str, caplog: pytest.LogCaptureFixture) -> None:
+    """A peer that connects and leaves 40 times logs one 'connected' and one 'left' line
+    (plus their counts later), not 80 lines: log lines a peer triggers are bounded."""
+    from backends.mavlink.backend import MavlinkBackend
+    from backends.uavtalk.backend import UavtalkBackend
+    from gateway.dispatcher import Dispatcher
+
+    caplog.set_level(logging.INFO)
+    cls = {"uavtalk": UavtalkBackend, "mavlink": MavlinkBackend}[name]
+    b = cls(cls.OPTIONS(endpoints=["tcpin:127.0.0.1:0"]))
+    d = Dispatcher([b])
+    assert d.start() == []
+    try:
+        addr = _tcpin_address(b)[:2]
+        for _ in range(40):
+            with socket.create_connection(addr, timeout=DEADLINE_S):
+                assert wait_for(lambda: _clients(b) == 1, DEADLINE_S)
+            assert wait_for(lambda: _clients(b) == 0, DEADLINE_S)
+    finally:
+        d.close()
+    text = [r.getMessage() for r in caplog.records]
+    joined = [m for m in text if "connected" in m and "disconnected" not in m]
+    left = [m for m in text if " left" in m or "disconnected" in m]
+    assert len(joined) == 1 and len(left) == 1, text

@@ -37,6 +37,7 @@ from typing import Any
 
 from backends.mavlink.frames import StreamFramer
 from backends.mavlink.router import Link, Router
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import KINDS, usage
 from gateway.io.endpoints import Endpoint as EndpointSpec
 from gateway.io.endpoints import parse_endpoint as _parse
@@ -318,6 +319,7 @@ class TcpServerEndpoint(Endpoint):
         self._loop: IoLoop | None = None
         self._router: Router | None = None
         self._closing = False
+        self._bursts: dict[str, BurstLog] = {}
 
     def _listen(self) -> Any:
         spec = self.spec
@@ -363,7 +365,7 @@ class TcpServerEndpoint(Endpoint):
         self.clients.append(link)
         router.add_link(link)
         engine.start_with(SocketPort(sock, name))  # up at once: routed frames are not refused
-        log.info("%s: client %s:%s connected", self.name, addr[0], addr[1])
+        self._burst("joins", "client connected").event(f"{addr[0]}:{addr[1]}")
         return engine
 
     def _client_closed(self, link: PortLink) -> None:
@@ -372,10 +374,19 @@ class TcpServerEndpoint(Endpoint):
         self.clients.remove(link)
         link.close_engine(CLOSE_TIMEOUT_S)
         _add_ints(self._closed_stats, link.stats())
-        log.info("%s: disconnected", link.name)
+        self._burst("leaves", "client disconnected").event(link.name)
 
     def links(self) -> list[Link]:
         return list(self.clients)
+
+    def _burst(self, kind: str, text: str) -> BurstLog:
+        """Clients coming and going, logged once per burst (a peer can connect in a loop)."""
+        burst = self._bursts.get(kind)
+        if burst is None:
+            assert self._loop is not None  # called on the loop, once started
+            burst = self._bursts[kind] = BurstLog(self._loop, f"{self.name}: {text}",
+                                                  level=logging.INFO, logger=log)
+        return burst
 
     def stats(self) -> dict[str, Any]:
         d: dict[str, Any] = dict(self._closed_stats)

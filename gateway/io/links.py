@@ -27,6 +27,7 @@ import threading
 from collections.abc import Callable
 from typing import Any, Generic, Protocol, TypeVar
 
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import (
     SERIAL,
     TCP,
@@ -96,6 +97,7 @@ class LinkSet(Generic[L]):
         self.addresses: dict[str, Any] = {}  # tcpin endpoint text → bound (host, port)
         self._listeners: list[tuple[Endpoint, Any]] = []
         self._running = False
+        self._bursts: dict[str, BurstLog] = {}
 
     def bind(self) -> None:
         """Bind every ``tcpin`` listener now; raises OSError (and binds none) on failure."""
@@ -162,7 +164,7 @@ class LinkSet(Generic[L]):
                                  queue_depth=self.queue_depth, reopen=False, on_link=on_link)
         self.links.append(link)
         link.engine.start_with(SocketPort(sock, name))
-        log.info("%s: %s %s:%s connected", self.name, self.label, addr[0], addr[1])
+        self._burst("joins", f"{self.label} connected").event(f"{addr[0]}:{addr[1]}")
         return link.engine
 
     def _client_closed(self, link: L) -> None:
@@ -173,7 +175,15 @@ class LinkSet(Generic[L]):
             link.engine.close(CLOSE_TIMEOUT_S)
         if self.on_closed is not None:
             self.on_closed(link)
-        log.info("%s: %s left", self.name, link.name)
+        self._burst("leaves", f"{self.label} left").event(link.name)
+
+    def _burst(self, kind: str, text: str) -> BurstLog:
+        """Clients coming and going, logged once per burst (a peer can connect in a loop)."""
+        burst = self._bursts.get(kind)
+        if burst is None:
+            burst = self._bursts[kind] = BurstLog(self.loop, f"{self.name}: {text}",
+                                                  level=logging.INFO, logger=log)
+        return burst
 
     def _stream(self, spec: Endpoint) -> None:
         link = self.new_link(spec.text, spec)
