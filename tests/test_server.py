@@ -232,11 +232,13 @@ def test_at_the_cap_an_old_incomplete_request_gives_way_to_a_whole_one(loop: IoL
         srv = Served(loop, stack, partial=True, max_clients=1, client_timeout_s=30,
                      ready=line_ready)
         slow = connect(srv.address, stack)
-        slow.sendall(b"GE")
-        assert wait_for(lambda: srv.server.client_count == 1, DEADLINE_S)
+        # its echo read back: the server has the incomplete request (a cut is a reset, and a
+        # reset may discard what the client had not read yet, so the echo is read first)
+        assert echoes(slow, b"GE")
+        assert srv.server.client_count == 1
         fresh = connect(srv.address, stack)
         assert echoes(fresh, b"GET /\n")
-        assert closed_by_peer(slow) == b"GE"
+        assert closed_by_peer(slow) == b""
         assert srv.server.stats.clients_cut_partial == 1
         assert srv.server.stats.clients_refused == 0
 
