@@ -187,7 +187,6 @@ class UavtalkBackend(Backend):
         self.handover = Handover(self.name, options.inbox_depth, after_batch=self._store_changes)
         self._changed: dict[str, dict[str, Any]] = {}
         self._timer: Timer | None = None
-        self._running = False
         self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
                               "garbage_bytes": 0}
         self.messages = 0
@@ -205,14 +204,7 @@ class UavtalkBackend(Backend):
         return self.linkset.links
 
     def init(self) -> None:
-        try:
-            self.linkset.bind()
-        except OSError as exc:
-            raise BackendError(f"{self.name}: {exc}") from exc
-        self.loop.start()
-        self._running = True
-        self.handover.open(self.loop)
-        self.linkset.start()
+        self.linkset.open(BackendError, on_loop=lambda: self.handover.open(self.loop))
         self._timer = self.loop.call_every(self.tick_s, self._tick)
 
     def _retire(self, link: Link) -> None:
@@ -224,15 +216,12 @@ class UavtalkBackend(Backend):
         t["clients_closed"] += 1
 
     def close(self) -> None:
-        if not self._running:
+        if not self.linkset.running:
             return
-        self._running = False
         self.handover.close()
         if self._timer is not None:
             self._timer.cancel()
-        self.linkset.close()
-        if self.loop.stop(1.0):
-            self.loop.close()
+        self.linkset.shut()
 
     # -- the loop's work -------------------------------------------------------------------------
 
