@@ -50,6 +50,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from pacing import paced_batches  # tools/bench/pacing.py, beside this script
+
 HERE = Path(__file__).resolve()
 ROOT = HERE.parents[2]
 BACKENDS = ("mavlink", "uavtalk", "zenoh", "foxglove")
@@ -137,22 +139,7 @@ def _wait(backend: Any, work: Callable[[], int], target: int, what: str) -> None
 def _offer(dispatch: Callable[[Any], Any], msgs: list[Any], rate: float) -> int:
     """Dispatch ``msgs`` at ``rate`` per second in 1 ms batches (0: flat out), as a source
     would; how many were refused."""
-    refused = 0
-    if not rate:
-        for m in msgs:
-            if dispatch(m):
-                refused += 1
-        return refused
-    batch = max(1, round(rate / 1000))
-    start = time.perf_counter()
-    for k in range(0, len(msgs), batch):
-        delay = start + k / rate - time.perf_counter()
-        if delay > 0:
-            time.sleep(delay)
-        for m in msgs[k:k + batch]:
-            if dispatch(m):
-                refused += 1
-    return refused
+    return sum(1 for batch in paced_batches(msgs, rate) for m in batch if dispatch(m))
 
 
 def run_one(name: str, n: int, rate: float) -> dict[str, Any]:
