@@ -39,6 +39,8 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
 
+from gateway.io.endpoints import SERIAL, check_serial_port, text_of
+
 REQUIRED: Any = object()
 
 
@@ -232,6 +234,16 @@ def option(default: Any = REQUIRED, help: str = "", *, choices: Sequence[Any] | 
     if isinstance(default, list | dict):
         return field(default_factory=lambda: _copy(default), metadata=metadata)
     return field(default=default, metadata=metadata)
+
+
+def serial_port_option(help: str, flag: str | None = None, flag_help: str = "") -> Any:
+    """A required key naming a serial device or pyserial URL (checked by
+    :func:`gateway.io.endpoints.check_serial_port`), with, when ``flag`` is given, the
+    ``run`` flag that sets it (``--flag URL``)."""
+    return option(help=help, validator=check_serial_port,
+                  flag=None if flag is None else Flag(
+                      flag, flag_help, metavar="URL",
+                      convert=text_of((SERIAL,), baud_suffix=False)))
 
 
 def lazy(target: str) -> Callable[[Any], object]:
