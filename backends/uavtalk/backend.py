@@ -171,10 +171,7 @@ class UavtalkBackend(Backend):
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
         self.specs = [parse_endpoint(e) for e in options.endpoints]
-        self.board_type = options.board_type
-        self.tick_s = options.tick_s
-        self.queue_depth = options.queue_depth
-        self.inbox_depth = options.inbox_depth
+        self.options = options  # validated; read where it is used
         self.clock = clock
         self.objects = ObjectSet.load()
         self.vehicle = Vehicle(self.objects, options.board_type)
@@ -194,7 +191,7 @@ class UavtalkBackend(Backend):
     # -- sessions --------------------------------------------------------------------------------
 
     def new_session(self) -> FlightSession:
-        return FlightSession(self.objects, self.store, board_type=self.board_type)
+        return FlightSession(self.objects, self.store, board_type=self.options.board_type)
 
     # -- life cycle ------------------------------------------------------------------------------
 
@@ -205,7 +202,7 @@ class UavtalkBackend(Backend):
 
     def init(self) -> None:
         self.linkset.open(BackendError, on_loop=lambda: self.handover.open(self.loop))
-        self._timer = self.loop.call_every(self.tick_s, self._tick)
+        self._timer = self.loop.call_every(self.options.tick_s, self._tick)
 
     def _retire(self, link: Link) -> None:
         t = self._closed_totals
