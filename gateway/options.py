@@ -10,8 +10,10 @@ dataclass whose fields carry their metadata (help, range or choices, secret, val
 * ``docs/config-reference.md`` and ``examples/gateway.toml`` (tools/gen_config_reference.py)
   and ``check-config``'s output (secrets are never printed).
 
-A class is declared like this, in a light module (standard library and this module only, so
-building the ``run`` parser imports no backend)::
+A class is declared like this, in a light module found by the
+``aurora_gateway.backend_options`` / ``source_options`` entry points: the standard library, this
+module and the endpoint grammar (:mod:`gateway.io.endpoints`) only, so building the ``run``
+parser imports no backend::
 
     @dataclass(frozen=True, kw_only=True)
     class CrsfOptions(Options):
@@ -24,7 +26,7 @@ building the ``run`` parser imports no backend)::
 :class:`ConfigError`, a ValueError, naming the key); the backend's constructor takes the
 object: ``CrsfBackend(CrsfOptions(...), name=...)``.
 
-This module imports only the standard library.
+This module imports only the standard library and the endpoint grammar.
 """
 
 from __future__ import annotations

@@ -1,9 +1,7 @@
 """The XBee backend's (air side) and source's (ground side) options, declared once (see
 :mod:`gateway.options`): their schemas, the ``--xbee``, ``--xbee-dest`` and ``--xbee-api``
 flags (the last, declared once by the field both share, sets the API mode of the backend
-and of every XBee source) and their documentation.  A light module (the
-``aurora_gateway.backend_options`` / ``source_options`` entry points): the standard library,
-:mod:`gateway.options` and the endpoint grammar (:mod:`gateway.io.endpoints`) only."""
+and of every XBee source) and their documentation; a light module."""
 
 from __future__ import annotations
 
