@@ -82,7 +82,8 @@ def _free_zenoh_endpoint() -> str:
 
 
 def _build(name: str, n: int) -> tuple[Any, Callable[[], int], list[Any]]:
-    """The backend, its count of work done (``_units`` per message), what to close after."""
+    """The backend, its count of work done (``_units`` per message), what to close after;
+    built from a configuration table, which both trees' ``from_config`` take."""
     extra: list[Any] = []
     if name == "mavlink":
         import backends.mavlink.backend as mb
@@ -91,24 +92,26 @@ def _build(name: str, n: int) -> tuple[Any, Callable[[], int], list[Any]]:
         sink.bind(("127.0.0.1", 0))
         extra.append(sink)
         mb.INBOX_DEPTH = n + 1  # type: ignore[misc]  # both trees read it
-        b: Any = mb.MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{sink.getsockname()[1]}"])
+        b: Any = mb.MavlinkBackend.from_config(
+            {"endpoints": [f"udpout:127.0.0.1:{sink.getsockname()[1]}"]})
         # SmUpdate and Status both count as the vehicle's updates
         return b, lambda: int(b.vehicle.stats.updates), extra
     if name == "uavtalk":
         from backends.uavtalk.backend import UavtalkBackend
 
-        b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"], inbox_depth=min(n + 1, 65536))
+        b = UavtalkBackend.from_config({"endpoints": ["tcpin:127.0.0.1:0"],
+                                        "inbox_depth": min(n + 1, 65536)})
         return b, lambda: int(b.stats()["messages"]), extra
     if name == "zenoh":
         from backends.zenoh.backend import ZenohBackend
 
-        b = ZenohBackend(listen=[_free_zenoh_endpoint()], queue_depth=n + 1,
-                         stats_interval_s=0)
+        b = ZenohBackend.from_config({"listen": [_free_zenoh_endpoint()], "queue_depth": n + 1,
+                                      "stats_interval_s": 0})
         return b, lambda: int(b.processed), extra
     if name == "foxglove":
         from backends.foxglove.backend import FoxgloveBackend
 
-        b = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=n + 1)
+        b = FoxgloveBackend.from_config({"host": "127.0.0.1", "port": 0, "queue_depth": n + 1})
         return b, lambda: int(b.stats()["sent"]), extra
     raise SystemExit(f"unknown backend {name!r}")
 
