@@ -155,15 +155,16 @@ class GatewayContext:
     services: dict[str, Any] = field(default_factory=dict)
 
 
-class Backend:
-    """Base class for backends: sensible defaults for everything a backend may implement."""
+class Plugin:
+    """What a backend and a source (:class:`gateway.sources.Source`) share: a ``NAME``,
+    options declared once (``OPTIONS``, from which ``CONFIG`` is derived for every subclass),
+    an instance's name and the gateway's :class:`GatewayContext`."""
 
-    NAME: ClassVar[str] = "backend"
+    NAME: ClassVar[str] = "plugin"
     #: the options declaration (see the module docstring); None: a plug-in's own CONFIG
     OPTIONS: ClassVar[type[Options] | None] = None
     #: the schema of its table: derived from OPTIONS (a plug-in may write its own)
     CONFIG: ClassVar[Any] = None
-    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -172,6 +173,18 @@ class Backend:
     def __init__(self, name: str | None = None) -> None:
         self.name = name or self.NAME
         self.context = GatewayContext()
+
+    def attach(self, context: GatewayContext) -> None:
+        """Remember the gateway's context (called before the plug-in starts); a plug-in that
+        must tell this gateway's own publications from others' reads ``context.own_ids``."""
+        self.context = context
+
+
+class Backend(Plugin):
+    """Base class for backends: sensible defaults for everything a backend may implement."""
+
+    NAME: ClassVar[str] = "backend"
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
 
     @classmethod
     def from_config(cls, table: dict[str, Any], name: str | None = None) -> Backend:
@@ -193,10 +206,6 @@ class Backend:
     def routes(self) -> Routes:
         """The message types this backend takes and their handlers (none by default)."""
         return Routes()
-
-    def attach(self, context: GatewayContext) -> None:
-        """Remember the gateway's context (called before :meth:`init`)."""
-        self.context = context
 
     def emit(self, msg: Any) -> None:
         """Hand a message this backend decoded to the gateway (a no-op until attached)."""

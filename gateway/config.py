@@ -118,8 +118,8 @@ def make_source(type_name: str, options: dict[str, Any], name: str | None,
     cls = _resolve(registry.SOURCE_GROUP, type_name, where)
     opts = schema_of(cls).validate(options, where, ignore=("type", "name"))
     _check_together(cls, opts, where)
-    return Part(type_name, name or getattr(cls, "default_name", lambda o: type_name)(opts),
-                opts, cls)
+    default_name = getattr(cls, "default_name", lambda o: None)(opts)
+    return Part(type_name, name or default_name or type_name, opts, cls)
 
 
 def make_backend(type_name: str, options: dict[str, Any], name: str, where: str) -> Part:

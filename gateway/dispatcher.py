@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gateway.backend import Backend, Handler
-from gateway.outcome import Outcome
+from gateway.outcome import FailureLog, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ class BackendRecord:
     started: bool = False
     init_error: str | None = None
     outcomes: dict[Outcome, int] = field(default_factory=lambda: dict.fromkeys(Outcome, 0))
-    errors_logged: set[str] = field(default_factory=set)
+    failures: FailureLog = field(default_factory=lambda: FailureLog(log))
 
     @property
     def name(self) -> str:
@@ -157,13 +157,7 @@ class Dispatcher:
     __call__ = dispatch
 
     def _log_failure(self, rec: BackendRecord, exc: Exception) -> None:
-        key = type(exc).__name__
-        if key in rec.errors_logged:
-            log.debug("backend %s raised again: %r", rec.name, exc)
-            return
-        rec.errors_logged.add(key)
-        log.error("backend %s raised %s (isolated; further %s not logged)", rec.name,
-                  f"{key}: {exc}", key, exc_info=exc)
+        rec.failures.failed(f"backend {rec.name}", exc)
 
     # -- reporting ----------------------------------------------------------------------------
 

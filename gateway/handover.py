@@ -47,7 +47,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.io.ioloop import IoLoop
-from gateway.outcome import Outcome
+from gateway.outcome import FailureLog, Outcome
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ class Handover:
         self._loop: IoLoop | None = None
         self._queue: deque[tuple[AnyHandler, Any]] = deque()
         self._scheduled = False  # a drain is scheduled and has not started
-        self._errors_logged: set[str] = set()
+        self._failures = FailureLog(log)
         self.posted = 0
         self.handled = 0
         self.batches = 0
@@ -233,10 +233,4 @@ class Handover:
 
     def _failed(self, exc: Exception) -> None:
         self.handler_errors += 1
-        key = type(exc).__name__
-        if key in self._errors_logged:
-            log.debug("%s: a handler raised again: %r", self.name, exc)
-            return
-        self._errors_logged.add(key)
-        log.error("%s: a handler raised %s: %s (isolated; further %s not logged)", self.name,
-                  key, exc, key, exc_info=exc)
+        self._failures.failed(f"{self.name}: a handler", exc)

@@ -10,8 +10,10 @@ dataclass whose fields carry their metadata (help, range or choices, secret, val
 * ``docs/config-reference.md`` and ``examples/gateway.toml`` (tools/gen_config_reference.py)
   and ``check-config``'s output (secrets are never printed).
 
-A class is declared like this, in a light module (standard library and this module only, so
-building the ``run`` parser imports no backend)::
+A class is declared like this, in a light module found by the
+``aurora_gateway.backend_options`` / ``source_options`` entry points: the standard library, this
+module and the endpoint grammar (:mod:`gateway.io.endpoints`) only, so building the ``run``
+parser imports no backend::
 
     @dataclass(frozen=True, kw_only=True)
     class CrsfOptions(Options):
@@ -24,7 +26,7 @@ building the ``run`` parser imports no backend)::
 :class:`ConfigError`, a ValueError, naming the key); the backend's constructor takes the
 object: ``CrsfBackend(CrsfOptions(...), name=...)``.
 
-This module imports only the standard library.
+This module imports only the standard library and the endpoint grammar.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ import typing
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, TypeVar
+
+from gateway.io.endpoints import SERIAL, check_serial_port, text_of
 
 REQUIRED: Any = object()
 
@@ -232,6 +236,16 @@ def option(default: Any = REQUIRED, help: str = "", *, choices: Sequence[Any] | 
     if isinstance(default, list | dict):
         return field(default_factory=lambda: _copy(default), metadata=metadata)
     return field(default=default, metadata=metadata)
+
+
+def serial_port_option(help: str, flag: str | None = None, flag_help: str = "") -> Any:
+    """A required key naming a serial device or pyserial URL (checked by
+    :func:`gateway.io.endpoints.check_serial_port`), with, when ``flag`` is given, the
+    ``run`` flag that sets it (``--flag URL``)."""
+    return option(help=help, validator=check_serial_port,
+                  flag=None if flag is None else Flag(
+                      flag, flag_help, metavar="URL",
+                      convert=text_of((SERIAL,), baud_suffix=False)))
 
 
 def lazy(target: str) -> Callable[[Any], object]:

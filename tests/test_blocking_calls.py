@@ -123,12 +123,14 @@ def test_run_blocking_hands_the_result_back_on_the_loops_thread(loop: IoLoop) ->
         raise ValueError("bad")
 
     call = loop.run_blocking(work, then)
-    loop.run_blocking(fail, then)
+    failing = loop.run_blocking(fail, then)
     assert done.wait(DEADLINE_S)
     assert isinstance(call, BlockingCall) and call.wait(DEADLINE_S) and call.result == "opened"
     assert ran_on[0].startswith(loop.blocking.name)  # not the loop's thread
     results = {r if e is None else type(e).__name__: name for r, e, name in got}
     assert results == {"opened": "io-blocking-test", "ValueError": "io-blocking-test"}
+    # ``then`` is handed to the loop before the pool counts the failure: wait for the call
+    assert failing.wait(DEADLINE_S)
     assert loop.blocking.stats()["failed"] == 1
 
 

@@ -105,6 +105,16 @@ def test_a_serial_source_is_named_after_its_url_by_default() -> None:
     assert cfg.sources[0].name == "socket://localhost:7777"
 
 
+@pytest.mark.parametrize(("table", "name"), [
+    ('type = "uavtalk"\nurl = "tcp:127.0.0.1:9000"', "uavtalk:tcp:127.0.0.1:9000"),
+    ('type = "xbee"\nurl = "socket://127.0.0.1:9750"', "xbee:socket://127.0.0.1:9750"),
+    ('type = "mavlink"\nurl = "udpin:127.0.0.1:14550"', "mavlink:udpin:127.0.0.1:14550"),
+    ('type = "sim"', "sim"),
+])
+def test_a_source_without_a_name_is_named_by_its_name_format(table: str, name: str) -> None:
+    assert parse_toml(f"[[sources]]\n{table}\n").sources[0].name == name
+
+
 def test_float_keys_accept_integers_as_floats() -> None:
     cfg = parse_toml("[gateway]\nstatus_interval_s = 2\nlink_timeout_s = 1\n")
     assert cfg.gateway["status_interval_s"] == 2.0

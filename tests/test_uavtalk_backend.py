@@ -533,12 +533,12 @@ def test_hooks_never_block_a_full_inbox_drops(gateway: Any) -> None:
     b.loop.call_soon(hold)  # the loop is busy: nothing drains the inbox
     assert busy.wait(DEADLINE_S)
     try:
-        outcomes = [d.dispatch(sm(t=k)) for k in range(b.inbox_depth + 5)]
+        outcomes = [d.dispatch(sm(t=k)) for k in range(b.options.inbox_depth + 5)]
     finally:
         release.set()
-    assert outcomes.count(Outcome.ACCEPTED) == b.inbox_depth
+    assert outcomes.count(Outcome.ACCEPTED) == b.options.inbox_depth
     assert outcomes.count(Outcome.QUEUE_FULL) == 5 and b.stats()["dropped_queue_full"] == 5
-    assert wait_for(lambda: b.stats()["messages"] == b.inbox_depth)
+    assert wait_for(lambda: b.stats()["messages"] == b.options.inbox_depth)
 
 
 def test_not_ready_before_start_and_close_twice() -> None:

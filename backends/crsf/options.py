@@ -1,8 +1,6 @@
 """The CRSF backend's options, declared once (see :mod:`gateway.options`): its
 ``[backends.crsf]`` schema, its ``run`` flags (``--crsf``, ``--crsf-baud``) and its
-documentation come from here.  A light module (the ``aurora_gateway.backend_options`` entry
-point): standard library, :mod:`gateway.options` and the endpoint grammar
-(:mod:`gateway.io.endpoints`) only."""
+documentation come from here; a light module."""
 
 from __future__ import annotations
 

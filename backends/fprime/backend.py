@@ -128,7 +128,6 @@ class FprimeBackend(Backend):
             self.name, self.specs, loop=self.loop, new_link=lambda n, _spec: Link(n, self),
             queue_depth=options.queue_depth, on_closed=self._retire, label="ground system",
             limits=ClientLimits.of(options, options.queue_depth))
-        self._running = False
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
                         "clients_closed": 0}
         self.commands = CommandHandler(options.id_base)
@@ -155,13 +154,7 @@ class FprimeBackend(Backend):
         return self.linkset.address(endpoint)
 
     def init(self) -> None:
-        try:
-            self.linkset.bind()
-        except OSError as exc:
-            raise BackendError(f"{self.name}: {exc}") from exc
-        self.loop.start()
-        self._running = True
-        self.linkset.start()
+        self.linkset.open(BackendError)
         for spec in self.specs:
             if spec.kind == "tcpin":
                 host, port = self.address(spec.text)
@@ -170,12 +163,7 @@ class FprimeBackend(Backend):
                          host, port)
 
     def close(self) -> None:
-        if not self._running:
-            return
-        self._running = False
-        self.linkset.close()
-        if self.loop.stop(1.0):
-            self.loop.close()
+        self.linkset.shut()
 
     def _retire(self, link: Link) -> None:
         t = self._closed

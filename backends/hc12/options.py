@@ -8,8 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.io.endpoints import SERIAL, check_serial_port, text_of
-from gateway.options import Flag, ListenerOptions, option
+from gateway.options import Flag, ListenerOptions, option, serial_port_option
 
 #: relay frames byte-identical, or generate them
 MODES = ("relay", "generate")
@@ -27,11 +26,9 @@ class Hc12Options(ListenerOptions):
     """``[backends.hc12]``: an HC-12 433 MHz UART radio."""
 
     TITLE: ClassVar[str] = "HC-12 backend"
-    url: str = option(help="the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
-                      "rfc2217://host:port", validator=check_serial_port,
-                      flag=Flag("--hc12", "HC-12 backend: relay frames to the HC-12 on this "
-                                "port or URL", metavar="URL",
-                                convert=text_of((SERIAL,), baud_suffix=False)))
+    url: str = serial_port_option("the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "
+                                  "rfc2217://host:port", "--hc12", "HC-12 backend: relay "
+                                  "frames to the HC-12 on this port or URL")
     baudrate: int = option(9600, "host UART rate; must equal the module's (AT+B)",
                            choices=BAUD_RATES, flag=Flag("--hc12-baud", metavar="N"))
     mode: str = option("relay", "relay: pass frames on byte-identical; generate: encode "

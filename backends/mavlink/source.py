@@ -303,9 +303,7 @@ class MavlinkSource(Source):
 
     NAME = "mavlink"
     OPTIONS = MavlinkSourceOptions
-    @staticmethod
-    def default_name(options: dict[str, Any]) -> str:
-        return f"mavlink:{options['url']}"
+    NAME_FORMAT = "mavlink:{url}"
 
     def __init__(self, options: MavlinkSourceOptions, name: str | None = None) -> None:
         super().__init__(name)

@@ -171,10 +171,7 @@ class UavtalkBackend(Backend):
                  clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name)
         self.specs = [parse_endpoint(e) for e in options.endpoints]
-        self.board_type = options.board_type
-        self.tick_s = options.tick_s
-        self.queue_depth = options.queue_depth
-        self.inbox_depth = options.inbox_depth
+        self.options = options  # validated; read where it is used
         self.clock = clock
         self.objects = ObjectSet.load()
         self.vehicle = Vehicle(self.objects, options.board_type)
@@ -187,7 +184,6 @@ class UavtalkBackend(Backend):
         self.handover = Handover(self.name, options.inbox_depth, after_batch=self._store_changes)
         self._changed: dict[str, dict[str, Any]] = {}
         self._timer: Timer | None = None
-        self._running = False
         self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
                               "garbage_bytes": 0}
         self.messages = 0
@@ -195,7 +191,7 @@ class UavtalkBackend(Backend):
     # -- sessions --------------------------------------------------------------------------------
 
     def new_session(self) -> FlightSession:
-        return FlightSession(self.objects, self.store, board_type=self.board_type)
+        return FlightSession(self.objects, self.store, board_type=self.options.board_type)
 
     # -- life cycle ------------------------------------------------------------------------------
 
@@ -205,15 +201,8 @@ class UavtalkBackend(Backend):
         return self.linkset.links
 
     def init(self) -> None:
-        try:
-            self.linkset.bind()
-        except OSError as exc:
-            raise BackendError(f"{self.name}: {exc}") from exc
-        self.loop.start()
-        self._running = True
-        self.handover.open(self.loop)
-        self.linkset.start()
-        self._timer = self.loop.call_every(self.tick_s, self._tick)
+        self.linkset.open(BackendError, on_loop=lambda: self.handover.open(self.loop))
+        self._timer = self.loop.call_every(self.options.tick_s, self._tick)
 
     def _retire(self, link: Link) -> None:
         t = self._closed_totals
@@ -224,15 +213,12 @@ class UavtalkBackend(Backend):
         t["clients_closed"] += 1
 
     def close(self) -> None:
-        if not self._running:
+        if not self.linkset.running:
             return
-        self._running = False
         self.handover.close()
         if self._timer is not None:
             self._timer.cancel()
-        self.linkset.close()
-        if self.loop.stop(1.0):
-            self.loop.close()
+        self.linkset.shut()
 
     # -- the loop's work -------------------------------------------------------------------------
 

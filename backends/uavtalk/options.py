@@ -1,7 +1,5 @@
 """The UAVTalk backend's and source's options, declared once (see :mod:`gateway.options`):
-their schemas, the ``--uavtalk`` flag and their documentation.  A light module (the
-``aurora_gateway.backend_options`` / ``source_options`` entry points): the standard library,
-:mod:`gateway.options` and the endpoint grammar (:mod:`gateway.io.endpoints`) only."""
+their schemas, the ``--uavtalk`` flag and their documentation; a light module."""
 
 from __future__ import annotations
 

@@ -87,10 +87,7 @@ class UavtalkSource(Source):
 
     NAME = "uavtalk"
     OPTIONS = UavtalkSourceOptions
-
-    @staticmethod
-    def default_name(options: dict[str, Any]) -> str:
-        return f"uavtalk:{options['url']}"
+    NAME_FORMAT = "uavtalk:{url}"
 
     def __init__(self, options: UavtalkSourceOptions, name: str | None = None, *,
                  objects: ObjectSet | None = None,

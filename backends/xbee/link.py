@@ -199,13 +199,29 @@ class _Item(NamedTuple):
 
 
 @dataclass
-class AirCounters(Counters):
-    """What an :class:`AirLink` did; ``sent`` counts by packet kind (not in ``as_dict``)."""
+class LinkCounters(Counters):
+    """What either end of the link counts of what it receives."""
 
     rx_payloads: int = 0
     rx_packets: int = 0
     malformed: int = 0
     unexpected: int = 0
+
+    def decode(self, data: bytes) -> list[Packet]:
+        """The packets of one received RF payload, counted: the payload, the packets, and
+        the payload again as malformed when part of it was not a packet."""
+        self.rx_payloads += 1
+        packets, ok = _decode_payload(data)
+        if not ok:
+            self.malformed += 1
+        self.rx_packets += len(packets)
+        return packets
+
+
+@dataclass
+class AirCounters(LinkCounters):
+    """What an :class:`AirLink` did; ``sent`` counts by packet kind (not in ``as_dict``)."""
+
     commands_rx: int = 0
     rc_commands: int = 0
     payloads_sent: int = 0
@@ -290,15 +306,11 @@ class AirLink:
     def on_packet(self, data: bytes, rssi_dbm: float | None, now: float) -> list[AirOutput]:
         """One received RF payload (``rssi_dbm`` if the driver knows it)."""
         c = self.counters
-        c.rx_payloads += 1
-        packets, ok = _decode_payload(data)
-        if not ok:
-            c.malformed += 1
+        packets = c.decode(data)
         out: list[AirOutput] = []
         if packets and rssi_dbm is not None:
             self._rssi = max(-255, min(0, round(rssi_dbm)))
         for p in packets:
-            c.rx_packets += 1
             self._rx_power = p.power
             self._heard_at[p.power] = now
             if isinstance(p, Command):
@@ -386,13 +398,9 @@ class AirLink:
 # -- ground -----------------------------------------------------------------------------------
 
 @dataclass
-class GroundCounters(Counters):
+class GroundCounters(LinkCounters):
     """What a :class:`GroundLink` did; ``lost``/``received`` count by packet kind."""
 
-    rx_payloads: int = 0
-    rx_packets: int = 0
-    malformed: int = 0
-    unexpected: int = 0
     commands_sent: int = 0
     keepalives: int = 0
     acks_rx: int = 0
@@ -531,15 +539,11 @@ class GroundLink:
     def on_packet(self, data: bytes, rssi_dbm: float | None, now: float) -> list[GroundOutput]:
         """One received RF payload (``rssi_dbm`` if the driver knows it, else None)."""
         c = self.counters
-        c.rx_payloads += 1
         self._rx_token += 1
         self._ping_wait.clear()
-        packets, ok = _decode_payload(data)
-        if not ok:
-            c.malformed += 1
+        packets = c.decode(data)
         out: list[GroundOutput] = []
         for p in packets:
-            c.rx_packets += 1
             if isinstance(p, Ack):
                 self._on_ack(p, now)
             elif isinstance(p, Ping):

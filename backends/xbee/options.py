@@ -1,17 +1,14 @@
 """The XBee backend's (air side) and source's (ground side) options, declared once (see
 :mod:`gateway.options`): their schemas, the ``--xbee``, ``--xbee-dest`` and ``--xbee-api``
 flags (the last, declared once by the field both share, sets the API mode of the backend
-and of every XBee source) and their documentation.  A light module (the
-``aurora_gateway.backend_options`` / ``source_options`` entry points): the standard library,
-:mod:`gateway.options` and the endpoint grammar (:mod:`gateway.io.endpoints`) only."""
+and of every XBee source) and their documentation; a light module."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.io.endpoints import SERIAL, check_serial_port, text_of
-from gateway.options import Flag, Options, lazy, option
+from gateway.options import Flag, Options, lazy, option, serial_port_option
 
 #: an XBee's factory UART rate (BD = 3), ``backends.xbee.radio.DEFAULT_BAUD``
 DEFAULT_BAUD = 9600
@@ -39,12 +36,11 @@ class XbeeOptions(XbeeModuleOptions):
     """``[backends.xbee]``: the air side, the rocket's telemetry down and commands up."""
 
     TITLE: ClassVar[str] = "XBee backend"
-    url: str = option(help="the XBee module: a serial device or pyserial URL "
-                      "(socket://HOST:PORT)", validator=check_serial_port,
-                      flag=Flag("--xbee", "XBee air side: the rocket's telemetry down and "
-                                "commands up through the XBee module on this serial port or "
-                                "pyserial URL (socket://HOST:PORT)", metavar="URL",
-                                convert=text_of((SERIAL,), baud_suffix=False)))
+    url: str = serial_port_option("the XBee module: a serial device or pyserial URL "
+                                  "(socket://HOST:PORT)", "--xbee", "XBee air side: the "
+                                  "rocket's telemetry down and commands up through the XBee "
+                                  "module on this serial port or pyserial URL "
+                                  "(socket://HOST:PORT)")
     dest: str = option("", "64-bit destination in hex; empty: broadcast",
                        validator=lazy("backends.xbee.radio:parse_dest"),
                        flag=Flag("--xbee-dest", "XBee air side: the ground module's 64-bit "
@@ -59,8 +55,8 @@ class XbeeOptions(XbeeModuleOptions):
 class XbeeSourceOptions(XbeeModuleOptions):
     """``[[sources]] type = "xbee"``: the ground side."""
 
-    url: str = option(help="the XBee module: a serial device or pyserial URL "
-                      "(socket://HOST:PORT)", validator=check_serial_port)
+    url: str = serial_port_option("the XBee module: a serial device or pyserial URL "
+                                  "(socket://HOST:PORT)")
     rssi_threshold_dbm: float = option(-85.0, "a power level whose pings arrive at least this "
                                        "strong is adequate; the lowest adequate one is used",
                                        minimum=-120, maximum=0)

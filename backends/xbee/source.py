@@ -34,9 +34,7 @@ class XbeeSource(Source):
 
     NAME = "xbee"
     OPTIONS = XbeeSourceOptions
-    @staticmethod
-    def default_name(options: dict[str, Any]) -> str:
-        return f"xbee:{options['url']}"
+    NAME_FORMAT = "xbee:{url}"
 
     def __init__(self, options: XbeeSourceOptions, name: str | None = None) -> None:
         super().__init__(name or f"xbee:{options.url}")

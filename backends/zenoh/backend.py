@@ -81,14 +81,7 @@ class ZenohBackend(Backend):
         self._own_id = options.gateway_id
         self.gateway_id = self._own_id or self.context.gateway_id
         self.session_options = SessionOptions.from_options(options)
-        self.encoding = options.encoding
-        self.publish_raw = options.raw
-        self.congestion_control = options.congestion_control
-        self.priority = options.priority
-        self.queue_depth = options.queue_depth
-        self.declare_token = options.liveliness
-        self.declare_queryable = options.queryable
-        self.stats_interval_s = options.stats_interval_s
+        self.options = options  # validated; read where it is used
         self.stats_published = 0
 
         self._stop = threading.Event()
@@ -135,8 +128,8 @@ class ZenohBackend(Backend):
         loop.start()
         self.handover.open(loop)
         loop.call_soon(self._connect)
-        if self.stats_interval_s:
-            self._timers.append(loop.call_every(self.stats_interval_s,
+        if self.options.stats_interval_s:
+            self._timers.append(loop.call_every(self.options.stats_interval_s,
                                                 self._publish_gateway_stats))
         self._ready.wait(START_WAIT_S)
 
@@ -207,11 +200,11 @@ class ZenohBackend(Backend):
 
     def send_framed(self, msg: SmUpdate | Status) -> None:
         """An SM update or STATUS: its document, and its wire frame on raw/<type> (if raw)."""
-        self._publish(msg, doc=True, raw=self.publish_raw)
+        self._publish(msg, doc=True, raw=self.options.raw)
 
     def send_raw(self, msg: RawFrame) -> None:
         """A frame nobody decodes: published on raw/<type> only (nothing if raw is off)."""
-        if self.publish_raw:
+        if self.options.raw:
             self._publish(msg, doc=False, raw=True)
 
     @property
@@ -286,9 +279,9 @@ class ZenohBackend(Backend):
         import zenoh
 
         self._entities = []
-        self._congestion = (zenoh.CongestionControl.BLOCK if self.congestion_control == "block"
-                            else zenoh.CongestionControl.DROP)
-        self._priority = getattr(zenoh.Priority, self.priority.upper())
+        block = self.options.congestion_control == "block"
+        self._congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._priority = getattr(zenoh.Priority, self.options.priority.upper())
         self._encodings = {s: zenoh.Encoding(s) for s in
                            (enc.JSON, enc.SM_UPDATE_PACKED, enc.STATUS_PACKED, enc.WIRE)}
         try:
@@ -296,10 +289,10 @@ class ZenohBackend(Backend):
                 self._on_transport, history=True))
         except Exception:  # an observer only: never a reason not to publish
             log.debug("zenoh %s: no transport events", self.name, exc_info=True)
-        if self.declare_token:
+        if self.options.liveliness:
             self._entities.append(
                 session.liveliness().declare_token(self.layout.token(self.gateway_id)))
-        if self.declare_queryable:
+        if self.options.queryable:
             self._entities.append(
                 session.declare_queryable(self.layout.everything, self._on_query))
 
@@ -336,7 +329,7 @@ class ZenohBackend(Backend):
         try:
             ok = False
             if doc:
-                payload, encoding = enc.encode(msg, self.encoding)
+                payload, encoding = enc.encode(msg, self.options.encoding)
                 ok = self._put(self.layout.kind(kind(msg)), payload, encoding)
             if raw:
                 frame = enc.wire_frame(msg)

@@ -434,6 +434,12 @@ def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
+def say(text: str) -> None:
+    """One of the run's own lines to stderr in one write, so that a log line another thread
+    writes meanwhile cannot land inside it (``print`` writes the text and the newline apart)."""
+    sys.stderr.write(text + "\n")
+
+
 def _report(summary: dict[str, Any]) -> None:
     drops = []
     rec = summary.get("recorder") or {}
@@ -462,21 +468,20 @@ def _report(summary: dict[str, Any]) -> None:
         if unrecordable:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
                      + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
-    print(line, file=sys.stderr)
+    say(line)
     for text in summary_lines(summary.get("flights") or {}):
-        print(text, file=sys.stderr)
+        say(text)
     crc = summary.get("crc_errors") or {}
-    print(f"crc errors: {sum(crc.values())}"
-          + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""),
-          file=sys.stderr)
+    say(f"crc errors: {sum(crc.values())}"
+        + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""))
     for path in summary.get("recordings") or ():
-        print(f"recording: {path}", file=sys.stderr)
-    print("dropped: " + ("; ".join(drops) if drops else "nothing"), file=sys.stderr)
+        say(f"recording: {path}")
+    say("dropped: " + ("; ".join(drops) if drops else "nothing"))
     refusals = [f"{name} " + " ".join(f"{k}={st[k]}" for k in SERVER_KEYS if st.get(k))
                 for name, st in summary["backends"].items()
                 if any(isinstance(st.get(k), int) and st.get(k) for k in SERVER_KEYS)]
     if refusals:  # a listener refused or cut clients (gateway.io.server)
-        print("clients: " + "; ".join(refusals), file=sys.stderr)
+        say("clients: " + "; ".join(refusals))
 
 
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
@@ -485,10 +490,10 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
     with Stopper(gw.stop_event):
         failures = gw.start()
         for name, err in failures:
-            print(f"aurora-gateway: backend {name} did not start: {err}", file=sys.stderr)
+            say(f"aurora-gateway: backend {name} did not start: {err}")
         names = ", ".join(p.name for p in cfg.backends) or "none"
         srcs = ", ".join(s.name for s in gw.sources) or "none"
-        print(f"aurora-gateway {__version__}: sources {srcs}; backends {names}", file=sys.stderr)
+        say(f"aurora-gateway {__version__}: sources {srcs}; backends {names}")
         try:
             gw.run(duration_s)
         finally:

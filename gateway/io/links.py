@@ -113,6 +113,34 @@ class LinkSet(Generic[L]):
         for spec, sock in self._listeners:
             self.addresses[spec.text] = sock.getsockname()[:2]
 
+    @property
+    def running(self) -> bool:
+        """Serving: between :meth:`start` (or :meth:`open`) and :meth:`close`."""
+        return self._running
+
+    def open(self, refusal: type[Exception] = OSError,
+             on_loop: Callable[[], Any] | None = None) -> None:
+        """A backend's start: :meth:`bind` (a listener that cannot be bound raises
+        ``refusal`` naming the set, with nothing started), start the loop, call ``on_loop``
+        (e.g. open a hand-over onto it), then :meth:`start`."""
+        try:
+            self.bind()
+        except OSError as exc:
+            raise refusal(f"{self.name}: {exc}") from exc
+        self.loop.start()
+        if on_loop is not None:
+            on_loop()
+        self.start()
+
+    def shut(self) -> None:
+        """A backend's close, after :meth:`open`: :meth:`close`, then stop and close the
+        loop; a second call does nothing."""
+        if not self._running:
+            return
+        self.close()
+        if self.loop.stop(1.0):
+            self.loop.close()
+
     def start(self) -> None:
         self._running = True
         for spec, sock in self._listeners:

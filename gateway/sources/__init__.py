@@ -5,8 +5,8 @@ The contract, all of it public (the app uses nothing else):
 
 * ``name``; ``OPTIONS`` (a :class:`gateway.options.Options` dataclass, its options declared
   once; the schema ``CONFIG`` is derived from it), ``from_config(options, name)`` (default:
-  ``cls(OPTIONS.from_table(options), name=name)``) and optionally ``default_name(options)``,
-  which the configuration uses;
+  ``cls(OPTIONS.from_table(options), name=name)``) and ``default_name(options)`` (default:
+  ``NAME_FORMAT`` over the options), which the configuration uses;
 * ``attach(context)``, called before ``start`` with the gateway's
   :class:`gateway.backend.GatewayContext` (kept as ``context``);
 * optionally ``use_loop(loop)``, called before ``start`` with the
@@ -50,31 +50,30 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from gateway import registry
-from gateway.backend import Backend, GatewayContext, Routes, build, derive_config
+from gateway.backend import Backend, Plugin, Routes, build
 from gateway.io.endpoints import check_serial_port, is_device
 from gateway.io.ioloop import BlockingCall, IoLoop
-from gateway.options import Options
 
 log = logging.getLogger(__name__)
 
 Sink = Callable[[Any], Any]
 
 
-class Source:
+class Source(Plugin):
     """Base class: a source whose work runs on an I/O loop (see the module docstring)."""
 
     NAME: ClassVar[str] = "source"
-    #: the options declaration; CONFIG, its schema, is derived from it
-    OPTIONS: ClassVar[type[Options] | None] = None
-    CONFIG: ClassVar[Any] = None
+    #: its name when its table gives none: ``str.format`` over its validated options, e.g.
+    #: ``"uavtalk:{url}"`` (empty: the type's name); a source may override :meth:`default_name`
+    NAME_FORMAT: ClassVar[str] = ""
 
-    def __init_subclass__(cls, **kwargs: Any) -> None:
-        super().__init_subclass__(**kwargs)
-        derive_config(cls)
+    @classmethod
+    def default_name(cls, options: dict[str, Any]) -> str | None:
+        """An instance's name from its validated options (None: the type's name)."""
+        return cls.NAME_FORMAT.format(**options) if cls.NAME_FORMAT else None
 
     def __init__(self, name: str | None = None) -> None:
-        self.name = name or self.NAME
-        self.context = GatewayContext()
+        super().__init__(name)
         self.done = threading.Event()
         self._stop = threading.Event()  # what run() is given; set by request_stop()
         self._sink: Sink | None = None
@@ -100,11 +99,6 @@ class Source:
         (an XBee ground link sends the pilot's commands up) routes them like a backend; the
         gateway hands them to it through a :class:`SourceInbox`."""
         return Routes()
-
-    def attach(self, context: GatewayContext) -> None:
-        """Remember the gateway's context (called before :meth:`start`); a source that must
-        tell this gateway's own publications from others' reads ``context.own_ids``."""
-        self.context = context
 
     def use_loop(self, loop: IoLoop) -> None:
         """Run on ``loop`` (shared with the gateway's other sources; its owner starts and

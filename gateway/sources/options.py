@@ -8,8 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.io.endpoints import check_serial_port
-from gateway.options import Flag, Options, lazy, option
+from gateway.options import Flag, Options, lazy, option, serial_port_option
 
 #: Longest wait between two reopen attempts of a port (``gateway.io.port.REOPEN_MAX_S``).
 REOPEN_MAX_S = 2.0
@@ -20,8 +19,8 @@ class SerialOptions(Options):
     """``[[sources]] type = "serial"``: the rocket's frames on a serial port."""
 
     TITLE: ClassVar[str] = "serial sources"
-    url: str = option(help="pyserial port or URL: /dev/ttyUSB0, loop://, socket://host:port, "
-                      "rfc2217://host:port", validator=check_serial_port)
+    url: str = serial_port_option("pyserial port or URL: /dev/ttyUSB0, loop://, "
+                                  "socket://host:port, rfc2217://host:port")
     baudrate: int = option(115200, "host UART speed", minimum=50,
                            flag=Flag("--baud", "baud rate of serial sources", metavar="N"))
     reconnect_max_s: float = option(REOPEN_MAX_S, "longest wait between reopen attempts",

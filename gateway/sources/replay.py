@@ -10,15 +10,13 @@ from pathlib import Path
 from typing import Any
 
 from gateway import recording
-from gateway.pacing import Pacer
-from gateway.sources import Source
 from gateway.sources.options import ReplayOptions
-from gateway.wire import Decoder
+from gateway.sources.paced import PacedFrameSource
 
 log = logging.getLogger(__name__)
 
 
-class ReplaySource(Source):
+class ReplaySource(PacedFrameSource):
     NAME = "replay"
     OPTIONS = ReplayOptions
 
@@ -38,10 +36,7 @@ class ReplaySource(Source):
         self.path = Path(options.path)  # checked by its option (recording.check_file)
         self.speed = options.speed
         self.loop = options.loop
-        self.decoder = Decoder(origin=self.name)
         self.read_stats = recording.ReadStats()
-        self.frames_sent = 0
-        self._pacer: Pacer[bytes] | None = None
 
     def begin(self) -> None:
         loop = self.io_loop
@@ -62,9 +57,7 @@ class ReplaySource(Source):
             log.error("replay %s: cannot read it: %s", self.path, error)
             self.finish()
             return
-        self._pacer = Pacer(loop, self._passes(data), self.speed, self._deliver,
-                            on_end=self.finish)
-        self._pacer.start()
+        self.pace(self._passes(data), self.speed)
 
     def _passes(self, data: bytes) -> Iterator[tuple[float, bytes]]:
         """The recording's records, once or (``loop``) again and again; each pass is paced
@@ -79,18 +72,8 @@ class ReplaySource(Source):
             if not self.loop:
                 return
 
-    def _deliver(self, t: float, frame: bytes) -> None:
-        for msg in self.decoder.feed(frame):
-            self.frames_sent += 1
-            self.emit(msg)
-
-    def halt(self) -> None:
-        if self._pacer is not None:
-            self._pacer.cancel()
-        self.finish()
-
     def stats(self) -> dict[str, Any]:
         st = self.read_stats
-        return {"frames": self.frames_sent, "records": st.records,
+        return {"frames": self.sent, "records": st.records,
                 "torn_tail_bytes": st.torn_tail_bytes, "corrupt_skips": st.corrupt_skips,
                 "crc_failures": self.decoder.stats.crc_failures}

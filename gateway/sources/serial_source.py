@@ -26,9 +26,7 @@ class SerialSource(Source):
     NAME = "serial"
     OPTIONS = SerialOptions
 
-    @staticmethod
-    def default_name(options: dict[str, Any]) -> str:
-        return str(options["url"])
+    NAME_FORMAT = "{url}"
 
     def __init__(self, options: SerialOptions, name: str | None = None) -> None:
         super().__init__(name or options.url)

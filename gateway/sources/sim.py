@@ -13,10 +13,9 @@ from typing import Any
 
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate, Status
-from gateway.pacing import Pacer
-from gateway.sources import Source
 from gateway.sources.options import SimOptions
-from gateway.wire import Decoder, encode
+from gateway.sources.paced import PacedFrameSource
+from gateway.wire import encode
 
 BOOT_UPTIME_MS = 12_000  # the flight computer's uptime when the simulation starts
 
@@ -56,7 +55,7 @@ def flight_frames(model: FlightModel, rate_hz: float = 10.0, status_hz: float = 
         yield t, encode(msg)
 
 
-class SimSource(Source):
+class SimSource(PacedFrameSource):
     NAME = "sim"
     OPTIONS = SimOptions
 
@@ -77,27 +76,10 @@ class SimSource(Source):
         self.status_hz = options.status_hz
         self.speed = options.speed
         self.cycles = options.cycles
-        self.decoder = Decoder(origin=self.name)
-        self.sent = 0
-        self._pacer: Pacer[bytes] | None = None
 
     def begin(self) -> None:
-        loop = self.io_loop
-        assert loop is not None
-        self._pacer = Pacer(loop, flight_frames(self.model, self.rate_hz, self.status_hz,
-                                                self.cycles),
-                            self.speed, self._deliver, on_end=self.finish)
-        self._pacer.start()
-
-    def _deliver(self, t: float, frame: bytes) -> None:
-        for msg in self.decoder.feed(frame):
-            self.sent += 1
-            self.emit(msg)
-
-    def halt(self) -> None:
-        if self._pacer is not None:
-            self._pacer.cancel()
-        self.finish()
+        self.pace(flight_frames(self.model, self.rate_hz, self.status_hz, self.cycles),
+                  self.speed)
 
     def stats(self) -> dict[str, Any]:
         return {"sent": self.sent}

@@ -50,6 +50,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from pacing import paced_batches  # tools/bench/pacing.py, beside this script
+
 HERE = Path(__file__).resolve()
 ROOT = HERE.parents[2]
 BACKENDS = ("mavlink", "uavtalk", "zenoh", "foxglove")
@@ -80,7 +82,8 @@ def _free_zenoh_endpoint() -> str:
 
 
 def _build(name: str, n: int) -> tuple[Any, Callable[[], int], list[Any]]:
-    """The backend, its count of work done (``_units`` per message), what to close after."""
+    """The backend, its count of work done (``_units`` per message), what to close after;
+    built from a configuration table, which both trees' ``from_config`` take."""
     extra: list[Any] = []
     if name == "mavlink":
         import backends.mavlink.backend as mb
@@ -89,24 +92,26 @@ def _build(name: str, n: int) -> tuple[Any, Callable[[], int], list[Any]]:
         sink.bind(("127.0.0.1", 0))
         extra.append(sink)
         mb.INBOX_DEPTH = n + 1  # type: ignore[misc]  # both trees read it
-        b: Any = mb.MavlinkBackend(endpoints=[f"udpout:127.0.0.1:{sink.getsockname()[1]}"])
+        b: Any = mb.MavlinkBackend.from_config(
+            {"endpoints": [f"udpout:127.0.0.1:{sink.getsockname()[1]}"]})
         # SmUpdate and Status both count as the vehicle's updates
         return b, lambda: int(b.vehicle.stats.updates), extra
     if name == "uavtalk":
         from backends.uavtalk.backend import UavtalkBackend
 
-        b = UavtalkBackend(endpoints=["tcpin:127.0.0.1:0"], inbox_depth=min(n + 1, 65536))
+        b = UavtalkBackend.from_config({"endpoints": ["tcpin:127.0.0.1:0"],
+                                        "inbox_depth": min(n + 1, 65536)})
         return b, lambda: int(b.stats()["messages"]), extra
     if name == "zenoh":
         from backends.zenoh.backend import ZenohBackend
 
-        b = ZenohBackend(listen=[_free_zenoh_endpoint()], queue_depth=n + 1,
-                         stats_interval_s=0)
+        b = ZenohBackend.from_config({"listen": [_free_zenoh_endpoint()], "queue_depth": n + 1,
+                                      "stats_interval_s": 0})
         return b, lambda: int(b.processed), extra
     if name == "foxglove":
         from backends.foxglove.backend import FoxgloveBackend
 
-        b = FoxgloveBackend(host="127.0.0.1", port=0, queue_depth=n + 1)
+        b = FoxgloveBackend.from_config({"host": "127.0.0.1", "port": 0, "queue_depth": n + 1})
         return b, lambda: int(b.stats()["sent"]), extra
     raise SystemExit(f"unknown backend {name!r}")
 
@@ -137,22 +142,7 @@ def _wait(backend: Any, work: Callable[[], int], target: int, what: str) -> None
 def _offer(dispatch: Callable[[Any], Any], msgs: list[Any], rate: float) -> int:
     """Dispatch ``msgs`` at ``rate`` per second in 1 ms batches (0: flat out), as a source
     would; how many were refused."""
-    refused = 0
-    if not rate:
-        for m in msgs:
-            if dispatch(m):
-                refused += 1
-        return refused
-    batch = max(1, round(rate / 1000))
-    start = time.perf_counter()
-    for k in range(0, len(msgs), batch):
-        delay = start + k / rate - time.perf_counter()
-        if delay > 0:
-            time.sleep(delay)
-        for m in msgs[k:k + batch]:
-            if dispatch(m):
-                refused += 1
-    return refused
+    return sum(1 for batch in paced_batches(msgs, rate) for m in batch if dispatch(m))
 
 
 def run_one(name: str, n: int, rate: float) -> dict[str, Any]:

@@ -48,6 +48,8 @@ from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
+from pacing import paced_batches  # tools/bench/pacing.py, beside this script
+
 from backends.zenoh.options import ZenohOptions
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -165,17 +167,7 @@ def end_marker(session: Any, published: dict[str, int]) -> None:
 def offer(send: Any, msgs: list[SmUpdate], rate: float) -> list[Any]:
     """Call the hook for every message at ``rate`` per second (0 = flat out), in 1 ms batches
     — between batches the producer waits, as a source waits for its port."""
-    if not rate:
-        return [send(m) for m in msgs]
-    out: list[Any] = []
-    batch = max(1, round(rate / 1000))
-    start = time.perf_counter()
-    for k in range(0, len(msgs), batch):
-        delay = start + k / rate - time.perf_counter()
-        if delay > 0:
-            time.sleep(delay)
-        out += [send(m) for m in msgs[k:k + batch]]
-    return out
+    return [send(m) for batch in paced_batches(msgs, rate) for m in batch]
 
 
 def run_backend(msgs: list[SmUpdate], *, depth: int, congestion: str = "drop",
