@@ -46,6 +46,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from gateway.checks import at_least
 from gateway.io.ioloop import IoLoop
 from gateway.outcome import FailureLog, Outcome
 
@@ -72,8 +73,7 @@ class Handover:
                  after_batch: Callable[[], Any] | None = None,
                  lock: contextlib.AbstractContextManager[Any] | None = None,
                  skip: Callable[[Any], bool] | None = None) -> None:
-        if depth < 1:
-            raise ValueError("a hand-over's depth must be at least 1")
+        at_least("a hand-over's depth", depth, 1)
         self.name = name
         self.depth = depth
         self.ready = ready

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gateway.channels import Mailbox, Ring
+from gateway.checks import not_negative, positive
 
 DEFAULT_MAX_RATE_HZ = 20.0
 DEFAULT_REFRESH_S = 2.0
@@ -64,12 +65,9 @@ class Scheduler:
         change_depth: int = CHANGE_RING_DEPTH,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        if max_rate_hz <= 0:
-            raise ValueError("max_rate_hz must be positive")
-        if refresh_s <= 0:
-            raise ValueError("refresh_s must be positive")
-        if hold_s < 0:
-            raise ValueError("hold_s must not be negative")
+        positive("max_rate_hz", max_rate_hz)
+        positive("refresh_s", refresh_s)
+        not_negative("hold_s", hold_s)
         self.max_rate_hz = max_rate_hz
         self.refresh_s = refresh_s
         self.hold_s = hold_s

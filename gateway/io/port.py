@@ -45,6 +45,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from gateway.checks import at_least, not_negative
 from gateway.counters import Counters
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import IoLoop, Timer
@@ -147,10 +148,8 @@ class PortEngine:
         poll_s: float = DEFAULT_POLL_S,
         hangup_level: int = logging.INFO,
     ) -> None:
-        if queue_depth < 1:
-            raise ValueError("queue_depth must be at least 1")
-        if min_interval_s < 0:
-            raise ValueError("min_interval_s must not be negative")
+        at_least("queue_depth", queue_depth, 1)
+        not_negative("min_interval_s", min_interval_s)
         self.name = name
         self.queue_depth = queue_depth
         self.min_interval_s = min_interval_s

@@ -46,6 +46,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
+from gateway.checks import at_least, positive
 from gateway.counters import Counters
 from gateway.io.backoff import Backoff
 from gateway.io.burstlog import BurstLog
@@ -88,10 +89,8 @@ class ClientLimits:
     queue_depth: int = DEFAULT_QUEUE_DEPTH
 
     def __post_init__(self) -> None:
-        if self.max_clients < 1:
-            raise ValueError("max_clients must be at least 1")
-        if self.client_timeout_s <= 0:
-            raise ValueError("client_timeout_s must be positive")
+        at_least("max_clients", self.max_clients, 1)
+        positive("client_timeout_s", self.client_timeout_s)
 
     @classmethod
     def of(cls, options: ListenerOptions, queue_depth: int = DEFAULT_QUEUE_DEPTH
