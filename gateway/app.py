@@ -9,6 +9,7 @@ import time
 from collections import Counter
 from typing import Any, TextIO
 
+from gateway import logjson
 from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
@@ -155,7 +156,7 @@ class Gateway:
                 break
             self.monitor.check()
             if next_status is not None and now >= next_status:
-                print(self.status_line(), file=self.status_out, flush=True)
+                logjson.say(self.status_line(), self.status_out)
                 next_status += interval
                 if next_status < now:
                     next_status = now + interval

@@ -3,8 +3,9 @@
 One JSON object a line: ``time`` (ISO-8601, UTC, milliseconds), ``level`` (``INFO``…),
 ``logger``, ``message`` (the formatted text), and, when the record carries them, ``exc``
 (the exception's traceback text) and ``stack``.  Output is ASCII: anything else is escaped,
-so the lines survive any locale.  Only log records are formatted: lines a command prints
-itself (``run``'s start line, status lines and stop report) stay plain text.
+so the lines survive any locale.  The lines a command writes itself (``run``'s start line,
+status lines and stop report) go through :func:`say`: plain text, or in JSON mode an object of
+the same form (logger ``aurora-gateway.report``), so a JSON log holds nothing but JSON.
 
 Each record reaches the file descriptor in one ``os.write`` of the whole line (when the stream
 has one), past the stream's buffer: ``print`` writes a line's text and its newline
@@ -23,6 +24,9 @@ from typing import Any, TextIO
 
 FORMATS = ("text", "json")
 TEXT_FORMAT = "%(asctime)s %(levelname)-7s %(name)s: %(message)s"
+#: The logger named on a command's own lines in JSON mode (:func:`say`).
+REPORT_LOGGER = "aurora-gateway.report"
+_json_mode = False  # set by setup_logging
 
 
 class JsonFormatter(logging.Formatter):
@@ -45,25 +49,38 @@ class JsonFormatter(logging.Formatter):
         return json.dumps(doc, ensure_ascii=True)
 
 
+def write_line(stream: TextIO, line: str) -> None:
+    """``line`` (ending in a newline) to ``stream`` in one write of its descriptor, when it has
+    one, so that no other thread's line lands inside it."""
+    try:
+        fd: int | None = stream.fileno()
+    except (AttributeError, OSError, ValueError):
+        fd = None
+    if fd is None:
+        stream.write(line)
+        stream.flush()
+        return
+    encoding = getattr(stream, "encoding", None) or "utf-8"
+    data = memoryview(line.encode(encoding, "backslashreplace"))
+    while data:
+        data = data[os.write(fd, data):]
+
+
+def say(text: str, stream: TextIO | None = None, level: int = logging.INFO) -> None:
+    """One of a command's own lines (a start line, a status line, the stop report) to
+    ``stream`` (default stderr): plain, or one JSON object at ``level`` in JSON mode."""
+    if _json_mode:
+        record = logging.LogRecord(REPORT_LOGGER, level, "", 0, text, None, None)
+        text = JsonFormatter().format(record)
+    write_line(sys.stderr if stream is None else stream, text + "\n")
+
+
 class LineHandler(logging.StreamHandler[TextIO]):
     """A stream handler that writes each record as one whole line in one write."""
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
-            line = self.format(record) + self.terminator
-            stream = self.stream
-            try:
-                fd: int | None = stream.fileno()
-            except (AttributeError, OSError, ValueError):
-                fd = None
-            if fd is None:
-                stream.write(line)
-                self.flush()
-                return
-            encoding = getattr(stream, "encoding", None) or "utf-8"
-            data = memoryview(line.encode(encoding, "backslashreplace"))
-            while data:
-                data = data[os.write(fd, data):]
+            write_line(self.stream, self.format(record) + self.terminator)
         except RecursionError:
             raise
         except Exception:
@@ -74,8 +91,10 @@ def setup_logging(level: str | None, fmt: str | None = "text",
                   stream: TextIO | None = None) -> None:
     """Configure the root logger once (as :func:`logging.basicConfig` does): ``level`` by
     name (default info), ``fmt`` ``"text"`` or ``"json"``, to ``stream`` (default stderr)."""
+    global _json_mode
     if fmt not in (None, *FORMATS):
         raise ValueError(f"log format: expected one of {', '.join(FORMATS)}, got {fmt!r}")
+    _json_mode = fmt == "json"
     handler = LineHandler(sys.stderr if stream is None else stream)
     handler.setFormatter(JsonFormatter() if fmt == "json" else logging.Formatter(TEXT_FORMAT))
     logging.basicConfig(level=getattr(logging, (level or "info").upper()), handlers=[handler])

@@ -222,15 +222,14 @@ def test_run_with_log_format_json_logs_one_json_object_a_line(tmp_path: Path) ->
                         "--source", device], capture_output=True, text=True,
                        timeout=TIMEOUT_S, cwd=ROOT)
     assert r.returncode == 0, r.stderr
-    docs = []
-    for line in _own_lines(r.stderr):
-        if line.startswith("{"):
-            docs.append(json.loads(line))
-        else:  # the command's own lines: the start line and the stop report
-            assert '"time"' not in line, line
-            assert re.match(r"aurora-gateway \S+: sources |stopped after |dropped: |flight |"
-                            r"crc errors: |recording: ", line), line
+    docs = [json.loads(line) for line in _own_lines(r.stderr)]  # every line: JSON
     assert docs, r.stderr
+    # the command's own lines (the start line, the stop report) are objects too
+    report = [d["message"] for d in docs if d["logger"] == "aurora-gateway.report"]
+    assert report and re.match(r"aurora-gateway \S+: sources ", report[0]), report
+    assert any(m.startswith("stopped after ") for m in report), report
+    assert all(re.match(r"aurora-gateway \S+: sources |stopped after |dropped: |flight |"
+                        r"crc errors: |recording: ", m) for m in report), report
     for doc in docs:
         assert {"time", "level", "logger", "message"} <= set(doc)
         assert datetime.fromisoformat(doc["time"]).utcoffset() is not None
@@ -325,3 +324,15 @@ def test_the_reference_has_every_key_of_every_registered_source_and_backend() ->
             if spec.default not in (config.REQUIRED, None):
                 default = row.group(1).split(" | ")[1].strip("`").replace("\\|", "|")
                 assert tomllib.loads(f"k = {default}")["k"] == spec.default, (title, key)
+
+
+def test_json_logs_carry_the_status_lines_as_objects_too() -> None:
+    """journald / Loki get nothing but JSON: the per-second status lines included."""
+    r = subprocess.run([sys.executable, "-m", "gateway", "run", "--duration", "1.3",
+                        "--log-format", "json", "--only", "console", "--status-interval", "0.5"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    docs = [json.loads(line) for line in _own_lines(r.stderr)]
+    status = [d for d in docs if d["message"].startswith("[")]
+    assert status and all(d["logger"] == "aurora-gateway.report" and d["level"] == "INFO"
+                          for d in status), docs

@@ -434,10 +434,10 @@ def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
-def say(text: str) -> None:
-    """One of the run's own lines to stderr in one write, so that a log line another thread
-    writes meanwhile cannot land inside it (``print`` writes the text and the newline apart)."""
-    sys.stderr.write(text + "\n")
+def say(text: str, level: int = logging.INFO) -> None:
+    """One of the run's own lines to stderr in one write (a log line another thread writes
+    meanwhile cannot land inside it), as the log format says: plain or JSON."""
+    logjson.say(text, level=level)
 
 
 def _report(summary: dict[str, Any]) -> None:
@@ -490,7 +490,7 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
     with Stopper(gw.stop_event):
         failures = gw.start()
         for name, err in failures:
-            say(f"aurora-gateway: backend {name} did not start: {err}")
+            say(f"aurora-gateway: backend {name} did not start: {err}", logging.ERROR)
         names = ", ".join(p.name for p in cfg.backends) or "none"
         srcs = ", ".join(s.name for s in gw.sources) or "none"
         say(f"aurora-gateway {__version__}: sources {srcs}; backends {names}")
