@@ -277,12 +277,14 @@ class CtrlC(importlib.abc.MetaPathFinder):
 TARGET = sys.argv[1]
 sys.argv = ["aurora-gateway", *sys.argv[2:]]
 sys.meta_path.insert(0, CtrlC())
-from gateway.commands.cli import console_main
-console_main()
+from gateway.__main__ import main  # the console script's entry point
+main()
 """
 
 
 @pytest.mark.parametrize(("module", "args"), [
+    # while the command line itself imports (before console_main exists)
+    ("gateway.options", ["run", "--duration", "5"]),
     # while the backends' flag modules import, building the parser
     ("backends.mavlink", ["run", "--duration", "5"]),
     # while the backends the configuration runs import (the MAVLink dialect is the slowest)
