@@ -226,7 +226,7 @@ def test_the_options_modules_constants_are_the_protocol_modules() -> None:
     from backends.zenoh import encoding
     from backends.zenoh import options as zenoh
     from gateway import model
-    from gateway.io import links, port
+    from gateway.io import port
     from gateway.sources import options as sources
 
     assert (crsf.SYNC_FC, crsf.SYNC_RADIO, crsf.SYNC_RX) == (
@@ -247,7 +247,6 @@ def test_the_options_modules_constants_are_the_protocol_modules() -> None:
                                                              radio.POLL_S)
     assert zenoh.ENCODINGS == encoding.ENCODINGS
     assert sources.REOPEN_MAX_S == uavtalk.REOPEN_MAX_S == port.REOPEN_MAX_S
-    assert fprime.ENDPOINT_KINDS == uavtalk.ENDPOINT_KINDS == links.STREAM_KINDS
 
 
 def test_the_example_file_shows_the_declared_defaults() -> None:

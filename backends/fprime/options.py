@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.io.endpoints import SERIAL, TCP, TCPIN, list_validator, text_of
+from gateway.io.endpoints import STREAM_KINDS, list_validator, text_of
 from gateway.options import Flag, ListenerOptions, lazy, option
 
 #: The framings (``backends.fprime.framing.FRAMINGS``); the first is the default.
@@ -26,7 +26,6 @@ DEFAULT_SERIAL_BAUD = 115200
 USAGE = ("tcpin:HOST:PORT (fprime-gds --ip-client connects), tcp:HOST:PORT, "
          "serial:DEVICE[,BAUD] or a pyserial URL")
 #: The kinds of endpoint the backend serves (``gateway.io.links.STREAM_KINDS``).
-ENDPOINT_KINDS = (TCPIN, TCP, SERIAL)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -35,11 +34,11 @@ class FprimeOptions(ListenerOptions):
 
     TITLE: ClassVar[str] = "F´ backend"
     endpoints: list[str] = option(
-        [], USAGE, validator=list_validator(ENDPOINT_KINDS, default_baud=DEFAULT_SERIAL_BAUD),
+        [], USAGE, validator=list_validator(STREAM_KINDS, default_baud=DEFAULT_SERIAL_BAUD),
         flag=Flag("--fprime", "serve the rocket's channels to the F´ ground system, fprime-gds "
                   "(repeatable): tcpin:HOST:PORT (fprime-gds --ip-client connects), "
                   "tcp:HOST:PORT, serial:DEVICE[,BAUD] or a serial device / pyserial URL",
-                  metavar="ENDPOINT", convert=text_of(ENDPOINT_KINDS)))
+                  metavar="ENDPOINT", convert=text_of(STREAM_KINDS)))
     framing: str = option(DEFAULT_FRAMING, "ccsds (F´ v4 / fprime-gds default) or fprime",
                           choices=FRAMINGS,
                           flag=Flag("--fprime-framing", "F´ backend: ccsds (Space Packets in "

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from gateway.io.endpoints import SERIAL, TCP, TCPIN, list_validator, text_of, validator
+from gateway.io.endpoints import SERIAL, STREAM_KINDS, TCP, list_validator, text_of, validator
 from gateway.options import Flag, ListenerOptions, Options, option
 
 #: A serial endpoint's baud rate when it names none (LibrePilot's telemetry port).
@@ -16,8 +16,7 @@ DEFAULT_BAUD = 57600
 DEFAULT_BOARD_TYPE = 0x09
 #: Longest wait between two reopen attempts (``gateway.io.port.REOPEN_MAX_S``).
 REOPEN_MAX_S = 2.0
-#: The backend's endpoints (``gateway.io.links.STREAM_KINDS``) and the source's url.
-ENDPOINT_KINDS = (TCPIN, TCP, SERIAL)
+#: The source's url (the backend's endpoints are ``STREAM_KINDS``).
 URL_KINDS = (TCP, SERIAL)
 
 
@@ -28,7 +27,7 @@ class UavtalkOptions(ListenerOptions):
     TITLE: ClassVar[str] = "UAVTalk backend"
     endpoints: list[str] = option([], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "
                                   "serial:DEVICE[,BAUD] or a pyserial URL",
-                                  validator=list_validator(ENDPOINT_KINDS,
+                                  validator=list_validator(STREAM_KINDS,
                                                            default_baud=DEFAULT_SERIAL_BAUD),
                                   flag=Flag("--uavtalk", "serve the rocket to LibrePilot "
                                             "ground stations over UAVTalk (repeatable): "
@@ -36,7 +35,7 @@ class UavtalkOptions(ListenerOptions):
                                             "its own session), tcp:HOST:PORT, "
                                             "serial:DEVICE[,BAUD] or a serial device / "
                                             "pyserial URL", metavar="ENDPOINT",
-                                            convert=text_of(ENDPOINT_KINDS)))
+                                            convert=text_of(STREAM_KINDS)))
     board_type: int = option(DEFAULT_BOARD_TYPE, "FirmwareIAPObj.BoardType shown to the GCS "
                              "(9: Revolution); must be nonzero", minimum=1, maximum=255)
     tick_s: float = option(0.02, "seconds between telemetry ticks (periodic sends, retries)",

@@ -54,6 +54,8 @@ UDPOUT = "udpout"
 SERIAL = "serial"
 #: Every kind, in the order the accepted forms are listed.
 KINDS = (TCPIN, TCP, UDPIN, UDPOUT, SERIAL)
+#: What a byte-stream link set serves (UAVTalk's and F´'s endpoints: gateway.io.links).
+STREAM_KINDS = (TCPIN, TCP, SERIAL)
 NETWORK = frozenset((TCPIN, TCP, UDPIN, UDPOUT))
 LISTEN = frozenset((TCPIN, UDPIN))
 ALIASES = {"udp": UDPIN}  # MAVProxy's udp: listens

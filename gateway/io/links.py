@@ -28,15 +28,7 @@ from collections.abc import Callable
 from typing import Any, Generic, Protocol, TypeVar
 
 from gateway.io.burstlog import BurstLog
-from gateway.io.endpoints import (
-    SERIAL,
-    TCP,
-    TCPIN,
-    Endpoint,
-    list_validator,
-    parse_endpoint,
-    usage,
-)
+from gateway.io.endpoints import STREAM_KINDS, Endpoint, parse_endpoint
 from gateway.io.ioloop import IoLoop
 from gateway.io.port import PortEngine
 from gateway.io.server import ClientLimits, PortServer, server_stats
@@ -50,20 +42,12 @@ from gateway.io.transport import (
 log = logging.getLogger(__name__)
 
 CLOSE_TIMEOUT_S = 0.5
-#: The kinds of endpoint a link set serves (the grammar: :mod:`gateway.io.endpoints`).
-STREAM_KINDS = (TCPIN, TCP, SERIAL)
-#: The accepted forms, for error messages.
-USAGE = usage(STREAM_KINDS)
 
 
 def parse_stream_endpoint(text: str, *, default_baud: int) -> Endpoint:
     """One ``tcpin:``/``tcp:``/serial endpoint; raises ``EndpointError``."""
     return parse_endpoint(text, STREAM_KINDS, default_baud=default_baud)
 
-
-def endpoints_validator(default_baud: int) -> Callable[[Any], None]:
-    """A config validator for a list of stream endpoints (at least one)."""
-    return list_validator(STREAM_KINDS, default_baud=default_baud)
 
 
 class StreamLink(Protocol):
