@@ -9,7 +9,7 @@ import time
 from collections import Counter
 from typing import Any, TextIO
 
-from gateway import logjson
+from gateway import logjson, vehicles
 from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
@@ -27,11 +27,15 @@ STOP_BUDGET_S = 0.9  # SIGINT/SIGTERM must end everything within a second
 
 def _build(part: Part, where: str) -> Any:
     try:
-        return part.cls.from_config(dict(part.options), name=part.name)
+        plugin = part.cls.from_config(dict(part.options), name=part.name)
     except ConfigError as exc:
         raise ConfigError(f"{where}: {exc}") from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
+    if part.vehicle:  # a source: its vehicle, named or derived by the configuration
+        plugin.vehicle = part.vehicle
+        plugin.mavlink_sysid = part.mavlink_sysid
+    return plugin
 
 
 def _recorder_totals(recorders: list[Recorder]) -> dict[str, Any] | None:
@@ -71,6 +75,10 @@ class Gateway:
         self._rotate_lock = threading.Lock()
         self.flights = FlightSummary()
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
+        #: a source's vehicle, stamped on a message that comes without one
+        self._vehicle_of = {s.name: getattr(s, "vehicle", "") for s in self.sources}
+        self.context.services[vehicles.SERVICE] = [(s.name, getattr(s, "vehicle", ""))
+                                                   for s in self.sources]
         for p in cfg.backends:
             self.dispatcher.add(_build(p, f"backends.{p.name}"))
         for src in self.sources:  # a source that also takes messages (commands to send up)
@@ -84,11 +92,15 @@ class Gateway:
     def ingest(self, msg: Any) -> None:
         """Everything a source produces comes through here (from the sources' loop, or the
         thread a source's library calls back on)."""
+        if getattr(msg, "vehicle", None) == "":  # (a message type without one keeps none)
+            vehicle = self._vehicle_of.get(msg.origin)
+            if vehicle:
+                msg = msg._replace(vehicle=vehicle)
         new_flight = self.flights.feed(msg)
         rec = self.recorder
         if rec is not None:
             if new_flight and self.cfg.gateway.get("record_dir"):
-                rec = self._next_recording(msg.origin) or rec
+                rec = self._next_recording(getattr(msg, "vehicle", "") or msg.origin) or rec
             # never waits on disk: a bounded queue to the writer thread.  Refused by a file
             # another thread (a source on a library's) just closed for the next flight: the
             # current one takes it

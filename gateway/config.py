@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from gateway import registry
+from gateway import registry, vehicles
 from gateway.options import (
     EMPTY,
     REQUIRED,
@@ -75,6 +75,14 @@ class Part:
     name: str
     options: dict[str, Any]
     cls: Any = None
+    #: (sources) the vehicle's name, given (``vehicle = "NAME"``, ``--source NAME=URL``) or
+    #: derived from ``name`` (:func:`gateway.vehicles.derive_name`, made unique by
+    #: :func:`parse`)
+    vehicle: str = ""
+    #: (sources) the MAVLink system id fixed for this vehicle (``mavlink_sysid``); None: assigned
+    mavlink_sysid: int | None = None
+    #: (sources) True when ``vehicle`` was given, not derived
+    vehicle_given: bool = False
 
 
 @dataclass
@@ -112,14 +120,56 @@ def _check_together(cls: Any, table: dict[str, Any], where: str) -> None:
             raise ConfigError(f"{where}: {exc}") from None
 
 
+#: the keys every ``[[sources]]`` table may have besides its type's own
+SOURCE_COMMON_KEYS = ("type", "name", "vehicle", "mavlink_sysid")
+
+
 def make_source(type_name: str, options: dict[str, Any], name: str | None,
                 where: str) -> Part:
-    """Validate one source table into a :class:`Part`."""
+    """Validate one source table into a :class:`Part` (its vehicle derived from its name when
+    the table names none; :func:`parse` makes derived names unique)."""
     cls = _resolve(registry.SOURCE_GROUP, type_name, where)
-    opts = schema_of(cls).validate(options, where, ignore=("type", "name"))
+    opts = schema_of(cls).validate(options, where, ignore=SOURCE_COMMON_KEYS)
     _check_together(cls, opts, where)
     default_name = getattr(cls, "default_name", lambda o: None)(opts)
-    return Part(type_name, name or default_name or type_name, opts, cls)
+    part = Part(type_name, name or default_name or type_name, opts, cls)
+    vehicle = options.get("vehicle")
+    if vehicle is not None:
+        try:
+            part.vehicle = vehicles.check_name(vehicle)
+        except ValueError as exc:
+            raise ConfigError(f"{where}.vehicle: {exc}") from None
+        part.vehicle_given = True
+    else:
+        part.vehicle = vehicles.derive_name(part.name, fallback=type_name)
+    sysid = options.get("mavlink_sysid")
+    if sysid is not None:
+        if isinstance(sysid, bool) or not isinstance(sysid, int) or not 1 <= sysid <= 255:
+            raise ConfigError(f"{where}.mavlink_sysid: expected an integer 1 to 255, "
+                              f"got {sysid!r}")
+        part.mavlink_sysid = sysid
+    return part
+
+
+def name_vehicles(sources: list[Part]) -> None:
+    """Check the sources' vehicles: a given name or MAVLink system id used twice is an error
+    naming the key; derived names get ``-2``, ``-3`` … until unique."""
+    seen: dict[str, int] = {}
+    ids: dict[int, int] = {}
+    for i, p in enumerate(sources):
+        if p.vehicle_given:
+            if p.vehicle in seen:
+                raise ConfigError(f"sources[{i}].vehicle: {p.vehicle!r} is already the "
+                                  f"vehicle of sources[{seen[p.vehicle]}]")
+            seen[p.vehicle] = i
+        if p.mavlink_sysid is not None:
+            if p.mavlink_sysid in ids:
+                raise ConfigError(f"sources[{i}].mavlink_sysid: {p.mavlink_sysid} is already "
+                                  f"the system id of sources[{ids[p.mavlink_sysid]}]")
+            ids[p.mavlink_sysid] = i
+    names = vehicles.unique_names((p.vehicle, p.vehicle_given) for p in sources)
+    for p, vehicle in zip(sources, names, strict=True):
+        p.vehicle = vehicle
 
 
 def make_backend(type_name: str, options: dict[str, Any], name: str, where: str) -> Part:
@@ -161,6 +211,7 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
             raise ConfigError(f"{where}.name: {part.name!r} is used twice; give each a name")
         names.add(part.name)
         cfg.sources.append(part)
+    name_vehicles(cfg.sources)
     backends = data.get("backends", {})
     if not isinstance(backends, dict):
         raise ConfigError("backends: expected a table of [backends.<name>] tables")

@@ -1,7 +1,7 @@
 """What a run saw of each vehicle, kept as the messages pass, and per-flight recording names.
 
 :class:`FlightSummary` is fed every message by :meth:`gateway.app.Gateway.ingest` (in the
-sources' threads) and keeps, per origin (the source that produced the updates): the states
+sources' threads) and keeps, per vehicle (see :mod:`gateway.vehicles`): the states
 seen in order, the launches, the highest altitude and when it was reached (apogee) — on the
 flight computer's clock after liftoff and as the wall time it passed the gateway.  Only
 ``SmUpdate`` counts; anything else costs one type check.  Nothing re-reads the recording.
@@ -31,7 +31,7 @@ _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 @dataclass
 class VehicleSummary:
-    """One origin's flight figures (altitudes in m; ``*_ms`` on the flight computer's clock)."""
+    """One vehicle's flight figures (altitudes in m; ``*_ms`` on the flight computer's clock)."""
 
     updates: int = 0
     states: list[str] = field(default_factory=list)  # in the order first seen
@@ -55,7 +55,7 @@ class VehicleSummary:
 
 
 class FlightSummary:
-    """Flight figures per origin, fed message by message; cheap enough for the hot path."""
+    """Flight figures per vehicle, fed message by message; cheap enough for the hot path."""
 
     def __init__(self, clock: Any = time.time) -> None:
         self.vehicles: dict[str, VehicleSummary] = {}
@@ -66,9 +66,10 @@ class FlightSummary:
         start of its next flight's recording)."""
         if type(msg) is not SmUpdate:
             return False
-        v = self.vehicles.get(msg.origin)
+        name = msg.vehicle or msg.origin
+        v = self.vehicles.get(name)
         if v is None:
-            v = self.vehicles[msg.origin] = VehicleSummary()
+            v = self.vehicles[name] = VehicleSummary()
         v.updates += 1
         key = (msg.sm_type, msg.state)
         new_flight = False

@@ -16,7 +16,12 @@ Every message carries provenance besides its fields:
     "" when the message came from the rocket's own link (serial, simulation, replay);
     otherwise the network and the system it came from, ``<protocol>:<id>`` —
     ``zenoh:<gateway id>``, ``mavlink:<system id>`` — so loop prevention between chained
-    gateways reads the message, never a process-wide registry.
+    gateways reads the message, never a process-wide registry;
+``vehicle``
+    the name of the vehicle it is about (``[A-Za-z][A-Za-z0-9_-]*``, see
+    :mod:`gateway.vehicles`): a source's own name for the rocket it hears, or one per system
+    for a source that hears several (MAVLink, Zenoh, UAVTalk); backends keep their state per
+    vehicle.  "" only on what a backend emits itself (a ground link's commands).
 
 Provenance takes part in equality like every other field; compare :meth:`fields` to ignore
 it.  Routing is by type (see :class:`gateway.backend.Routes`); :func:`kind` names a message's
@@ -62,7 +67,7 @@ class SmUpdate(NamedTuple):
     raw: bytes = b""
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     @property
     def state_name(self) -> str:
@@ -77,7 +82,7 @@ class SmUpdate(NamedTuple):
         return is_on_pad(self.sm_type, self.state)
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -92,7 +97,7 @@ class Status(NamedTuple):
     raw: bytes = b""
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     @property
     def armed(self) -> bool:
@@ -129,7 +134,7 @@ class Status(NamedTuple):
         }
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
     @staticmethod
@@ -159,10 +164,10 @@ class RawFrame(NamedTuple):
     raw: bytes = b""
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -174,10 +179,10 @@ class LinkEvent(NamedTuple):
     silence_s: float = 0.0
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -198,10 +203,10 @@ class LinkStats(NamedTuple):
     antenna: int | None = None
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -218,10 +223,10 @@ class Position(NamedTuple):
     fix_type: int | None = None
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -235,10 +240,10 @@ class Battery(NamedTuple):
     battery_id: int = 0
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -256,10 +261,10 @@ class VehicleState(NamedTuple):
     climb_mps: float | None = None
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -273,10 +278,10 @@ class RcChannels(NamedTuple):
     seq: int | None = None
     origin: str = ""
     via: str = ""
-
+    vehicle: str = ""
 
     def fields(self) -> dict[str, Any]:
-        """The message's own fields, without its provenance (``raw``, ``origin``, ``via``)."""
+        """The message's own fields, without its provenance (see :func:`own_fields`)."""
         return own_fields(self)
 
 
@@ -302,8 +307,7 @@ class GatewayStats(NamedTuple):
     origin: str = ""
     via: str = ""
 
-
-_PROVENANCE = ("raw", "origin", "via")
+_PROVENANCE = ("raw", "origin", "via", "vehicle")
 
 
 def kind(msg: object) -> str:
@@ -315,7 +319,8 @@ def kind(msg: object) -> str:
 
 
 def own_fields(msg: Any) -> dict[str, Any]:
-    """A message's fields as a dict, without its provenance (``raw``, ``origin``, ``via``)."""
+    """A message's fields as a dict, without its provenance (``raw``, ``origin``, ``via``,
+    ``vehicle``)."""
     d: dict[str, Any] = msg._asdict()
     for key in _PROVENANCE:
         d.pop(key, None)

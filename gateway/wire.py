@@ -78,12 +78,13 @@ class Decoder(BufferedDecoder[SmUpdate | Status | RawFrame]):
     (261 bytes): everything before a pending sync is decided at once.
     """
 
-    __slots__ = ("origin", "stats", "via")
+    __slots__ = ("origin", "stats", "vehicle", "via")
 
-    def __init__(self, origin: str = "", via: str = "") -> None:
+    def __init__(self, origin: str = "", via: str = "", vehicle: str = "") -> None:
         super().__init__()
         self.origin = origin
         self.via = via  # stamped on every message (see gateway.model)
+        self.vehicle = vehicle
         self.stats = DecoderStats()
 
     def _decode(self, buf: bytes, bytes_in: int, eof: bool) -> list[SmUpdate | Status | RawFrame]:
@@ -96,6 +97,7 @@ class Decoder(BufferedDecoder[SmUpdate | Status | RawFrame]):
         stats = self.stats
         origin = self.origin
         via = self.via
+        vehicle = self.vehicle
         n = len(buf)
         pos = 0
         skipped = crc_failures = unknown = bad_len = 0
@@ -144,19 +146,19 @@ class Decoder(BufferedDecoder[SmUpdate | Status | RawFrame]):
             if ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F64_LEN:
                 ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack64(buf, i + 4)
                 append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
-                                       SM_UPDATE_F64_LEN, rsv, raw, origin, via)))
+                                       SM_UPDATE_F64_LEN, rsv, raw, origin, via, vehicle)))
             elif ftype == TYPE_SM_UPDATE and length == SM_UPDATE_F32_LEN:
                 ts, st, armed, smt, rsv, a, b, c, d, e, f, g = unpack32(buf, i + 4)
                 append(new(sm_update, (ts, st, armed, smt, a, b, c, d, e, f, g,
-                                       SM_UPDATE_F32_LEN, rsv, raw, origin, via)))
+                                       SM_UPDATE_F32_LEN, rsv, raw, origin, via, vehicle)))
             elif ftype == TYPE_STATUS and length == STATUS_LEN:
-                append(new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin, via)))
+                append(new(Status, (*_STATUS.unpack_from(buf, i + 4), raw, origin, via, vehicle)))
             else:
                 if ftype in (TYPE_SM_UPDATE, TYPE_STATUS):
                     bad_len += 1
                 else:
                     unknown += 1
-                append(new(RawFrame, (ftype, raw[4:-2], raw, origin, via)))
+                append(new(RawFrame, (ftype, raw[4:-2], raw, origin, via, vehicle)))
         stats.frames += len(out) - first
         stats.bytes_skipped += skipped
         stats.crc_failures += crc_failures
@@ -165,9 +167,10 @@ class Decoder(BufferedDecoder[SmUpdate | Status | RawFrame]):
         return buf[pos:]
 
 
-def decode_all(data: bytes, origin: str = "") -> list[SmUpdate | Status | RawFrame]:
+def decode_all(data: bytes, origin: str = "",
+               vehicle: str = "") -> list[SmUpdate | Status | RawFrame]:
     """Decode a complete byte string (feed and flush); convenience for files and tests."""
-    dec = Decoder(origin)
+    dec = Decoder(origin, vehicle=vehicle)
     return dec.feed(data) + dec.flush()
 
 

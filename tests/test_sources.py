@@ -175,7 +175,7 @@ def test_pty_frames_are_decoded_and_delivered_with_the_source_name(
         assert sink.wait_count(len(expected), keep=not_probe)
         got = [m for m in sink.msgs if not_probe(m)]
         assert [m.raw for m in got] == expected
-        assert got == decode_all(b"".join(expected), origin="rocket")
+        assert got == decode_all(b"".join(expected), origin="rocket", vehicle="rocket")
         assert {m.origin for m in sink.msgs} == {"rocket"}
         kinds = {type(m) for m in got}
         assert kinds == {SmUpdate, Status, RawFrame}
@@ -416,7 +416,7 @@ def test_sim_with_speed_0_and_one_cycle_emits_exactly_one_flight(revision: int) 
     # messages carry their raw frames, which decode to themselves
     assert {m.origin for m in msgs} == {"sim"}
     for m in msgs:
-        assert decode_all(m.raw, origin="sim") == [m]
+        assert decode_all(m.raw, origin="sim", vehicle="sim") == [m]
         assert encode(m) == m.raw
 
 

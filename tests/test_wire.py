@@ -689,7 +689,8 @@ def test_every_untouched_frame_is_recovered(parts, cuts):
 u32 = st.integers(0, 0xFFFFFFFF)
 u8 = st.integers(0, 0xFF)
 #: Messages built in memory: no raw frame, no provenance (st.builds would otherwise fill it).
-IN_MEMORY = {"raw": st.just(b""), "origin": st.just(""), "via": st.just("")}
+IN_MEMORY = {"raw": st.just(b""), "origin": st.just(""), "via": st.just(""),
+             "vehicle": st.just("")}
 
 
 def sm_updates(payload_len: int) -> st.SearchStrategy[SmUpdate]:

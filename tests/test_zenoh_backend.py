@@ -260,7 +260,7 @@ def test_second_session_on_a_taken_default_port_joins_the_first():
 # -- gateway to gateway ------------------------------------------------------------------------
 
 def test_own_publications_never_come_back_through_a_source(endpoint, backend):
-    src = ZenohSource(ZenohSourceOptions(connect=[endpoint], vehicle=VEHICLE))
+    src = ZenohSource(ZenohSourceOptions(connect=[endpoint], follow=VEHICLE))
     src.attach(backend.context)  # one gateway: the backend's id is in the shared context
     got: list = []
     src.start(got.append)

@@ -224,8 +224,8 @@ def test_source_url_forms():
     assert parse_url("zenoh") == {} and parse_url("zenoh:") == {}
     assert parse_url("zenoh:tcp/10.0.0.5:7447") == {"connect": ["tcp/10.0.0.5:7447"]}
     assert parse_url("zenoh:rocket1@tcp/h:1,tls/h:2") == {
-        "vehicle": "rocket1", "connect": ["tcp/h:1", "tls/h:2"]}
-    assert parse_url("zenoh:*@tcp/h:1")["vehicle"] == "*"
+        "follow": "rocket1", "connect": ["tcp/h:1", "tls/h:2"]}
+    assert parse_url("zenoh:*@tcp/h:1")["follow"] == "*"
     for bad in ("zenoh:nonsense", "zenoh:r/1@tcp/h:1x", "mqtt:tcp/h:1", "zenoh:foo/h:1"):
         with pytest.raises(ValueError):
             parse_url(bad)
@@ -233,7 +233,7 @@ def test_source_url_forms():
     assert src.name == "zenoh:rocket2@tcp/127.0.0.1:9"
     assert src.key_expr == "aurora/rocket2/raw/**"
     assert src.session_options.connect == ["tcp/127.0.0.1:9"]
-    assert ZenohSource(ZenohSourceOptions(keys="json", vehicle="r3")).key_expr == "aurora/r3/*"
+    assert ZenohSource(ZenohSourceOptions(keys="json", follow="r3")).key_expr == "aurora/r3/*"
 
 
 # -- session options ---------------------------------------------------------------------------

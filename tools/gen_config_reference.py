@@ -126,7 +126,17 @@ def render() -> str:
         "## Sources: `[[sources]]`",
         "",
         "Any number of `[[sources]]` tables. Each has `type` (below) and an optional `name` "
-        "(unique; the default depends on the type), plus its type's keys.",
+        "(unique; the default depends on the type), plus its type's keys, and two keys every "
+        "source has:",
+        "",
+        "| key | type | default | range | meaning |",
+        "|---|---|---|---|---|",
+        "| `vehicle` | string | derived from `name` | a letter, then letters, digits, `_`, `-` "
+        "| the name of the vehicle this source hears (unique); in Zenoh keys, Foxglove topics, "
+        "`/status.json` (`--source NAME=URL` on the command line). A source hearing several "
+        "systems names one vehicle per system: `<vehicle>-<system id>` for MAVLink |",
+        "| `mavlink_sysid` | integer | assigned | 1 to 255 | the MAVLink system id this "
+        "vehicle is served as; unset: assigned in source order from 1, skipping ids in use |",
     ]
     for name in _ours(registry.SOURCE_GROUP):
         cls = registry.load(registry.SOURCE_GROUP, name)

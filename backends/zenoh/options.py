@@ -146,11 +146,11 @@ class ZenohOptions(ZenohSessionOptions):
 class ZenohSourceOptions(ZenohSessionOptions):
     """``[[sources]] type = "zenoh"``: another gateway's frames over Zenoh."""
 
-    url: str = option("", "zenoh:[VEHICLE@][ENDPOINT,...] (sets vehicle and connect)",
+    url: str = option("", "zenoh:[VEHICLE@][ENDPOINT,...] (sets follow and connect)",
                       validator=lazy("backends.zenoh.source:check_url"))
     prefix: str = option(DEFAULT_PREFIX, "key prefix of the publishing gateways")
-    vehicle: str = option("*", "vehicle to follow; '*' = every vehicle (their messages are "
-                          "merged: use one source per vehicle to keep them apart)")
+    follow: str = option("*", "the vehicle to follow (its name in the publishing gateway's "
+                         "keys); '*' = every vehicle, each kept apart under its own name")
     keys: str = option("raw", "subscribe to the raw wire frames or to the JSON documents",
                        choices=KEY_SETS)
     queue_depth: int = option(1024, "samples waiting for the sources' loop before new ones "

@@ -69,7 +69,7 @@ def parse_url(url: str) -> dict[str, Any]:
         return opts
     head, at, tail = rest.partition("@")
     if at and "/" not in head:
-        opts["vehicle"] = check_chunk(head, "vehicle", wildcard=True)
+        opts["follow"] = check_chunk(head, "vehicle", wildcard=True)
         rest = tail
     if rest:
         try:
@@ -105,14 +105,14 @@ class ZenohSource(Source):
                  name: str | None = None) -> None:
         options = options or ZenohSourceOptions()
         super().__init__(name or options.url or URL_SCHEME)
-        prefix, vehicle, keys = options.prefix, options.vehicle, options.keys
+        prefix, follow, keys = options.prefix, options.follow, options.keys
         session: dict[str, Any] = {}
         if options.url:
             try:
                 from_url = parse_url(options.url)
             except ValueError as exc:
                 raise ConfigError(f"url: {exc}") from None
-            vehicle = from_url.get("vehicle", vehicle)
+            follow = from_url.get("follow", follow)
             if "connect" in from_url:
                 session["connect"] = from_url["connect"]
         try:
@@ -120,9 +120,9 @@ class ZenohSource(Source):
         except ValueError as exc:
             raise ConfigError(f"prefix: {exc}") from None
         try:
-            self.vehicle = check_chunk(vehicle, "vehicle", wildcard=True)
+            self.follow = check_chunk(follow, "vehicle", wildcard=True)
         except ValueError as exc:
-            raise ConfigError(f"vehicle: {exc}") from None
+            raise ConfigError(f"follow: {exc}") from None
         if keys not in KEY_SETS:
             raise ConfigError(f"keys: expected 'raw' or 'json', got {keys!r}")
         connect = session.get("connect", options.connect)
@@ -131,8 +131,8 @@ class ZenohSource(Source):
         self.session_options = SessionOptions(options, default_listen=[], **session)
         self.keys = keys
         self.queue_depth = options.queue_depth
-        self.key_expr = (f"{self.prefix}/{self.vehicle}/{RAW}/**" if keys == "raw"
-                         else f"{self.prefix}/{self.vehicle}/*")
+        self.key_expr = (f"{self.prefix}/{self.follow}/{RAW}/**" if keys == "raw"
+                         else f"{self.prefix}/{self.follow}/*")
         self.decoder = Decoder(origin=self.name)
         self.tracker = SeqTracker()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()

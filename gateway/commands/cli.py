@@ -22,7 +22,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
-from gateway import __version__, config, logjson, recording, registry
+from gateway import __version__, config, logjson, recording, registry, vehicles
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
@@ -189,8 +189,10 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
 
 
 def add_source_options(p: argparse.ArgumentParser, seen: set[str] | None = None) -> None:
-    p.add_argument("--source", "-s", action="append", metavar="URL",
-                   help="'sim', 'replay:FILE', 'mavlink:ENDPOINT' (a MAVLink vehicle, "
+    p.add_argument("--source", "-s", action="append", metavar="[NAME=]URL",
+                   help="a vehicle's source, named NAME (a letter, then letters, digits, "
+                        "'_' or '-'; default: derived from the URL): 'sim', 'replay:FILE', "
+                        "'mavlink:ENDPOINT' (a MAVLink vehicle, "
                         "e.g. mavlink:udpin:0.0.0.0:14551), 'uavtalk:tcp:HOST:PORT' or "
                         "'uavtalk:DEVICE[,BAUD]' (a LibrePilot flight controller, the "
                         "gateway as its ground station), 'zenoh:[VEHICLE@]ENDPOINT' "
@@ -299,16 +301,44 @@ def build_parser(backend_flags: bool = True,
 
 # -- configuration from flags --------------------------------------------------------------------
 
+def split_vehicle(text: str) -> tuple[str | None, str]:
+    """``NAME=URL`` → (NAME, URL); a URL alone → (None, URL).  What precedes the first ``=``
+    is a name only when it has no ``:``, ``/`` or ``?`` (a pyserial URL's query has ``=``)."""
+    head, sep, rest = text.partition("=")
+    if sep and head and not any(c in head for c in ":/?,"):
+        return head, rest
+    return None, text
+
+
 def _sources_from_urls(urls: Sequence[str]) -> list[config.Part]:
     parts = []
-    for i, url in enumerate(urls):
+    given = []
+    for i, text in enumerate(urls):
+        name, url = split_vehicle(text)
+        given.append(name is not None)
         try:
+            if name is not None:
+                vehicles.check_name(name)
             kind, opts = parse_source_url(url)
             if kind == "serial":
                 check_serial_url(url)  # the url key's own check, naming the flag's text
         except ValueError as exc:
-            raise ConfigError(f"--source {url!r}: {exc}") from None
-        parts.append(config.make_source(kind, opts, None, f"--source[{i}]"))
+            raise ConfigError(f"--source {text!r}: {exc}") from None
+        if name is not None:
+            opts = {**opts, "vehicle": name}
+        parts.append(config.make_source(kind, opts, name, f"--source[{i}]"))
+    seen: dict[str, int] = {}
+    for i, p in enumerate(parts):
+        if given[i] and p.name in seen:
+            raise ConfigError(f"--source {urls[i]!r}: the name {p.name!r} is used twice")
+        seen[p.name] = i
+    # unnamed sources of one URL are told apart as before: sim, sim-2 …
+    unique = vehicles.unique_names(zip((p.name for p in parts), given, strict=True))
+    for p, name in zip(parts, unique, strict=True):
+        if name != p.name:
+            p.name = name
+            p.vehicle = vehicles.derive_name(name, fallback=p.type)
+    config.name_vehicles(parts)
     return parts
 
 
@@ -361,8 +391,11 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     for type_name, key, value in source_opts:
         for i, p in enumerate(cfg.sources):
             if p.type == type_name:
-                cfg.sources[i] = config.make_source(type_name, {**p.options, key: value},
-                                                    p.name, f"sources[{i}]")
+                part = config.make_source(type_name, {**p.options, key: value}, p.name,
+                                          f"sources[{i}]")
+                part.vehicle, part.vehicle_given = p.vehicle, p.vehicle_given
+                part.mavlink_sysid = p.mavlink_sysid
+                cfg.sources[i] = part
     for one, other in (("record", "record_dir"), ("record_dir", "record")):
         if gateway_opts.get(one):
             gateway_opts[other] = ""  # a flag replaces the file's way of recording

@@ -39,7 +39,11 @@ A subclass of :class:`Source` implements (the "must / might" list for source aut
   :class:`SourceInbox`), ``attach``; or ``start``/``stop`` themselves, for a source whose
   work lives on another owner's loop (the MAVLink source on the hub's).
 
-Every message carries ``origin`` = the source's name.
+Every message carries ``origin`` = the source's name and ``vehicle`` = the source's
+:attr:`Source.vehicle` (set by the gateway from its configuration before ``start``; derived
+from the name until then) — or, for a source that hears several systems, one vehicle name per
+system (:func:`gateway.vehicles.system_vehicle`).  A message a source leaves without a vehicle
+gets the source's at :meth:`gateway.app.Gateway.ingest`.
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ import threading
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-from gateway import registry
+from gateway import registry, vehicles
 from gateway.backend import Backend, Plugin, Routes, build
 from gateway.io.endpoints import check_serial_port, is_device
 from gateway.io.ioloop import BlockingCall, IoLoop
@@ -81,6 +85,22 @@ class Source(Plugin):
         self._own_loop = False
         self._halted = False
         self._run_call: BlockingCall | None = None
+        self._vehicle = ""
+        #: the MAVLink system id configured for this source's vehicle (None: assigned)
+        self.mavlink_sysid: int | None = None
+
+    @property
+    def vehicle(self) -> str:
+        """The name of the vehicle this source hears (for a source of several systems: the
+        stem of their names)."""
+        return self._vehicle or vehicles.derive_name(self.name, fallback=self.NAME)
+
+    @vehicle.setter
+    def vehicle(self, name: str) -> None:
+        self._vehicle = vehicles.check_name(name)
+        decoder = getattr(self, "decoder", None)
+        if hasattr(decoder, "vehicle"):  # a wire decoder stamps it on every message
+            decoder.vehicle = self._vehicle  # type: ignore[union-attr]
 
     @classmethod
     def from_config(cls, options: dict[str, Any], name: str | None = None) -> Source:

@@ -17,7 +17,7 @@ class PacedFrameSource(Source):
 
     def __init__(self, name: str | None = None) -> None:
         super().__init__(name)
-        self.decoder = Decoder(origin=self.name)
+        self.decoder = Decoder(origin=self.name, vehicle=self.vehicle)
         self.sent = 0
         self._pacer: Pacer[bytes] | None = None
 

@@ -33,7 +33,7 @@ class SerialSource(Source):
         self.url = options.url
         self.baudrate = options.baudrate
         reconnect_max_s = options.reconnect_max_s
-        self.decoder = Decoder(origin=self.name)
+        self.decoder = Decoder(origin=self.name, vehicle=self.vehicle)
         self.engine = PortEngine(self._open, name=f"source {self.name}", protocol=self,
                                  on_event=self.emit,
                                  backoff=Backoff(REOPEN_FIRST_S,
