@@ -77,8 +77,9 @@ class Gateway:
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
         #: a source's vehicle, stamped on a message that comes without one
         self._vehicle_of = {s.name: getattr(s, "vehicle", "") for s in self.sources}
-        self.context.services[vehicles.SERVICE] = [(s.name, getattr(s, "vehicle", ""))
-                                                   for s in self.sources]
+        self.context.services[vehicles.SERVICE] = [
+            vehicles.SourceVehicle(s.name, getattr(s, "vehicle", ""),
+                                   getattr(s, "mavlink_sysid", None)) for s in self.sources]
         for p in cfg.backends:
             self.dispatcher.add(_build(p, f"backends.{p.name}"))
         for src in self.sources:  # a source that also takes messages (commands to send up)

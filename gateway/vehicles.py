@@ -20,7 +20,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from gateway.options import Options, option
 
@@ -29,10 +29,19 @@ NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*\Z")
 MAX_NAME_LEN = 64
 _UNSAFE = re.compile(r"[^A-Za-z0-9_-]+")
 
-#: the service (``GatewayContext.services``) giving the configured sources as
-#: ``(source name, vehicle name)`` pairs in source order (``list[tuple[str, str]]``): the
-#: first is what a single-vehicle link serves by default
+#: the service (``GatewayContext.services``) giving the configured sources' vehicles in
+#: source order (``list[SourceVehicle]``): the first is what a single-vehicle link serves by
+#: default; the MAVLink backend assigns system ids in this order
 SERVICE = "gateway.vehicles"
+
+
+class SourceVehicle(NamedTuple):
+    """A configured source and its vehicle (for a source hearing several systems: the stem
+    of their names), with the MAVLink system id fixed for it (None: assigned)."""
+
+    source: str
+    vehicle: str
+    mavlink_sysid: int | None = None
 
 
 def check_name(name: object) -> str:
@@ -105,8 +114,7 @@ class VehicleSelector:
             return
         sources = context.services.get(SERVICE)
         if sources:
-            first = sources[0]
-            self._first_source, self._first_vehicle = first
+            self._first_source, self._first_vehicle = sources[0][:2]
 
     def accepts(self, msg: Any) -> bool:
         """True for a message about the vehicle served."""
