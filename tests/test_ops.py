@@ -28,7 +28,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gateway import config, registry
+from gateway import config, registry, vehicles
 from gateway.commands import cli
 from gateway.commands.check_config import resolved_dict, toml_string, toml_value
 from gateway.logjson import JsonFormatter, LineHandler
@@ -74,6 +74,7 @@ def test_check_config_prints_every_key_with_the_schemas_defaults_filled_in(
     assert len(got["sources"]) == 1
     source = got["sources"][0]
     assert source.pop("type") == "sim" and isinstance(source.pop("name"), str)
+    assert vehicles.check_name(source.pop("vehicle"))
     assert source == {**_defaults(sim), "speed": 4.0}
     assert got["backends"] == {"console": {"type": "console", **_defaults(console),
                                            "stream": "stderr"}}

@@ -101,11 +101,13 @@ def _table_lines(options: dict[str, Any]) -> list[str]:
 
 def resolved_dict(cfg: GatewayConfig) -> dict[str, Any]:
     """The resolved configuration as plain data, shaped like the file: ``gateway``,
-    ``sources`` (a list, each with its ``type`` and ``name``) and ``backends`` (by name,
-    each with its ``type``)."""
+    ``sources`` (a list, each with its ``type``, ``name`` and ``vehicle``) and ``backends``
+    (by name, each with its ``type``)."""
     return {
         "gateway": dict(cfg.gateway),
-        "sources": [{"type": p.type, "name": p.name, **_shown(p)} for p in cfg.sources],
+        "sources": [{"type": p.type, "name": p.name, "vehicle": p.vehicle,
+                     **({"mavlink_sysid": p.mavlink_sysid} if p.mavlink_sysid else {}),
+                     **_shown(p)} for p in cfg.sources],
         "backends": {p.name: {"type": p.type, **_shown(p)} for p in cfg.backends},
     }
 

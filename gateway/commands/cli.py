@@ -525,7 +525,8 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
         for name, err in failures:
             say(f"aurora-gateway: backend {name} did not start: {err}", logging.ERROR)
         names = ", ".join(p.name for p in cfg.backends) or "none"
-        srcs = ", ".join(s.name for s in gw.sources) or "none"
+        srcs = ", ".join(s.name if s.vehicle == s.name else f"{s.name} (vehicle {s.vehicle})"
+                         for s in gw.sources) or "none"
         say(f"aurora-gateway {__version__}: sources {srcs}; backends {names}")
         try:
             gw.run(duration_s)
