@@ -33,6 +33,11 @@ class _StreamTransport:
         pass  # never close the process's stdout
 
 
+#: vehicles whose last state and line time are kept (more: printed unthrottled, a bound on what
+#: a source naming vehicles at will can make the console keep)
+MAX_VEHICLES = 256
+
+
 def format_sm_update(m: SmUpdate) -> str:
     return (
         f"t={m.timestamp_ms / 1000:10.3f}s {m.state_name:<10} {'ARMED' if m.armed else 'safe '}"
@@ -72,8 +77,8 @@ class ConsoleBackend(Backend):
         self.interval_s = options.interval_s
         self.show_status = options.status
         self._out = out if out is not None else getattr(sys, options.stream).buffer
-        self._last_line = -math.inf
-        self._last_state: tuple[int, int] | None = None
+        #: per vehicle: (its last state, when its last update line was printed)
+        self._last: dict[str, tuple[tuple[int, int] | None, float]] = {}
         self.engine = PortEngine(lambda: _StreamTransport(self._out), name=self.name,
                                  queue_depth=64)
 
@@ -93,22 +98,27 @@ class ConsoleBackend(Backend):
                 .on(RawFrame, self.send_raw).on(LinkEvent, self.on_link))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        """One line per vehicle per ``interval_s`` (and at each of its state changes), led by
+        the vehicle's name."""
         now = time.monotonic()
         key = (msg.sm_type, msg.state)
-        if key == self._last_state and now - self._last_line < self.interval_s:
+        vehicle = msg.vehicle or msg.origin
+        last_state, last_line = self._last.get(vehicle, (None, -math.inf))
+        if key == last_state and now - last_line < self.interval_s:
             return Outcome.THROTTLED
-        if key != self._last_state and self._last_state is not None:
-            self._line(f"--- {msg.origin}: state {msg.state_name}")
-        self._last_state = key
-        self._last_line = now
-        return self._line(format_sm_update(msg))
+        if key != last_state and last_state is not None:
+            self._line(f"--- {vehicle}: state {msg.state_name}")
+        if len(self._last) < MAX_VEHICLES or vehicle in self._last:
+            self._last[vehicle] = (key, now)
+        return self._line(f"{vehicle} {format_sm_update(msg)}")
 
     def send_status(self, msg: Status) -> Outcome:
-        return self._line(format_status(msg)) if self.show_status else Outcome.ACCEPTED
+        return (self._line(f"{msg.vehicle or msg.origin} {format_status(msg)}")
+                if self.show_status else Outcome.ACCEPTED)
 
     def send_raw(self, msg: RawFrame) -> Outcome:
         return self._line(f"frame type 0x{msg.type:02X} len {len(msg.payload)} from "
-                          f"{msg.origin}: {msg.payload[:16].hex()}")
+                          f"{msg.vehicle or msg.origin}: {msg.payload[:16].hex()}")
 
     def on_link(self, ev: LinkEvent) -> Outcome:
         if ev.up:
