@@ -409,7 +409,7 @@ def test_a_signal_stops_the_gateway_within_a_second_with_a_report(sig: signal.Si
     p = Running("run", "--sim-speed", "10")
     try:
         assert p.wait_line("stderr", lambda ln: ": sources " in ln), p.text("stderr")
-        assert p.wait_line("stdout", lambda ln: ln.startswith("t=")), p.text("stdout")
+        assert p.wait_line("stdout", lambda ln: ln.startswith("sim t=")), p.text("stdout")
         t0 = time.monotonic()
         p.proc.send_signal(sig)
         rc = p.finish(timeout=10)
@@ -466,7 +466,7 @@ def test_the_embedded_default_prints_status_lines_and_console_lines() -> None:
     assert ups[0] >= 0.9 and all(b > a for a, b in itertools.pairwise(ups)), ups
     out = r.stdout.splitlines()
     assert "*** link sim UP" in out
-    assert any(ln.startswith("t=") and " m/s" in ln for ln in out), out
+    assert any(ln.startswith("sim t=") and " m/s" in ln for ln in out), out
     assert any(ln.startswith("--- sim: state ") for ln in out), out
     assert re.search(r"^stopped after [34]\.\d s", r.stderr, re.M), r.stderr
 
