@@ -1168,3 +1168,32 @@ def test_a_stopped_loop_can_be_woken_and_stopped_again() -> None:
     loop.wake()
     loop.call_soon(lambda: None)
     assert loop.stop(1.0)
+
+
+def test_a_socket_url_port_closes_without_pyserials_sleep(monkeypatch: Any) -> None:
+    """``socket://`` ports are pyserial's with a close() that does not sleep 0.3 s on the
+    closing thread (a shared loop's): the peer sees the end of the stream, the port reads as
+    closed, and closing twice is harmless.  (That close() never reaches time.sleep is what
+    this checks: a clock-free check of the cost.)"""
+    from types import SimpleNamespace
+
+    from serial.urlhandler import protocol_socket
+
+    from gateway.io.transport import SocketSerial, open_serial
+
+    slept: list[float] = []
+    monkeypatch.setattr(protocol_socket, "time", SimpleNamespace(sleep=slept.append,
+                                                                 time=time.time))
+    with socket.create_server(("127.0.0.1", 0)) as srv:
+        port = open_serial(f"socket://127.0.0.1:{srv.getsockname()[1]}", timeout=0)
+        conn, _ = srv.accept()
+        with conn:
+            assert isinstance(port, SocketSerial)
+            port.write(b"x")
+            assert conn.recv(1) == b"x"
+            port.close()
+            port.close()
+            assert slept == []
+            assert not port.is_open
+            conn.settimeout(5)
+            assert conn.recv(1) == b""
