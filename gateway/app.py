@@ -110,7 +110,7 @@ class Gateway:
                 if current is not None and current is not rec:
                     current.submit(msg)
         if msg.origin:
-            self.monitor.frame_seen(msg.origin, msg.via)
+            self.monitor.frame_seen(msg.origin, msg.via, getattr(msg, "vehicle", ""))
         self.counts[kind(msg)] += 1
         self.dispatcher.dispatch(msg)
 

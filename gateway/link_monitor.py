@@ -1,7 +1,11 @@
-"""Link monitor (OpenPilot's TelemetryMonitor, seed 001): per source, is the link up?
+"""Link monitor (OpenPilot's TelemetryMonitor, seed 001): per vehicle, is its link up?
 
-A source's link comes *up* on its first valid frame and goes *down* after ``timeout_s``
-without one (default 3 s).  Every change becomes a :class:`LinkEvent` handed to ``sink``
+A vehicle's link comes *up* on its first valid frame and goes *down* after ``timeout_s``
+without one (default 3 s).  Links are kept per vehicle (a source is one vehicle; a MAVLink
+source hearing two systems has two links), named by the vehicle (or the source, for a message
+with none); each :class:`LinkEvent` names its source, vehicle and ``via``.  At most
+:data:`MAX_LINKS` are kept (a source naming vehicles at will cannot grow the table).
+Every change becomes a :class:`LinkEvent` handed to ``sink``
 (normally the dispatcher, so every backend hears it).  The clock is injectable so the
 behaviour is testable without waiting.
 
@@ -23,6 +27,8 @@ from typing import Any
 from gateway.model import LinkEvent
 
 DEFAULT_LINK_TIMEOUT_S = 3.0
+#: links kept; frames of more vehicles are not tracked (counted in ``untracked``)
+MAX_LINKS = 1024
 
 
 class LinkMonitor:
@@ -39,26 +45,35 @@ class LinkMonitor:
         self._clock = clock
         self._last: dict[str, float] = {}
         self._up: dict[str, bool] = {}
-        self._via: dict[str, str] = {}
+        self._meta: dict[str, tuple[str, str, str]] = {}  # link → (source, via, vehicle)
+        self.untracked = 0
         self._lock = threading.Lock()
         self._pending: deque[LinkEvent] = deque()
         self._delivering = threading.Lock()
         self.changes = 0
 
-    def frame_seen(self, source: str, via: str = "") -> None:
-        """A valid frame arrived from ``source`` (call from the source's loop); ``via`` is
-        the message's (see :mod:`gateway.model`), carried on the source's link events."""
+    def frame_seen(self, source: str, via: str = "", vehicle: str = "") -> None:
+        """A valid frame arrived from ``source`` about ``vehicle`` (call from the source's
+        loop); ``via`` is the message's (see :mod:`gateway.model`), carried on the link's
+        events.  The link is the vehicle's (the source's when ``vehicle`` is "")."""
         now = self._clock()
-        self._last[source] = now
-        if self._up.get(source):
+        link = vehicle or source
+        if self._up.get(link):
+            self._last[link] = now
             return
         with self._lock:
-            if self._up.get(source):
+            if self._up.get(link):
+                self._last[link] = now
                 return
-            self._up[source] = True
-            self._via[source] = via
+            if link not in self._up and len(self._up) >= MAX_LINKS:
+                self.untracked += 1
+                return
+            self._last[link] = now
+            self._up[link] = True
+            self._meta[link] = (source, via, vehicle)
             self.changes += 1
-            self._pending.append(LinkEvent(source, True, 0.0, via=via))
+            self._pending.append(LinkEvent(source, True, 0.0, via=via,
+                                           vehicle=vehicle))
         self._deliver()
 
     def check(self) -> list[LinkEvent]:
@@ -66,13 +81,14 @@ class LinkMonitor:
         events = []
         with self._lock:
             now = self._clock()
-            for source, up in self._up.items():
-                silence = now - self._last[source]
+            for link, up in self._up.items():
+                silence = now - self._last[link]
                 if up and silence >= self.timeout_s:
-                    self._up[source] = False
+                    self._up[link] = False
                     self.changes += 1
-                    events.append(LinkEvent(source, False, silence,
-                                            via=self._via.get(source, "")))
+                    source, via, vehicle = self._meta[link]
+                    events.append(LinkEvent(source, False, silence, via=via,
+                                            vehicle=vehicle))
             self._pending.extend(events)
         self._deliver()
         return events
@@ -93,13 +109,15 @@ class LinkMonitor:
             finally:
                 self._delivering.release()
 
-    def is_up(self, source: str) -> bool | None:
-        """True/False once the source has been heard from; None before its first frame."""
-        return self._up.get(source)
+    def is_up(self, link: str) -> bool | None:
+        """True/False once the link (a vehicle's, or a source's for messages with no vehicle)
+        has been heard from; None before its first frame."""
+        return self._up.get(link)
 
-    def silence_s(self, source: str) -> float | None:
-        last = self._last.get(source)
+    def silence_s(self, link: str) -> float | None:
+        last = self._last.get(link)
         return None if last is None else self._clock() - last
 
     def states(self) -> dict[str, bool]:
+        """Every link (by vehicle) and whether it is up."""
         return dict(self._up)

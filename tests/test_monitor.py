@@ -8,6 +8,7 @@ from typing import Any
 
 import pytest
 
+from gateway import link_monitor
 from gateway.backend import Backend, Outcome, Routes
 from gateway.dispatcher import Dispatcher
 from gateway.link_monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
@@ -206,3 +207,27 @@ def test_link_events_carry_the_via_of_the_sources_messages(events: list[LinkEven
     clock.now += 1.0
     mon.check()
     assert [(e.up, e.via) for e in events] == [(True, "zenoh:gw-far"), (False, "zenoh:gw-far")]
+
+
+def test_links_are_kept_per_vehicle_and_name_source_and_vehicle(
+        monitor: LinkMonitor, clock: FakeClock, events: list[LinkEvent]) -> None:
+    """One source hearing two systems has two links; each event names both."""
+    monitor.frame_seen("mav", "mavlink:1", "drone-1")
+    monitor.frame_seen("mav", "mavlink:2", "drone-2")
+    clock.now += 1.5
+    monitor.frame_seen("mav", "mavlink:1", "drone-1")
+    clock.now += 1.0
+    monitor.check()
+    assert [(e.source, e.vehicle, e.via, e.up) for e in events] == [
+        ("mav", "drone-1", "mavlink:1", True),
+        ("mav", "drone-2", "mavlink:2", True),
+        ("mav", "drone-2", "mavlink:2", False)]
+    assert monitor.states() == {"drone-1": True, "drone-2": False}
+
+
+def test_the_table_of_links_is_bounded(monitor: LinkMonitor, events: list[LinkEvent]) -> None:
+    for i in range(link_monitor.MAX_LINKS + 10):
+        monitor.frame_seen("zenoh", "", f"v{i}")
+    assert len(monitor.states()) == link_monitor.MAX_LINKS
+    assert monitor.untracked == 10
+    assert len(events) == link_monitor.MAX_LINKS

@@ -132,7 +132,7 @@ def _sample(gw: Gateway, state: LiveState, now: float) -> None:
             row = EndpointRow(row.name, ds.frames, row.sent, row.dropped, ds.crc_failures,
                               row.clients, row.link)
         if row.link is None:
-            up = gw.monitor.is_up(src.name)
+            up = gw.monitor.is_up(getattr(src, "vehicle", "") or src.name)
             row = EndpointRow(row.name, row.received, row.sent, row.dropped, row.errors,
                               row.clients, up)
         rows.append(row)
