@@ -151,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     for sysid in sorted(systems):
         s = systems[sysid]
         print(f"system {sysid}: {s['frames']} frames, {s['heartbeats']} HEARTBEATs from "
-              f"component(s) {sorted(s['components'])} (any frame: {sorted(s['last_seq'])}) type(s) {sorted(s['types'])} "
+              f"component(s) {sorted(s['components'])} (any frame: {sorted(s['last_seq'])}) "
+              f"type(s) {sorted(s['types'])} "
               f"custom_mode {sorted(s['custom_modes'])}, sequence gaps {s['seq_gaps']}, "
               f"ALTITUDE {len(s['alt'])} × {span(s['alt'])}; "
               f"messages {', '.join(sorted(s['kinds']))}")
