@@ -233,6 +233,18 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
     return cfg
 
 
+def check_runnable(cfg: GatewayConfig, *, sources: bool = True) -> None:
+    """A configuration ``run`` can do something with: a source (unless ``sources`` is False:
+    a command that brings its own) and a backend or a recording; else :class:`ConfigError`
+    saying what to add (a run with neither idled for ever)."""
+    if sources and not cfg.sources:
+        raise ConfigError("sources: none configured; add a [[sources]] table "
+                          "(or run --source URL)")
+    if not cfg.backends and not (cfg.gateway.get("record") or cfg.gateway.get("record_dir")):
+        raise ConfigError("backends: none enabled; add a [backends.NAME] table "
+                          "(or a backend's flag, see run --help)")
+
+
 def load(path: str | Path, keep: Callable[[str], bool] | None = None) -> GatewayConfig:
     """Read and validate a TOML configuration file (``keep``: see :func:`parse`)."""
     p = Path(path)

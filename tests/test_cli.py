@@ -730,3 +730,30 @@ def test_the_light_options_modules_name_the_backends_own_defaults() -> None:
     assert crsf.CrsfBackend().baudrate == crsf_options.DEFAULT_BAUD
     assert hc12.Hc12Backend.OPTIONS.schema().keys["mode"].choices == hc12_options.MODES
     assert zenoh_options.MODES == zenoh_session.MODES
+
+
+@pytest.mark.parametrize(("text", "error"), [
+    ("", "sources: none configured; add a [[sources]] table"),
+    ("[gateway]\nstatus_interval_s = 0\n", "sources: none configured"),
+    ('[[sources]]\ntype = "sim"\n', "backends: none enabled; add a [backends.NAME] table"),
+    ('[[sources]]\ntype = "sim"\n[backends.console]\nenabled = false\n', "backends: none"),
+])
+def test_a_configuration_that_would_do_nothing_is_refused(tmp_path: Path, text: str,
+                                                          error: str) -> None:
+    """check-config and run refuse a file with no source or no backend (run idled for ever
+    with one): one line naming what is missing, exit 2."""
+    path = tmp_path / "c.toml"
+    path.write_text(text)
+    for args in (("check-config", str(path)), ("run", "-c", str(path), "--duration", "5")):
+        r = gw(*args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert error in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
+
+
+def test_a_recording_run_needs_no_backend(tmp_path: Path) -> None:
+    path = tmp_path / "c.toml"
+    path.write_text(f'[gateway]\nrecord = "{tmp_path / "r.aur"}"\nstatus_interval_s = 0\n'
+                    '[[sources]]\ntype = "sim"\nspeed = 0\ncycles = 1\n')
+    assert gw("check-config", str(path)).returncode == 0
+    r = gw("run", "-c", str(path), "--duration", "20")
+    assert r.returncode == 0, r.stderr

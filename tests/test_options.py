@@ -263,7 +263,8 @@ def test_the_example_file_shows_the_declared_defaults() -> None:
         keys = config.schema_of(registry.load(group, type_name)).keys
         for line in block.splitlines():
             m = re.match(r"^(?:# )?(\w+) = (.*?)(?:\s+#.*)?$", line)
-            if not m or m.group(1) in ("type", "name", "enabled"):
+            if not m or m.group(1) in ("type", "name", "enabled") or (
+                    group == registry.SOURCE_GROUP and m.group(1) in config.SOURCE_COMMON_KEYS):
                 continue
             key = keys[m.group(1)]
             if key.default in (config.REQUIRED, None, []):

@@ -97,7 +97,7 @@ def test_a_given_name_wins_over_a_derived_one() -> None:
 def test_check_config_prints_each_source_vehicle_and_reads_it_back(tmp_path: Any) -> None:
     first = tmp_path / "a.toml"
     first.write_text('[[sources]]\ntype = "sim"\nvehicle = "alpha"\nmavlink_sysid = 4\n'
-                     '[[sources]]\ntype = "sim"\nname = "b"\n')
+                     '[[sources]]\ntype = "sim"\nname = "b"\n[backends.console]\n')
     printed = subprocess.run([*GATEWAY, "check-config", str(first)], cwd=ROOT,
                              capture_output=True, text=True, timeout=30)
     assert printed.returncode == 0, printed.stderr

@@ -149,6 +149,7 @@ def check(path: str | None) -> tuple[GatewayConfig, list[str]]:
     if path is None:
         return config.embedded_default(), []
     cfg = config.load(path, keep)
+    config.check_runnable(cfg)
     running = {p.name for p in cfg.backends}
     return cfg, [n for n in dict.fromkeys(asked) if n not in running]
 

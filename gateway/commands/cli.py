@@ -538,6 +538,7 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
+    config.check_runnable(cfg)
     setup_logging(cfg.gateway["log_level"], args.log_format)
     return run_gateway(cfg, args.duration)
 
@@ -546,6 +547,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     speed_key = _source_key("replay", "speed")
     speed = checked_flag(args, "speed", "--speed", speed_key)
     cfg = config_from_args(args)
+    config.check_runnable(cfg, sources=False)
     opts = {"path": args.file, "speed": speed_key.default if speed is None else speed,
             "loop": args.loop}
     cfg.sources = [config.make_source("replay", opts, None, "replay")]
