@@ -19,9 +19,21 @@ each loss is counted:
   listens to): the put reaches no one outside this process; counted as ``unrouted`` (not a
   drop: with nobody listening there is nothing to lose).
 
-The session also declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>`` and a
-queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of each
-key, so late joiners need not wait for the next update.
+Keys are per vehicle: each message is published under ``<prefix>/<msg.vehicle>/…``, its
+vehicle's :class:`~backends.zenoh.keys.KeyLayout` built once and found by a dict lookup.  A
+message without a vehicle (a backend's own: RC commands from CRSF; a link event) goes under
+the vehicle of the source its ``origin`` (a link event: its ``source``) names, else under the
+first configured source's (the vehicle a single-vehicle link serves by default); with no
+source configured it is not published (``skipped_no_vehicle``).  At most
+:data:`~backends.zenoh.keys.MAX_VEHICLES` vehicles: the messages of any further one are
+counted (``dropped_vehicle_limit``), not published.
+
+For each vehicle the session declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>``
+and a queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of
+each of its keys, so late joiners need not wait for the next update: at start for the
+configured sources' vehicles (the ``gateway.vehicles`` service), later for each vehicle when
+it is first published; all undeclared at close.  The gateway's own counters go on
+``<prefix>/@gateways/<id>/stats`` (not a vehicle's: a verbatim chunk no wildcard matches).
 
 Loop prevention reads the message, not a registry: a message whose ``via`` says it came in
 over Zenoh is never published again (``skipped_from_zenoh``); the attachment names this
@@ -36,10 +48,13 @@ from typing import Any, ClassVar
 
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
-    STATS_KIND,
+    MAX_VEHICLES,
     VIA_ZENOH,
     KeyLayout,
+    check_chunk,
+    check_prefix,
     make_attachment,
+    stats_key,
 )
 from backends.zenoh.options import ZenohOptions
 from backends.zenoh.session import SessionOptions, zerror_text
@@ -48,7 +63,8 @@ from gateway.config import ConfigError
 from gateway.handover import Handover
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import IoLoop, Timer
-from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
+from gateway.model import MESSAGE_TYPES, LinkEvent, RawFrame, SmUpdate, Status, kind
+from gateway.vehicles import SERVICE as VEHICLES_SERVICE
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +93,12 @@ class ZenohBackend(Backend):
     def __init__(self, options: ZenohOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
         options = options or ZenohOptions()
-        self.layout = KeyLayout(options.prefix, options.vehicle)
+        self.prefix = check_prefix(options.prefix)
+        #: every vehicle published so far: its keys (at most MAX_VEHICLES)
+        self.layouts: dict[str, KeyLayout] = {}
+        #: a configured source's vehicle, by the source's name; and the first source's
+        self._source_vehicle: dict[str, str] = {}
+        self._first_vehicle = ""
         self._own_id = options.gateway_id
         self.gateway_id = self._own_id or self.context.gateway_id
         self.session_options = SessionOptions.from_options(options)
@@ -95,6 +116,11 @@ class ZenohBackend(Backend):
         self._encodings: dict[str, Any] = {}
         self._latest: dict[str, tuple[bytes, Any, bytes]] = {}
         self._entities: list[Any] = []
+        #: a vehicle's liveliness token and queryable, on the current session
+        self._presence: dict[str, list[Any]] = {}
+        #: the vehicles whose presence is declared on the current session: the hot path's
+        #: one lookup per message
+        self._declared: dict[str, KeyLayout] = {}
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
         # counters
         self.sent = 0
@@ -107,6 +133,9 @@ class ZenohBackend(Backend):
         self.open_failures = 0
         self.transports = 0
         self.unrouted = 0
+        self.skipped_no_vehicle = 0
+        self.dropped_vehicle_limit = 0
+        self.bad_vehicle_names = 0
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -117,6 +146,9 @@ class ZenohBackend(Backend):
         super().attach(context)
         if not self._own_id:
             self.gateway_id = context.gateway_id
+        configured = context.services.get(VEHICLES_SERVICE) or []
+        self._source_vehicle = {sv.source: sv.vehicle for sv in configured if sv.vehicle}
+        self._first_vehicle = next((sv.vehicle for sv in configured if sv.vehicle), "")
 
     def init(self) -> None:
         """Start the backend's loop (it opens the session); wait briefly for the session."""
@@ -164,12 +196,15 @@ class ZenohBackend(Backend):
         session, self._session = self._session, None
         if session is None:
             return
-        for ent in reversed(self._entities):
+        entities = [e for ents in self._presence.values() for e in ents] + self._entities
+        for ent in reversed(entities):
             try:
                 ent.undeclare()
             except Exception:
                 log.debug("zenoh %s: undeclare failed", self.name, exc_info=True)
         self._entities = []
+        self._presence = {}
+        self._declared = {}
         self._keys = {}
         try:
             session.close()
@@ -228,8 +263,9 @@ class ZenohBackend(Backend):
             loop.call_later(self._backoff.next(), self._connect)
 
     def _publish_gateway_stats(self) -> None:
-        """This gateway's counters on ``gateway_stats`` every ``stats_interval_s`` (the
-        loop's thread; the counters are read as the status line reads them)."""
+        """This gateway's counters on ``<prefix>/@gateways/<id>/stats`` every
+        ``stats_interval_s`` (the loop's thread; the counters are read as the status line
+        reads them)."""
         if self._session is None:
             return
         stats = self.context.services.get("gateway.stats")
@@ -240,7 +276,8 @@ class ZenohBackend(Backend):
         except Exception:
             self.publish_errors += 1
             return
-        if self._put(self.layout.kind(STATS_KIND), payload, enc.JSON):
+        if self._put(stats_key(self.prefix, self.gateway_id), payload, enc.JSON,
+                     remember=False):
             self.stats_published += 1
 
     def _open(self, stop: threading.Event) -> bool:
@@ -271,8 +308,8 @@ class ZenohBackend(Backend):
         self.session_opens += 1
         self._backoff.reset()
         self._ready.set()
-        log.info("zenoh %s: publishing %s/** as gateway %s (%s)", self.name, self.layout.base,
-                 self.gateway_id, self.session_options.describe())
+        log.info("zenoh %s: publishing %s/<vehicle>/** as gateway %s (%s)", self.name,
+                 self.prefix, self.gateway_id, self.session_options.describe())
         return True
 
     def _declare(self, session: Any) -> None:
@@ -289,12 +326,69 @@ class ZenohBackend(Backend):
                 self._on_transport, history=True))
         except Exception:  # an observer only: never a reason not to publish
             log.debug("zenoh %s: no transport events", self.name, exc_info=True)
+        self._presence = {}
+        self._declared = {}
+        for vehicle in [self._first_vehicle, *self._source_vehicle.values(), *self.layouts]:
+            layout = self._layout(vehicle) if vehicle else None
+            if layout is not None:
+                self._declare_presence(session, layout)
+
+    def _declare_presence(self, session: Any, layout: KeyLayout) -> None:
+        """``layout``'s vehicle's liveliness token and queryable (once per session)."""
+        if layout.vehicle in self._presence:
+            return
+        ents = self._presence[layout.vehicle] = []
+        self._declared[layout.vehicle] = layout
         if self.options.liveliness:
-            self._entities.append(
-                session.liveliness().declare_token(self.layout.token(self.gateway_id)))
+            ents.append(session.liveliness().declare_token(layout.token(self.gateway_id)))
         if self.options.queryable:
-            self._entities.append(
-                session.declare_queryable(self.layout.everything, self._on_query))
+            ents.append(session.declare_queryable(layout.everything, self._on_query))
+
+    def _layout(self, vehicle: str) -> KeyLayout | None:
+        """The keys of ``vehicle``, made on its first message (None: not a key chunk, or
+        beyond MAX_VEHICLES; counted)."""
+        layout = self.layouts.get(vehicle)
+        if layout is not None:
+            return layout
+        if len(self.layouts) >= MAX_VEHICLES:
+            self.dropped_vehicle_limit += 1
+            if self.dropped_vehicle_limit == 1:
+                log.warning("zenoh %s: more than %d vehicles; %r and any further one not "
+                            "published (dropped_vehicle_limit)", self.name, MAX_VEHICLES,
+                            vehicle)
+            return None
+        try:
+            layout = KeyLayout(self.prefix, check_chunk(vehicle, "vehicle"))
+        except ValueError as exc:
+            self.bad_vehicle_names += 1
+            if self.bad_vehicle_names == 1:
+                log.warning("zenoh %s: not published: %s", self.name, exc)
+            return None
+        self.layouts[vehicle] = layout
+        return layout
+
+    def _vehicle_layout(self, msg: Any) -> KeyLayout | None:
+        """The keys of ``msg``'s vehicle (see the module docstring for a message without
+        one); declares its presence on its first message."""
+        vehicle = msg.vehicle
+        if not vehicle:
+            source = msg.source if type(msg) is LinkEvent else msg.origin
+            vehicle = self._source_vehicle.get(source) or self._first_vehicle
+            if not vehicle:
+                self.skipped_no_vehicle += 1
+                return None
+        layout = self._declared.get(vehicle)
+        if layout is not None:
+            return layout
+        layout = self._layout(vehicle)
+        if layout is not None and self._session is not None:
+            try:
+                self._declare_presence(self._session, layout)
+            except Exception as exc:  # published all the same, without presence
+                self._declared[vehicle] = layout
+                log.warning("zenoh %s: cannot declare %s's presence: %s", self.name, vehicle,
+                            zerror_text(exc))
+        return layout
 
     def _key(self, key: str, encoding: str) -> _Key:
         k = self._keys.get(key)
@@ -306,7 +400,7 @@ class ZenohBackend(Backend):
             k = self._keys[key] = _Key(key, pub)
         return k
 
-    def _put(self, key: str, payload: bytes, encoding: str) -> bool:
+    def _put(self, key: str, payload: bytes, encoding: str, remember: bool = True) -> bool:
         k = self._key(key, encoding)
         att = make_attachment(self.gateway_id, k.seq)
         k.seq += 1
@@ -320,20 +414,26 @@ class ZenohBackend(Backend):
         self.puts += 1
         if not self.transports:
             self.unrouted += 1
-        self._latest[key] = (payload, self._encodings[encoding], att)
+        if remember:  # what the queryable answers
+            self._latest[key] = (payload, self._encodings[encoding], att)
         return True
 
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
         """Put ``msg``'s document and/or its wire frame; a message that cannot be encoded is
         skipped, counted (``publish_errors``)."""
+        layout = self._declared.get(msg.vehicle)
+        if layout is None:
+            layout = self._vehicle_layout(msg)
+            if layout is None:
+                return
         try:
             ok = False
             if doc:
                 payload, encoding = enc.encode(msg, self.options.encoding)
-                ok = self._put(self.layout.kind(kind(msg)), payload, encoding)
+                ok = self._put(layout.kind(kind(msg)), payload, encoding)
             if raw:
                 frame = enc.wire_frame(msg)
-                ok = self._put(self.layout.raw(frame[2]), frame, enc.WIRE) or ok
+                ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok
         except Exception as exc:
             self.publish_errors += 1
             if self.publish_errors == 1:
@@ -384,6 +484,9 @@ class ZenohBackend(Backend):
             "puts": self.puts, "stats_published": self.stats_published,
             "unrouted": self.unrouted,
             "skipped_from_zenoh": self.skipped_from_zenoh,
+            "vehicles": len(self.layouts),
+            "skipped_no_vehicle": self.skipped_no_vehicle,
+            "dropped_vehicle_limit": self.dropped_vehicle_limit,
             "queries": self.queries,
             "connected": self.transports,
             "session_opens": self.session_opens,
