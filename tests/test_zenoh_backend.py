@@ -121,7 +121,7 @@ def test_packed_encoding(endpoint, subscriber):
         assert rec.wait_for(lambda s: len(s) >= 3)
         for m, s in zip(msgs, rec.snapshot(), strict=True):
             assert s.payload == m.raw[4:-2]
-            assert enc.decode(kind(m), s.payload, s.encoding) == m._replace(origin="")
+            assert enc.decode(kind(m), s.payload, s.encoding) == m._replace(origin="", vehicle="")
         assert rec.matching(f"aurora/{VEHICLE}/raw/1") == []
     finally:
         b.close()
