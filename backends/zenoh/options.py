@@ -136,7 +136,8 @@ class ZenohOptions(ZenohSessionOptions):
     """``[backends.zenoh]``: the rocket's frames and documents published over Zenoh."""
 
     TITLE: ClassVar[str] = "zenoh backend"
-    prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key",
+    prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key: "
+                         "<prefix>/<each message's vehicle>/…",
                          validator=check_prefix,
                          flag=Flag("--zenoh-prefix", metavar="PREFIX"))
     gateway_id: str = option("", "this gateway's id in attachments and its liveliness token "
@@ -150,8 +151,10 @@ class ZenohOptions(ZenohSessionOptions):
     priority: str = option("data", "Zenoh priority of the publications", choices=PRIORITIES)
     queue_depth: int = option(1024, "updates waiting for the worker before new ones are "
                               "dropped", minimum=1, maximum=1_000_000)
-    liveliness: bool = option(True, "declare a liveliness token for this gateway")
-    queryable: bool = option(True, "answer get() with the latest value of each key")
+    liveliness: bool = option(True, "declare a liveliness token <prefix>/<vehicle>/gateway/<id> "
+                              "per vehicle published")
+    queryable: bool = option(True, "answer get() with the latest value of each key, per "
+                             "vehicle")
     stats_interval_s: float = option(1.0, "seconds between publications of this gateway's "
                                      "counters on <prefix>/@gateways/<id>/stats (for a "
                                      "monitor); 0 = none", minimum=0)
@@ -183,7 +186,7 @@ class ZenohOptions(ZenohSessionOptions):
 class ZenohSourceOptions(ZenohSessionOptions):
     """``[[sources]] type = "zenoh"``: another gateway's frames over Zenoh."""
 
-    url: str = option("", "zenoh:[VEHICLE@][ENDPOINT,...] (sets follow and connect)",
+    url: str = option("", "zenoh:[FOLLOW@][ENDPOINT,...] (sets follow and connect)",
                       validator=lazy("backends.zenoh.source:check_url"))
     prefix: str = option(DEFAULT_PREFIX, "key prefix of the publishing gateways")
     follow: str = option("*", "the vehicle to follow (its name in the publishing gateway's "
