@@ -42,6 +42,7 @@ gateway, and the id goes into the gateway's context so its own Zenoh sources ign
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 from typing import Any, ClassVar
@@ -72,6 +73,17 @@ START_WAIT_S = 1.0  # init() waits this long for the session so the first update
 CLOSE_TIMEOUT_S = 0.5
 
 
+class _Vehicle(KeyLayout):
+    """One vehicle published: its keys, and the latest value of each (what its queryable
+    answers)."""
+
+    __slots__ = ("latest",)
+
+    def __init__(self, prefix: str, vehicle: str) -> None:
+        super().__init__(prefix, vehicle)
+        self.latest: dict[str, tuple[bytes, Any, bytes]] = {}
+
+
 class _Key:
     """One published key: its publisher and sequence counter."""
 
@@ -94,8 +106,8 @@ class ZenohBackend(Backend):
         super().__init__(name)
         options = options or ZenohOptions()
         self.prefix = check_prefix(options.prefix)
-        #: every vehicle published so far: its keys (at most MAX_VEHICLES)
-        self.layouts: dict[str, KeyLayout] = {}
+        #: every vehicle published so far: its keys and latest values (at most MAX_VEHICLES)
+        self.vehicles: dict[str, _Vehicle] = {}
         #: a configured source's vehicle, by the source's name; and the first source's
         self._source_vehicle: dict[str, str] = {}
         self._first_vehicle = ""
@@ -114,13 +126,12 @@ class ZenohBackend(Backend):
         self._session: Any = None
         self._keys: dict[str, _Key] = {}
         self._encodings: dict[str, Any] = {}
-        self._latest: dict[str, tuple[bytes, Any, bytes]] = {}
         self._entities: list[Any] = []
         #: a vehicle's liveliness token and queryable, on the current session
         self._presence: dict[str, list[Any]] = {}
         #: the vehicles whose presence is declared on the current session: the hot path's
         #: one lookup per message
-        self._declared: dict[str, KeyLayout] = {}
+        self._declared: dict[str, _Vehicle] = {}
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
         # counters
         self.sent = 0
@@ -276,8 +287,7 @@ class ZenohBackend(Backend):
         except Exception:
             self.publish_errors += 1
             return
-        if self._put(stats_key(self.prefix, self.gateway_id), payload, enc.JSON,
-                     remember=False):
+        if self._put(stats_key(self.prefix, self.gateway_id), payload, enc.JSON, None):
             self.stats_published += 1
 
     def _open(self, stop: threading.Event) -> bool:
@@ -328,12 +338,12 @@ class ZenohBackend(Backend):
             log.debug("zenoh %s: no transport events", self.name, exc_info=True)
         self._presence = {}
         self._declared = {}
-        for vehicle in [self._first_vehicle, *self._source_vehicle.values(), *self.layouts]:
+        for vehicle in [self._first_vehicle, *self._source_vehicle.values(), *self.vehicles]:
             layout = self._layout(vehicle) if vehicle else None
             if layout is not None:
                 self._declare_presence(session, layout)
 
-    def _declare_presence(self, session: Any, layout: KeyLayout) -> None:
+    def _declare_presence(self, session: Any, layout: _Vehicle) -> None:
         """``layout``'s vehicle's liveliness token and queryable (once per session)."""
         if layout.vehicle in self._presence:
             return
@@ -342,15 +352,16 @@ class ZenohBackend(Backend):
         if self.options.liveliness:
             ents.append(session.liveliness().declare_token(layout.token(self.gateway_id)))
         if self.options.queryable:
-            ents.append(session.declare_queryable(layout.everything, self._on_query))
+            ents.append(session.declare_queryable(
+                layout.everything, functools.partial(self._on_query, layout)))
 
-    def _layout(self, vehicle: str) -> KeyLayout | None:
+    def _layout(self, vehicle: str) -> _Vehicle | None:
         """The keys of ``vehicle``, made on its first message (None: not a key chunk, or
         beyond MAX_VEHICLES; counted)."""
-        layout = self.layouts.get(vehicle)
+        layout = self.vehicles.get(vehicle)
         if layout is not None:
             return layout
-        if len(self.layouts) >= MAX_VEHICLES:
+        if len(self.vehicles) >= MAX_VEHICLES:
             self.dropped_vehicle_limit += 1
             if self.dropped_vehicle_limit == 1:
                 log.warning("zenoh %s: more than %d vehicles; %r and any further one not "
@@ -358,16 +369,16 @@ class ZenohBackend(Backend):
                             vehicle)
             return None
         try:
-            layout = KeyLayout(self.prefix, check_chunk(vehicle, "vehicle"))
+            layout = _Vehicle(self.prefix, check_chunk(vehicle, "vehicle"))
         except ValueError as exc:
             self.bad_vehicle_names += 1
             if self.bad_vehicle_names == 1:
                 log.warning("zenoh %s: not published: %s", self.name, exc)
             return None
-        self.layouts[vehicle] = layout
+        self.vehicles[vehicle] = layout
         return layout
 
-    def _vehicle_layout(self, msg: Any) -> KeyLayout | None:
+    def _vehicle_layout(self, msg: Any) -> _Vehicle | None:
         """The keys of ``msg``'s vehicle (see the module docstring for a message without
         one); declares its presence on its first message."""
         vehicle = msg.vehicle
@@ -400,7 +411,10 @@ class ZenohBackend(Backend):
             k = self._keys[key] = _Key(key, pub)
         return k
 
-    def _put(self, key: str, payload: bytes, encoding: str, remember: bool = True) -> bool:
+    def _put(self, key: str, payload: bytes, encoding: str,
+             latest: dict[str, tuple[bytes, Any, bytes]] | None) -> bool:
+        """Put on ``key``; remember it in ``latest`` (a vehicle's, what its queryable
+        answers)."""
         k = self._key(key, encoding)
         att = make_attachment(self.gateway_id, k.seq)
         k.seq += 1
@@ -414,8 +428,8 @@ class ZenohBackend(Backend):
         self.puts += 1
         if not self.transports:
             self.unrouted += 1
-        if remember:  # what the queryable answers
-            self._latest[key] = (payload, self._encodings[encoding], att)
+        if latest is not None:
+            latest[key] = (payload, self._encodings[encoding], att)
         return True
 
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
@@ -430,10 +444,10 @@ class ZenohBackend(Backend):
             ok = False
             if doc:
                 payload, encoding = enc.encode(msg, self.options.encoding)
-                ok = self._put(layout.kind(kind(msg)), payload, encoding)
+                ok = self._put(layout.kind(kind(msg)), payload, encoding, layout.latest)
             if raw:
                 frame = enc.wire_frame(msg)
-                ok = self._put(layout.raw(frame[2]), frame, enc.WIRE) or ok
+                ok = self._put(layout.raw(frame[2]), frame, enc.WIRE, layout.latest) or ok
         except Exception as exc:
             self.publish_errors += 1
             if self.publish_errors == 1:
@@ -445,11 +459,12 @@ class ZenohBackend(Backend):
 
     # -- zenoh callbacks (zenoh's threads) -------------------------------------------------------
 
-    def _on_query(self, query: Any) -> None:
+    def _on_query(self, vehicle: _Vehicle, query: Any) -> None:
+        """A ``get`` reaching ``vehicle``'s queryable: that vehicle's latest values."""
         self.queries += 1
         with query:
             ke = query.key_expr
-            for key, (payload, encoding, att) in self._latest.copy().items():
+            for key, (payload, encoding, att) in vehicle.latest.copy().items():
                 if ke.intersects(key):
                     query.reply(key, payload, encoding=encoding, attachment=att)
 
@@ -484,7 +499,7 @@ class ZenohBackend(Backend):
             "puts": self.puts, "stats_published": self.stats_published,
             "unrouted": self.unrouted,
             "skipped_from_zenoh": self.skipped_from_zenoh,
-            "vehicles": len(self.layouts),
+            "vehicles": len(self.vehicles),
             "skipped_no_vehicle": self.skipped_no_vehicle,
             "dropped_vehicle_limit": self.dropped_vehicle_limit,
             "queries": self.queries,
@@ -494,8 +509,9 @@ class ZenohBackend(Backend):
         }
 
     def latest(self) -> dict[str, bytes]:
-        """The latest payload published on each key (what the queryable answers)."""
-        return {k: v[0] for k, v in self._latest.copy().items()}
+        """The latest payload published on each key (what the queryables answer)."""
+        return {k: v[0] for vehicle in list(self.vehicles.values())
+                for k, v in vehicle.latest.copy().items()}
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until everything accepted so far is published (for tools and benchmarks)."""
