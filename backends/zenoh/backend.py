@@ -50,6 +50,7 @@ from typing import Any, ClassVar
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     MAX_VEHICLES,
+    SOURCES_SERVICE,
     VIA_ZENOH,
     KeyLayout,
     check_chunk,
@@ -157,14 +158,12 @@ class ZenohBackend(Backend):
         super().attach(context)
         if not self._own_id:
             self.gateway_id = context.gateway_id
-        configured = context.services.get(VEHICLES_SERVICE) or []
-        self._source_vehicle = {sv.source: sv.vehicle for sv in configured if sv.vehicle}
-        self._first_vehicle = next((sv.vehicle for sv in configured if sv.vehicle), "")
 
     def init(self) -> None:
         """Start the backend's loop (it opens the session); wait briefly for the session."""
         if self._loop is not None:
             return
+        self._learn_sources()
         self.context.own_ids.add(self.gateway_id)  # this gateway's Zenoh sources skip it
         self._stop = threading.Event()
         self._loop = loop = IoLoop(f"zenoh-{self.name}")
@@ -175,6 +174,17 @@ class ZenohBackend(Backend):
             self._timers.append(loop.call_every(self.options.stats_interval_s,
                                                 self._publish_gateway_stats))
         self._ready.wait(START_WAIT_S)
+
+    def _learn_sources(self) -> None:
+        """The configured sources' vehicles (the ``gateway.vehicles`` service), but for the
+        Zenoh sources' (another gateway's vehicles, never published here): where a message
+        without a vehicle goes, and whose presence is declared at start."""
+        services = self.context.services
+        relayed = services.get(SOURCES_SERVICE) or set()
+        configured = [sv for sv in services.get(VEHICLES_SERVICE) or []
+                      if sv.vehicle and sv.source not in relayed]
+        self._source_vehicle = {sv.source: sv.vehicle for sv in configured}
+        self._first_vehicle = configured[0].vehicle if configured else ""
 
     def wait_ready(self, timeout: float) -> bool:
         """Block until the session is open (for tools and tests)."""

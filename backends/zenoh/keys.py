@@ -45,6 +45,9 @@ STATS_KIND = "gateway_stats"
 #: The verbatim chunk under which gateways publish what is theirs, not a vehicle's.
 GATEWAYS = "@gateways"
 STATS = "stats"
+#: The gateway service (``GatewayContext.services``) naming this gateway's Zenoh sources (a
+#: set of source names): their vehicles are another gateway's, never published here again.
+SOURCES_SERVICE = "zenoh.sources"
 #: Vehicles one backend publishes, or one source follows, at most; beyond, a vehicle's
 #: messages are counted (``dropped_vehicle_limit``) and not published or emitted.
 MAX_VEHICLES = 256

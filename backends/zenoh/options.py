@@ -21,6 +21,7 @@ from backends.zenoh.keys import (
 )
 from gateway.io.endpoints import EndpointError, parse_address
 from gateway.options import ConfigError, Flag, Options, Schema, lazy, option
+from gateway.vehicles import check_name
 
 #: Zenoh's session modes
 MODES = ("peer", "client", "router")
@@ -87,6 +88,16 @@ class _BackendSchema(Schema):
 
 def _removed_flag(_text: str) -> str:
     raise argparse.ArgumentTypeError(VEHICLE_REMOVED)
+
+
+def check_follow(value: str) -> str:
+    """The vehicle a Zenoh source follows: a vehicle name, or ``*`` (every vehicle)."""
+    if value == "*":
+        return value
+    try:
+        return check_name(value)
+    except ValueError as exc:
+        raise ValueError(f"{exc}, or '*' (every vehicle)") from None
 
 
 def _check_gateway_id(value: str) -> None:
@@ -190,7 +201,8 @@ class ZenohSourceOptions(ZenohSessionOptions):
                       validator=lazy("backends.zenoh.source:check_url"))
     prefix: str = option(DEFAULT_PREFIX, "key prefix of the publishing gateways")
     follow: str = option("*", "the vehicle to follow (its name in the publishing gateway's "
-                         "keys); '*' = every vehicle, each kept apart under its own name")
+                         "keys); '*' = every vehicle, each kept apart under its own name",
+                         validator=check_follow)
     keys: str = option("raw", "subscribe to the raw wire frames or to the JSON documents",
                        choices=KEY_SETS)
     queue_depth: int = option(1024, "samples waiting for the sources' loop before new ones "

@@ -46,17 +46,18 @@ from backends.zenoh.keys import (
     JSON_KINDS,
     MAX_VEHICLES,
     RAW,
+    SOURCES_SERVICE,
     VIA_ZENOH,
     SeqTracker,
-    check_chunk,
     check_prefix,
     parse_attachment,
     parse_key,
     parse_stats_key,
     stats_key_expr,
 )
-from backends.zenoh.options import KEY_SETS, ZenohSourceOptions
+from backends.zenoh.options import KEY_SETS, ZenohSourceOptions, check_follow
 from backends.zenoh.session import SessionOptions, check_endpoints, zerror_text
+from gateway.backend import GatewayContext
 from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import Timer
@@ -80,7 +81,7 @@ def parse_url(url: str) -> dict[str, Any]:
         return opts
     head, at, tail = rest.partition("@")
     if at and "/" not in head:
-        opts["follow"] = check_chunk(head, "vehicle", wildcard=True)
+        opts["follow"] = check_follow(head)
         rest = tail
     if rest:
         try:
@@ -131,7 +132,7 @@ class ZenohSource(Source):
         except ValueError as exc:
             raise ConfigError(f"prefix: {exc}") from None
         try:
-            self.follow = check_chunk(follow, "vehicle", wildcard=True)
+            self.follow = check_follow(follow)
         except ValueError as exc:
             raise ConfigError(f"follow: {exc}") from None
         if keys not in KEY_SETS:
@@ -169,6 +170,13 @@ class ZenohSource(Source):
         self.dropped_queue_full = 0
         self.session_opens = 0
         self.open_failures = 0
+
+    def attach(self, context: GatewayContext) -> None:
+        """Say in the gateway's context that this source's vehicles are another gateway's
+        (:data:`~backends.zenoh.keys.SOURCES_SERVICE`): a Zenoh backend declares no presence
+        for this source's own vehicle name."""
+        super().attach(context)
+        context.services.setdefault(SOURCES_SERVICE, set()).add(self.name)
 
     # -- zenoh's callback thread ------------------------------------------------------------------
 
