@@ -28,11 +28,12 @@ source configured it is not published (``skipped_no_vehicle``).  At most
 :data:`~backends.zenoh.keys.MAX_VEHICLES` vehicles: the messages of any further one are
 counted (``dropped_vehicle_limit``), not published.
 
-For each vehicle the session declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>``
-and a queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of
-each of its keys, so late joiners need not wait for the next update: at start for the
-configured sources' vehicles (the ``gateway.vehicles`` service), later for each vehicle when
-it is first published; all undeclared at close.  The gateway's own counters go on
+For each vehicle the session declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>``:
+at start for the configured sources' vehicles (the ``gateway.vehicles`` service), later for
+each vehicle when it is first published; all undeclared at close.  One queryable on
+``<prefix>/*/**`` answers a ``get`` with the latest value of each key of every vehicle it
+matches, so late joiners need not wait for the next update (one, not one per vehicle: Zenoh
+runs each Python callback on a thread of its own).  The gateway's own counters go on
 ``<prefix>/@gateways/<id>/stats`` (not a vehicle's: a verbatim chunk no wildcard matches).
 
 Loop prevention reads the message, not a registry: a message whose ``via`` says it came in
@@ -42,7 +43,6 @@ gateway, and the id goes into the gateway's context so its own Zenoh sources ign
 
 from __future__ import annotations
 
-import functools
 import logging
 import threading
 from typing import Any, ClassVar
@@ -128,7 +128,7 @@ class ZenohBackend(Backend):
         self._keys: dict[str, _Key] = {}
         self._encodings: dict[str, Any] = {}
         self._entities: list[Any] = []
-        #: a vehicle's liveliness token and queryable, on the current session
+        #: a vehicle's liveliness token, on the current session
         self._presence: dict[str, list[Any]] = {}
         #: the vehicles whose presence is declared on the current session: the hot path's
         #: one lookup per message
@@ -346,6 +346,9 @@ class ZenohBackend(Backend):
                 self._on_transport, history=True))
         except Exception:  # an observer only: never a reason not to publish
             log.debug("zenoh %s: no transport events", self.name, exc_info=True)
+        if self.options.queryable:
+            self._entities.append(session.declare_queryable(f"{self.prefix}/*/**",
+                                                            self._on_query))
         self._presence = {}
         self._declared = {}
         for vehicle in [self._first_vehicle, *self._source_vehicle.values(), *self.vehicles]:
@@ -354,16 +357,13 @@ class ZenohBackend(Backend):
                 self._declare_presence(session, layout)
 
     def _declare_presence(self, session: Any, layout: _Vehicle) -> None:
-        """``layout``'s vehicle's liveliness token and queryable (once per session)."""
+        """``layout``'s vehicle's liveliness token (once per session)."""
         if layout.vehicle in self._presence:
             return
         ents = self._presence[layout.vehicle] = []
         self._declared[layout.vehicle] = layout
         if self.options.liveliness:
             ents.append(session.liveliness().declare_token(layout.token(self.gateway_id)))
-        if self.options.queryable:
-            ents.append(session.declare_queryable(
-                layout.everything, functools.partial(self._on_query, layout)))
 
     def _layout(self, vehicle: str) -> _Vehicle | None:
         """The keys of ``vehicle``, made on its first message (None: not a key chunk, or
@@ -469,14 +469,17 @@ class ZenohBackend(Backend):
 
     # -- zenoh callbacks (zenoh's threads) -------------------------------------------------------
 
-    def _on_query(self, vehicle: _Vehicle, query: Any) -> None:
-        """A ``get`` reaching ``vehicle``'s queryable: that vehicle's latest values."""
+    def _on_query(self, query: Any) -> None:
+        """A ``get``: the latest values of the keys it names, of every vehicle it matches."""
         self.queries += 1
         with query:
             ke = query.key_expr
-            for key, (payload, encoding, att) in vehicle.latest.copy().items():
-                if ke.intersects(key):
-                    query.reply(key, payload, encoding=encoding, attachment=att)
+            for vehicle in list(self.vehicles.values()):
+                if not ke.intersects(vehicle.everything):
+                    continue
+                for key, (payload, encoding, att) in vehicle.latest.copy().items():
+                    if ke.intersects(key):
+                        query.reply(key, payload, encoding=encoding, attachment=att)
 
     def _on_transport(self, event: Any) -> None:
         """Count connections; a router coming and going is news, a dashboard is not."""
