@@ -69,6 +69,7 @@ log = logging.getLogger(__name__)
 
 URL_SCHEME = "zenoh"
 DRAIN_BATCH = 256  # samples handled per turn of the loop
+LOGGED_VEHICLES = 8  # new remote vehicles logged one by one; beyond, one line
 
 
 def parse_url(url: str) -> dict[str, Any]:
@@ -325,7 +326,12 @@ class ZenohSource(Source):
             return None
         dec = self.decoders[vehicle] = Decoder(origin=self.name, vehicle=vehicle)
         dec.stats = self.decoder_stats
-        log.info("source %s: following vehicle %s", self.name, vehicle)
+        n = len(self.decoders)
+        if n <= LOGGED_VEHICLES:
+            log.info("source %s: following vehicle %s", self.name, vehicle)
+        elif n == LOGGED_VEHICLES + 1:
+            log.info("source %s: following more vehicles (%s, …; not logged: counted in its "
+                     "stats' vehicles)", self.name, vehicle)
         return dec
 
     def _handle(self, key: str, payload: bytes, encoding: str, gateway: str = "?") -> None:
