@@ -8,6 +8,7 @@ import argparse
 import contextlib
 import io
 import json
+import logging
 import re
 import socket
 import threading
@@ -333,8 +334,10 @@ def test_a_chained_gateway_keeps_the_vehicles_names(feeds, keys, follow):
         a.stop()
 
 
-def test_the_source_bounds_remote_vehicles_and_refuses_bad_names(monkeypatch):
+def test_the_source_bounds_remote_vehicles_and_refuses_bad_names(monkeypatch, caplog):
     monkeypatch.setattr(source_module, "MAX_VEHICLES", 2)
+    monkeypatch.setattr(source_module, "LOGGED_VEHICLES", 1)
+    caplog.set_level(logging.INFO, logger="backends.zenoh.source")
     endpoint = free_endpoint()
     frame = wire.encode(SmUpdate(1, 3, True, 0, 42.0, 0, 0, 0, 0, 0, 0))
     with zenoh.open(peer_config(listen=[endpoint])) as remote:
@@ -358,6 +361,9 @@ def test_the_source_bounds_remote_vehicles_and_refuses_bad_names(monkeypatch):
             assert st["vehicles"] == 2 and st["dropped_vehicle_limit"] == 1
             assert st["bad_vehicle_names"] == 2
             assert set(capture.by_vehicle()) == {"v1", "v2"}
+            lines = [r.getMessage() for r in caplog.records]
+            assert len([ln for ln in lines if "following" in ln]) == 2, lines
+            assert len([ln for ln in lines if "ignoring vehicle" in ln]) == 2, lines
         finally:
             b.stop()
 
