@@ -10,6 +10,7 @@ Keys (``prefix`` default ``aurora``; ``<vehicle>`` is each message's vehicle, se
     <prefix>/<vehicle>/position         GNSS fix (JSON)
     <prefix>/<vehicle>/battery          battery (JSON)
     <prefix>/<vehicle>/vehicle_state    non-Aurora vehicle state (JSON)
+    <prefix>/<vehicle>/rc_channels      pilot or servo commands (JSON)
     <prefix>/<vehicle>/raw/<type>       the untouched wire frame; <type> in decimal (1, 2, 171)
     <prefix>/<vehicle>/gateway/<id>     liveliness token of each gateway publishing it
     <prefix>/@gateways/<id>/stats       a gateway's own counters (JSON), for a monitor
@@ -130,7 +131,7 @@ class KeyLayout:
 
     @property
     def everything(self) -> str:
-        """What the gateway's queryable answers for: ``<prefix>/<vehicle>/**``."""
+        """Every key of this vehicle: ``<prefix>/<vehicle>/**``."""
         return f"{self.base}/**"
 
 
