@@ -347,9 +347,9 @@ def test_following_a_gateway_shows_its_backends_counters() -> None:
     endpoint = free_endpoint()
     watched = Gateway(cfgmod.parse({
         "gateway": {"status_interval_s": 0.0},
-        "sources": [{"type": "sim", "speed": 0.0, "cycles": 1, "rate_hz": 50.0}],
-        "backends": {"zenoh": {"listen": [endpoint], "stats_interval_s": 0.2,
-                               "vehicle": "watched"},
+        "sources": [{"type": "sim", "speed": 0.0, "cycles": 1, "rate_hz": 50.0,
+                     "vehicle": "watched"}],
+        "backends": {"zenoh": {"listen": [endpoint], "stats_interval_s": 0.2},
                      "console": {"enabled": False}}}))
     state = LiveState()
     monitor = Gateway(cfgmod.parse({

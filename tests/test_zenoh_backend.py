@@ -12,6 +12,7 @@ from zenoh_peer import (
     RouterProcess,
     free_endpoint,
     peer_config,
+    serving,
     wait_for_gateway,
     wait_until,
 )
@@ -35,11 +36,16 @@ from gateway.sources.sim import flight_messages  # noqa: E402
 VEHICLE = "r1"
 
 
-def flight(n: int, rate_hz: float = 10.0) -> list[SmUpdate | Status]:
+def zenoh_backend(**options) -> ZenohBackend:
+    """A Zenoh backend in a gateway whose one source, ``serial``, is vehicle ``r1``."""
+    return serving(ZenohBackend(ZenohOptions(**options)), VEHICLE)
+
+
+def flight(n: int, rate_hz: float = 10.0, vehicle: str = VEHICLE) -> list[SmUpdate | Status]:
     """The first ``n`` messages of the simulated flight, as decoded from their frames."""
     out = []
     for _, m in flight_messages(FlightModel(), rate_hz, 1.0, 1):
-        out.append(wire.decode_all(wire.encode(m), origin="serial")[0])
+        out.append(wire.decode_all(wire.encode(m), origin="serial", vehicle=vehicle)[0])
         if len(out) == n:
             break
     return out
@@ -60,7 +66,7 @@ def endpoint():
 
 @pytest.fixture
 def backend(endpoint):
-    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-test"))
+    b = zenoh_backend(listen=[endpoint], gateway_id="gw-test")
     b.init()
     assert b.wait_ready(20), "the session did not open"
     yield b
@@ -102,7 +108,7 @@ def test_publishes_json_and_raw_frames_with_attachment(backend, subscriber):
 
 
 def test_packed_encoding(endpoint, subscriber):
-    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, encoding="packed", raw=False))
+    b = zenoh_backend(listen=[endpoint], encoding="packed", raw=False)
     b.init()
     try:
         assert b.wait_ready(20)
@@ -115,7 +121,7 @@ def test_packed_encoding(endpoint, subscriber):
         assert rec.wait_for(lambda s: len(s) >= 3)
         for m, s in zip(msgs, rec.snapshot(), strict=True):
             assert s.payload == m.raw[4:-2]
-            assert enc.decode(kind(m), s.payload, s.encoding) == m._replace(origin="")
+            assert enc.decode(kind(m), s.payload, s.encoding) == m._replace(origin="", vehicle="")
         assert rec.matching(f"aurora/{VEHICLE}/raw/1") == []
     finally:
         b.close()
@@ -125,7 +131,8 @@ def test_late_joiner_gets_the_latest_value_of_each_key(backend, endpoint):
     msgs = flight(25)
     for m in msgs:
         send(backend, m)
-    send(backend, LinkStats(rssi_dbm=-60.0, link_quality_pct=100))
+    # a message without a vehicle whose origin is the source: under the source's vehicle
+    send(backend, LinkStats(rssi_dbm=-60.0, link_quality_pct=100, origin="serial"))
     assert wait_until(lambda: backend.processed == backend.accepted)
     with zenoh.open(peer_config(connect=[endpoint])) as late:
         latest = {str(s.key_expr): s for s in wait_for_gateway(late, "aurora", VEHICLE)}
@@ -150,7 +157,7 @@ def test_liveliness_token_appears_and_vanishes(endpoint, subscriber):
             cond.notify_all()
 
     subscriber.liveliness().declare_subscriber("aurora/*/gateway/*", on_token, history=True)
-    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, gateway_id="gw-live"))
+    b = zenoh_backend(listen=[endpoint], gateway_id="gw-live")
     b.init()
     token = f"aurora/{VEHICLE}/gateway/gw-live"
     try:
@@ -165,8 +172,7 @@ def test_liveliness_token_appears_and_vanishes(endpoint, subscriber):
 def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
     """With congestion control BLOCK nothing is lost inside Zenoh: whatever the hand-off
     queue refused is counted, and everything it accepted arrives, in order."""
-    b = ZenohBackend(ZenohOptions(listen=[endpoint], vehicle=VEHICLE, raw=False, queue_depth=4,
-                                  congestion_control="block"))
+    b = zenoh_backend(listen=[endpoint], raw=False, queue_depth=4, congestion_control="block")
     b.init()
     try:
         assert b.wait_ready(20)
@@ -191,8 +197,7 @@ def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
 
 def test_not_ready_until_the_router_comes_then_publishes():
     ep = free_endpoint()
-    b = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle=VEHICLE,
-                                  reconnect_max_s=0.5))
+    b = zenoh_backend(mode="client", connect=[ep], reconnect_max_s=0.5)
     b.init()  # the router is not there: init does not fail, the worker keeps trying
     router = RouterProcess(ep)
     try:
@@ -216,8 +221,7 @@ def test_not_ready_until_the_router_comes_then_publishes():
 
 def test_updates_published_while_the_router_is_gone_are_counted_as_unrouted():
     router = RouterProcess().start()
-    b = ZenohBackend(ZenohOptions(mode="client", connect=[router.endpoint], vehicle=VEHICLE,
-                                  raw=False))
+    b = zenoh_backend(mode="client", connect=[router.endpoint], raw=False)
     try:
         b.init()
         assert b.wait_ready(20)
@@ -315,8 +319,7 @@ def test_relay_feeds_the_dispatcher_and_never_republishes(keys, tmp_path):
         cfg = config.parse({
             "sources": [{"type": "zenoh", "url": f"zenoh:{VEHICLE}@{rocket_ep}", "keys": keys,
                          "name": "from-rocket"}],
-            "backends": {"zenoh": {"listen": [ground_ep], "vehicle": VEHICLE,
-                                   "gateway_id": "ground"}},
+            "backends": {"zenoh": {"listen": [ground_ep], "gateway_id": "ground"}},
         })
         gw = Gateway(cfg)
         capture = Capture()
@@ -368,7 +371,7 @@ def test_two_gateways_in_one_process_share_no_loop_prevention_state() -> None:
     ep = free_endpoint()
     a = Gateway(config.parse({
         "sources": [{"type": "zenoh", "url": f"zenoh:{VEHICLE}@{ep}", "name": "a-in"}],
-        "backends": {"zenoh": {"listen": [ep], "vehicle": VEHICLE}}}))
+        "backends": {"zenoh": {"listen": [ep]}}}))
     b = Gateway(config.parse({
         "sources": [{"type": "zenoh", "url": f"zenoh:{VEHICLE}@{ep}", "name": "b-in"}],
         "backends": {}}))

@@ -6,10 +6,13 @@ import contextlib
 import json
 import math
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
 import pytest
+from helpers import ROOT as REPO
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -22,6 +25,9 @@ from backends.zenoh.keys import (
     make_attachment,
     parse_attachment,
     parse_key,
+    parse_stats_key,
+    stats_key,
+    stats_key_expr,
 )
 from backends.zenoh.options import ZenohOptions, ZenohSourceOptions
 from backends.zenoh.session import SessionOptions
@@ -181,13 +187,52 @@ def test_key_layout():
     assert parse_key("other/rocket1/status", "aurora") is None
 
 
-@pytest.mark.parametrize("prefix,vehicle", [("", "r"), ("a/*", "r"), ("/a", "r"),
-                                            ("a//b", "r"), ("a", "r/1"), ("a", "*"),
-                                            ("a", ""), ("a b", "r"), ("a", "$*")])
-def test_bad_prefix_or_vehicle_is_a_config_error_naming_the_key(prefix, vehicle):
+@pytest.mark.parametrize("prefix", ["", "a/*", "/a", "a//b", "a b", "a/$*", "a/@x"])
+def test_a_bad_prefix_is_a_config_error_naming_the_key(prefix):
     with pytest.raises(ConfigError) as info:
-        config.parse({"backends": {"zenoh": {"prefix": prefix, "vehicle": vehicle}}})
-    assert str(info.value).split(":")[0] in ("backends.zenoh.prefix", "backends.zenoh.vehicle")
+        config.parse({"backends": {"zenoh": {"prefix": prefix}}})
+    assert str(info.value).startswith("backends.zenoh.prefix:")
+
+
+def test_the_removed_vehicle_key_says_what_replaced_it():
+    """Keys follow each message's vehicle (issue 22): the backend's old ``vehicle`` key and
+    ``--zenoh-vehicle`` are refused with one line naming them and what names a vehicle now."""
+    with pytest.raises(ConfigError) as info:
+        config.parse({"backends": {"zenoh": {"vehicle": "rocket1"}}})
+    text = str(info.value)
+    assert text.startswith("backends.zenoh.vehicle: removed")
+    assert "[[sources]]" in text and "--source NAME=URL" in text
+    done = subprocess.run([sys.executable, "-m", "gateway", "run", "--zenoh-vehicle", "r1",
+                           "--duration", "0"], cwd=REPO, capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert done.returncode == 2
+    assert "--zenoh-vehicle: removed" in done.stderr and "--source NAME=URL" in done.stderr
+    assert "Traceback" not in done.stderr
+    help_text = subprocess.run([sys.executable, "-m", "gateway", "run", "--help"], cwd=REPO,
+                               capture_output=True, text=True, timeout=60, check=True).stdout
+    assert "--zenoh-vehicle" not in help_text and "--zenoh-prefix" in help_text
+
+
+def test_stats_keys_are_a_gateways_not_a_vehicles():
+    zenoh = pytest.importorskip("zenoh")
+    assert stats_key("aurora", "gw-1") == "aurora/@gateways/gw-1/stats"
+    assert parse_stats_key("aurora/@gateways/gw-1/stats", "aurora") == "gw-1"
+    assert parse_stats_key("aurora/gw-1/stats", "aurora") is None
+    assert parse_stats_key("aurora/@gateways/a/b/stats", "aurora") is None
+    # a verbatim chunk: no vehicle wildcard reaches it
+    for expr in ("aurora/**", "aurora/*/*", "aurora/*/**"):
+        assert not zenoh.KeyExpr(expr).intersects(zenoh.KeyExpr(stats_key("aurora", "g")))
+    assert zenoh.KeyExpr(stats_key_expr("aurora")).intersects(
+        zenoh.KeyExpr(stats_key("aurora", "g")))
+
+
+def test_seq_tracker_is_bounded():
+    t = SeqTracker(max_keys=3)
+    for i in range(10):
+        t.see("gw", f"k{i}", 0)
+    assert len(t._last) == 3 and t.forgotten == 7
+    t.see("gw", "k9", 5)
+    assert t.lost == 4
 
 
 def test_a_bad_gateway_id_is_a_config_error_naming_the_key():

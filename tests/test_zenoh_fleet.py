@@ -22,6 +22,7 @@ from zenoh_peer import (
     free_endpoint,
     free_port,
     peer_config,
+    serving,
     stop_process,
     wait_for_gateway,
 )
@@ -47,11 +48,10 @@ def gateway_process(tmp_path: Path, vehicle: str, *flags: str) -> subprocess.Pop
     """``aurora-gateway run`` with the simulated flight and only the Zenoh backend."""
     cfg = tmp_path / f"{vehicle}.toml"
     cfg.write_text(f'[gateway]\nstatus_interval_s = 0\n\n[[sources]]\ntype = "sim"\n'
-                   f'rate_hz = {RATE_HZ}.0\nstatus_hz = 2.0\n\n[backends.zenoh]\n'
-                   f'gateway_id = "gw-{vehicle}"\n')
+                   f'vehicle = "{vehicle}"\nrate_hz = {RATE_HZ}.0\nstatus_hz = 2.0\n\n'
+                   f'[backends.zenoh]\ngateway_id = "gw-{vehicle}"\n')
     log = (tmp_path / f"{vehicle}.log").open("w")
-    cmd = [sys.executable, "-m", "gateway", "run", "-c", str(cfg),
-           "--zenoh-vehicle", vehicle, *flags]
+    cmd = [sys.executable, "-m", "gateway", "run", "-c", str(cfg), *flags]
     return subprocess.Popen(cmd, cwd=REPO, env=ENV, stdout=subprocess.DEVNULL, stderr=log)
 
 
@@ -149,8 +149,8 @@ def test_acl_dashboards_may_subscribe_but_not_publish():
         with pytest.raises(zenoh.ZError):  # no valid credentials, no session
             SessionOptions(mode="client", connect=[ep], user="dashboard",
                            password="wrong").open()
-        gw = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle="rocket1",
-                                       gateway_id="gw", **credentials("gateway")))
+        gw = serving(ZenohBackend(ZenohOptions(mode="client", connect=[ep], gateway_id="gw",
+                                               **credentials("gateway"))), "rocket1")
         gw.init()
         assert gw.wait_ready(20)
         dash_opts = SessionOptions(mode="client", connect=[ep], **credentials("dashboard"))
@@ -167,7 +167,7 @@ def test_acl_dashboards_may_subscribe_but_not_publish():
         # The gateway publishes afterwards; had the router forwarded the forgery, the
         # observer would have received it first.
         m = next(m for _, m in flight_messages(FlightModel(), 10, 0, 1)
-                 if isinstance(m, SmUpdate))
+                 if isinstance(m, SmUpdate))._replace(vehicle="rocket1")
         post(gw, m)
         assert seen.wait_for(lambda s: any(x.gateway == "gw" for x in s), 20)
         assert [x.payload for x in seen.snapshot() if b"forged" in x.payload] == []
@@ -201,7 +201,8 @@ def test_default_run_publishes_and_listen_shows_the_flight(tmp_path):
     try:
         lines, err = listen(ep, "--count", "40")
         assert len(lines) == 40
-        assert all(x["vehicle"] == "rocket1" and x["key"].startswith("aurora/rocket1/")
+        # the embedded default's source, sim, is vehicle "sim": aurora/sim/…
+        assert all(x["vehicle"] == "sim" and x["key"].startswith("aurora/sim/")
                    for x in lines)
         sm = [x for x in lines if x["kind"] == "sm_update"]
         assert sm and all(x["value"]["state_name"] in ("IDLE", "ARMED", "BOOST") for x in sm)
@@ -215,7 +216,7 @@ def test_default_run_publishes_and_listen_shows_the_flight(tmp_path):
         seen, _ = listen(ep, "--gateways", "--no-query", "--count", "1")
         tokens = [x for x in seen if "gateway_token" in x]
         assert tokens and tokens[0]["alive"] is True
-        assert tokens[0]["gateway_token"].startswith("aurora/rocket1/gateway/")
+        assert tokens[0]["gateway_token"].startswith("aurora/sim/gateway/")
     finally:
         stop_process(gw)
     assert gw.returncode == 0, (tmp_path / "gateway.log").read_text()
@@ -256,8 +257,8 @@ def test_mutual_tls_between_gateway_and_router(tmp_path):
         with pytest.raises(zenoh.ZError):  # no client certificate: refused
             SessionOptions(mode="client", connect=[ep],
                            tls_root_ca=str(tmp_path / "ca.pem")).open()
-        gw = ZenohBackend(ZenohOptions(mode="client", connect=[ep], vehicle="rocket1",
-                                       **tls("gateway")))
+        gw = serving(ZenohBackend(ZenohOptions(mode="client", connect=[ep], **tls("gateway"))),
+                     "rocket1")
         gw.init()
         assert gw.wait_ready(20)
         sub = SessionOptions(mode="client", connect=[ep], **tls("gateway")).open()
@@ -265,7 +266,7 @@ def test_mutual_tls_between_gateway_and_router(tmp_path):
         sub.declare_subscriber("aurora/**", rec)
         wait_for_gateway(sub, "aurora", "rocket1")
         m = next(m for _, m in flight_messages(FlightModel(), 10, 0, 1)
-                 if isinstance(m, SmUpdate))
+                 if isinstance(m, SmUpdate))._replace(vehicle="rocket1")
         post(gw, m)
         assert rec.wait_for(lambda s: any(x.key == "aurora/rocket1/sm_update" for x in s))
     finally:

@@ -176,6 +176,21 @@ class Recorder:
             return list(self.samples)
 
 
+def serving(backend: Any, *vehicles_: str, source: str = "serial") -> Any:
+    """``backend`` attached to a gateway context whose configured sources are one per vehicle
+    (the ``gateway.vehicles`` service the app provides; the first named ``source``): its
+    Zenoh backend then declares their presence as its session opens.  Returns it."""
+    from gateway import vehicles
+    from gateway.backend import GatewayContext
+
+    context = GatewayContext()
+    context.services[vehicles.SERVICE] = [
+        vehicles.SourceVehicle(source if i == 0 else f"{source}-{i + 1}", v)
+        for i, v in enumerate(vehicles_)]
+    backend.attach(context)
+    return backend
+
+
 def wait_until(predicate: Callable[[], bool], timeout: float = 20.0,
                interval: float = 0.01) -> bool:
     """Poll ``predicate`` until it holds (True) or ``timeout`` passes (False)."""

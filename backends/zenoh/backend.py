@@ -19,9 +19,22 @@ each loss is counted:
   listens to): the put reaches no one outside this process; counted as ``unrouted`` (not a
   drop: with nobody listening there is nothing to lose).
 
-The session also declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>`` and a
-queryable on ``<prefix>/<vehicle>/**`` that answers a ``get`` with the latest value of each
-key, so late joiners need not wait for the next update.
+Keys are per vehicle: each message is published under ``<prefix>/<msg.vehicle>/…``, its
+vehicle's :class:`~backends.zenoh.keys.KeyLayout` built once and found by a dict lookup.  A
+message without a vehicle (a backend's own: RC commands from CRSF; a link event) goes under
+the vehicle of the source its ``origin`` (a link event: its ``source``) names, else under the
+first configured source's (the vehicle a single-vehicle link serves by default); with no
+source configured it is not published (``skipped_no_vehicle``).  At most
+:data:`~backends.zenoh.keys.MAX_VEHICLES` vehicles: the messages of any further one are
+counted (``dropped_vehicle_limit``), not published.
+
+For each vehicle the session declares a liveliness token ``<prefix>/<vehicle>/gateway/<id>``:
+at start for the configured sources' vehicles (the ``gateway.vehicles`` service), later for
+each vehicle when it is first published; all undeclared at close.  One queryable on
+``<prefix>/*/**`` answers a ``get`` with the latest value of each key of every vehicle it
+matches, so late joiners need not wait for the next update (one, not one per vehicle: Zenoh
+runs each Python callback on a thread of its own).  The gateway's own counters go on
+``<prefix>/@gateways/<id>/stats`` (not a vehicle's: a verbatim chunk no wildcard matches).
 
 Loop prevention reads the message, not a registry: a message whose ``via`` says it came in
 over Zenoh is never published again (``skipped_from_zenoh``); the attachment names this
@@ -36,10 +49,14 @@ from typing import Any, ClassVar
 
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
-    STATS_KIND,
+    MAX_VEHICLES,
+    SOURCES_SERVICE,
     VIA_ZENOH,
     KeyLayout,
+    check_chunk,
+    check_prefix,
     make_attachment,
+    stats_key,
 )
 from backends.zenoh.options import ZenohOptions
 from backends.zenoh.session import SessionOptions, zerror_text
@@ -48,12 +65,24 @@ from gateway.config import ConfigError
 from gateway.handover import Handover
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import IoLoop, Timer
-from gateway.model import MESSAGE_TYPES, RawFrame, SmUpdate, Status, kind
+from gateway.model import MESSAGE_TYPES, LinkEvent, RawFrame, SmUpdate, Status, kind
+from gateway.vehicles import SERVICE as VEHICLES_SERVICE
 
 log = logging.getLogger(__name__)
 
 START_WAIT_S = 1.0  # init() waits this long for the session so the first updates are not lost
 CLOSE_TIMEOUT_S = 0.5
+
+
+class _Vehicle(KeyLayout):
+    """One vehicle published: its keys, and the latest value of each (what its queryable
+    answers)."""
+
+    __slots__ = ("latest",)
+
+    def __init__(self, prefix: str, vehicle: str) -> None:
+        super().__init__(prefix, vehicle)
+        self.latest: dict[str, tuple[bytes, Any, bytes]] = {}
 
 
 class _Key:
@@ -77,7 +106,12 @@ class ZenohBackend(Backend):
     def __init__(self, options: ZenohOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
         options = options or ZenohOptions()
-        self.layout = KeyLayout(options.prefix, options.vehicle)
+        self.prefix = check_prefix(options.prefix)
+        #: every vehicle published so far: its keys and latest values (at most MAX_VEHICLES)
+        self.vehicles: dict[str, _Vehicle] = {}
+        #: a configured source's vehicle, by the source's name; and the first source's
+        self._source_vehicle: dict[str, str] = {}
+        self._first_vehicle = ""
         self._own_id = options.gateway_id
         self.gateway_id = self._own_id or self.context.gateway_id
         self.session_options = SessionOptions.from_options(options)
@@ -93,8 +127,12 @@ class ZenohBackend(Backend):
         self._session: Any = None
         self._keys: dict[str, _Key] = {}
         self._encodings: dict[str, Any] = {}
-        self._latest: dict[str, tuple[bytes, Any, bytes]] = {}
         self._entities: list[Any] = []
+        #: a vehicle's liveliness token, on the current session
+        self._presence: dict[str, list[Any]] = {}
+        #: the vehicles whose presence is declared on the current session: the hot path's
+        #: one lookup per message
+        self._declared: dict[str, _Vehicle] = {}
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
         # counters
         self.sent = 0
@@ -107,6 +145,9 @@ class ZenohBackend(Backend):
         self.open_failures = 0
         self.transports = 0
         self.unrouted = 0
+        self.skipped_no_vehicle = 0
+        self.dropped_vehicle_limit = 0
+        self.bad_vehicle_names = 0
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -122,6 +163,7 @@ class ZenohBackend(Backend):
         """Start the backend's loop (it opens the session); wait briefly for the session."""
         if self._loop is not None:
             return
+        self._learn_sources()
         self.context.own_ids.add(self.gateway_id)  # this gateway's Zenoh sources skip it
         self._stop = threading.Event()
         self._loop = loop = IoLoop(f"zenoh-{self.name}")
@@ -132,6 +174,17 @@ class ZenohBackend(Backend):
             self._timers.append(loop.call_every(self.options.stats_interval_s,
                                                 self._publish_gateway_stats))
         self._ready.wait(START_WAIT_S)
+
+    def _learn_sources(self) -> None:
+        """The configured sources' vehicles (the ``gateway.vehicles`` service), but for the
+        Zenoh sources' (another gateway's vehicles, never published here): where a message
+        without a vehicle goes, and whose presence is declared at start."""
+        services = self.context.services
+        relayed = services.get(SOURCES_SERVICE) or set()
+        configured = [sv for sv in services.get(VEHICLES_SERVICE) or []
+                      if sv.vehicle and sv.source not in relayed]
+        self._source_vehicle = {sv.source: sv.vehicle for sv in configured}
+        self._first_vehicle = configured[0].vehicle if configured else ""
 
     def wait_ready(self, timeout: float) -> bool:
         """Block until the session is open (for tools and tests)."""
@@ -164,12 +217,15 @@ class ZenohBackend(Backend):
         session, self._session = self._session, None
         if session is None:
             return
-        for ent in reversed(self._entities):
+        entities = [e for ents in self._presence.values() for e in ents] + self._entities
+        for ent in reversed(entities):
             try:
                 ent.undeclare()
             except Exception:
                 log.debug("zenoh %s: undeclare failed", self.name, exc_info=True)
         self._entities = []
+        self._presence = {}
+        self._declared = {}
         self._keys = {}
         try:
             session.close()
@@ -228,8 +284,9 @@ class ZenohBackend(Backend):
             loop.call_later(self._backoff.next(), self._connect)
 
     def _publish_gateway_stats(self) -> None:
-        """This gateway's counters on ``gateway_stats`` every ``stats_interval_s`` (the
-        loop's thread; the counters are read as the status line reads them)."""
+        """This gateway's counters on ``<prefix>/@gateways/<id>/stats`` every
+        ``stats_interval_s`` (the loop's thread; the counters are read as the status line
+        reads them)."""
         if self._session is None:
             return
         stats = self.context.services.get("gateway.stats")
@@ -240,7 +297,7 @@ class ZenohBackend(Backend):
         except Exception:
             self.publish_errors += 1
             return
-        if self._put(self.layout.kind(STATS_KIND), payload, enc.JSON):
+        if self._put(stats_key(self.prefix, self.gateway_id), payload, enc.JSON, None):
             self.stats_published += 1
 
     def _open(self, stop: threading.Event) -> bool:
@@ -271,8 +328,8 @@ class ZenohBackend(Backend):
         self.session_opens += 1
         self._backoff.reset()
         self._ready.set()
-        log.info("zenoh %s: publishing %s/** as gateway %s (%s)", self.name, self.layout.base,
-                 self.gateway_id, self.session_options.describe())
+        log.info("zenoh %s: publishing %s/<vehicle>/** as gateway %s (%s)", self.name,
+                 self.prefix, self.gateway_id, self.session_options.describe())
         return True
 
     def _declare(self, session: Any) -> None:
@@ -289,12 +346,70 @@ class ZenohBackend(Backend):
                 self._on_transport, history=True))
         except Exception:  # an observer only: never a reason not to publish
             log.debug("zenoh %s: no transport events", self.name, exc_info=True)
-        if self.options.liveliness:
-            self._entities.append(
-                session.liveliness().declare_token(self.layout.token(self.gateway_id)))
         if self.options.queryable:
-            self._entities.append(
-                session.declare_queryable(self.layout.everything, self._on_query))
+            self._entities.append(session.declare_queryable(f"{self.prefix}/*/**",
+                                                            self._on_query))
+        self._presence = {}
+        self._declared = {}
+        for vehicle in [self._first_vehicle, *self._source_vehicle.values(), *self.vehicles]:
+            layout = self._layout(vehicle) if vehicle else None
+            if layout is not None:
+                self._declare_presence(session, layout)
+
+    def _declare_presence(self, session: Any, layout: _Vehicle) -> None:
+        """``layout``'s vehicle's liveliness token (once per session)."""
+        if layout.vehicle in self._presence:
+            return
+        ents = self._presence[layout.vehicle] = []
+        self._declared[layout.vehicle] = layout
+        if self.options.liveliness:
+            ents.append(session.liveliness().declare_token(layout.token(self.gateway_id)))
+
+    def _layout(self, vehicle: str) -> _Vehicle | None:
+        """The keys of ``vehicle``, made on its first message (None: not a key chunk, or
+        beyond MAX_VEHICLES; counted)."""
+        layout = self.vehicles.get(vehicle)
+        if layout is not None:
+            return layout
+        if len(self.vehicles) >= MAX_VEHICLES:
+            self.dropped_vehicle_limit += 1
+            if self.dropped_vehicle_limit == 1:
+                log.warning("zenoh %s: more than %d vehicles; %r and any further one not "
+                            "published (dropped_vehicle_limit)", self.name, MAX_VEHICLES,
+                            vehicle)
+            return None
+        try:
+            layout = _Vehicle(self.prefix, check_chunk(vehicle, "vehicle"))
+        except ValueError as exc:
+            self.bad_vehicle_names += 1
+            if self.bad_vehicle_names == 1:
+                log.warning("zenoh %s: not published: %s", self.name, exc)
+            return None
+        self.vehicles[vehicle] = layout
+        return layout
+
+    def _vehicle_layout(self, msg: Any) -> _Vehicle | None:
+        """The keys of ``msg``'s vehicle (see the module docstring for a message without
+        one); declares its presence on its first message."""
+        vehicle = msg.vehicle
+        if not vehicle:
+            source = msg.source if type(msg) is LinkEvent else msg.origin
+            vehicle = self._source_vehicle.get(source) or self._first_vehicle
+            if not vehicle:
+                self.skipped_no_vehicle += 1
+                return None
+        layout = self._declared.get(vehicle)
+        if layout is not None:
+            return layout
+        layout = self._layout(vehicle)
+        if layout is not None and self._session is not None:
+            try:
+                self._declare_presence(self._session, layout)
+            except Exception as exc:  # published all the same, without presence
+                self._declared[vehicle] = layout
+                log.warning("zenoh %s: cannot declare %s's presence: %s", self.name, vehicle,
+                            zerror_text(exc))
+        return layout
 
     def _key(self, key: str, encoding: str) -> _Key:
         k = self._keys.get(key)
@@ -306,7 +421,10 @@ class ZenohBackend(Backend):
             k = self._keys[key] = _Key(key, pub)
         return k
 
-    def _put(self, key: str, payload: bytes, encoding: str) -> bool:
+    def _put(self, key: str, payload: bytes, encoding: str,
+             latest: dict[str, tuple[bytes, Any, bytes]] | None) -> bool:
+        """Put on ``key``; remember it in ``latest`` (a vehicle's, what its queryable
+        answers)."""
         k = self._key(key, encoding)
         att = make_attachment(self.gateway_id, k.seq)
         k.seq += 1
@@ -320,20 +438,26 @@ class ZenohBackend(Backend):
         self.puts += 1
         if not self.transports:
             self.unrouted += 1
-        self._latest[key] = (payload, self._encodings[encoding], att)
+        if latest is not None:
+            latest[key] = (payload, self._encodings[encoding], att)
         return True
 
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
         """Put ``msg``'s document and/or its wire frame; a message that cannot be encoded is
         skipped, counted (``publish_errors``)."""
+        layout = self._declared.get(msg.vehicle)
+        if layout is None:
+            layout = self._vehicle_layout(msg)
+            if layout is None:
+                return
         try:
             ok = False
             if doc:
                 payload, encoding = enc.encode(msg, self.options.encoding)
-                ok = self._put(self.layout.kind(kind(msg)), payload, encoding)
+                ok = self._put(layout.kind(kind(msg)), payload, encoding, layout.latest)
             if raw:
                 frame = enc.wire_frame(msg)
-                ok = self._put(self.layout.raw(frame[2]), frame, enc.WIRE) or ok
+                ok = self._put(layout.raw(frame[2]), frame, enc.WIRE, layout.latest) or ok
         except Exception as exc:
             self.publish_errors += 1
             if self.publish_errors == 1:
@@ -346,12 +470,16 @@ class ZenohBackend(Backend):
     # -- zenoh callbacks (zenoh's threads) -------------------------------------------------------
 
     def _on_query(self, query: Any) -> None:
+        """A ``get``: the latest values of the keys it names, of every vehicle it matches."""
         self.queries += 1
         with query:
             ke = query.key_expr
-            for key, (payload, encoding, att) in self._latest.copy().items():
-                if ke.intersects(key):
-                    query.reply(key, payload, encoding=encoding, attachment=att)
+            for vehicle in list(self.vehicles.values()):
+                if not ke.intersects(vehicle.everything):
+                    continue
+                for key, (payload, encoding, att) in vehicle.latest.copy().items():
+                    if ke.intersects(key):
+                        query.reply(key, payload, encoding=encoding, attachment=att)
 
     def _on_transport(self, event: Any) -> None:
         """Count connections; a router coming and going is news, a dashboard is not."""
@@ -384,6 +512,9 @@ class ZenohBackend(Backend):
             "puts": self.puts, "stats_published": self.stats_published,
             "unrouted": self.unrouted,
             "skipped_from_zenoh": self.skipped_from_zenoh,
+            "vehicles": len(self.vehicles),
+            "skipped_no_vehicle": self.skipped_no_vehicle,
+            "dropped_vehicle_limit": self.dropped_vehicle_limit,
             "queries": self.queries,
             "connected": self.transports,
             "session_opens": self.session_opens,
@@ -391,8 +522,9 @@ class ZenohBackend(Backend):
         }
 
     def latest(self) -> dict[str, bytes]:
-        """The latest payload published on each key (what the queryable answers)."""
-        return {k: v[0] for k, v in self._latest.copy().items()}
+        """The latest payload published on each key (what the queryables answer)."""
+        return {k: v[0] for vehicle in list(self.vehicles.values())
+                for k, v in vehicle.latest.copy().items()}
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until everything accepted so far is published (for tools and benchmarks)."""

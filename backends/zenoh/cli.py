@@ -1,7 +1,8 @@
 """``aurora-gateway listen [KEY]``: watch what gateways publish on Zenoh, without code.
 
-Prints one JSON line per update (``--compact``: one live status line instead), after first
-asking the gateways for the latest value of every matching key, so something shows at once.
+Prints one JSON line per update (``--compact``: one live status line per vehicle instead),
+after first asking the gateways for the latest value of every matching key, so something shows
+at once.
 Counts publications lost on the way from the gateways' sequence numbers and reports them at
 the end (stderr).  Also runnable as ``python -m backends.zenoh.cli listen …``.
 """
@@ -23,10 +24,13 @@ from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_PREFIX,
+    MAX_VEHICLES,
     RAW,
+    STATS_KIND,
     SeqTracker,
     parse_attachment,
     parse_key,
+    parse_stats_key,
 )
 from backends.zenoh.session import SessionOptions, zerror_text
 from gateway.config import ConfigError
@@ -36,6 +40,7 @@ from gateway.wire import decode_all, to_wire_dict
 EXIT_USAGE = 2
 QUERY_TIMEOUT_S = 2.0
 COMPACT_INTERVAL_S = 0.1
+MAX_GATEWAYS = 4096  # gateway ids counted at most (a peer chooses them)
 
 
 def add_command(subparsers: Any) -> argparse.ArgumentParser:
@@ -45,7 +50,8 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
         description="Subscribe to KEY on Zenoh and print every update as a JSON line.")
     p.add_argument("key", nargs="?", default=None,
                    help="key expression (default <prefix>/*/* : every vehicle's JSON "
-                        "documents; <prefix>/** adds the raw frames, decoded)")
+                        "documents; <prefix>/** adds the raw frames, decoded; "
+                        "<prefix>/@gateways/*/stats: the gateways' counters)")
     p.add_argument("--connect", "-e", action="append", metavar="ENDPOINT",
                    help=f"router or gateway to connect to (repeatable; default "
                         f"{DEFAULT_ENDPOINT}, the local gateway)")
@@ -82,6 +88,8 @@ def describe(key: str, payload: bytes, encoding: str, prefix: str) -> dict[str, 
     """The JSON line for one publication: where it is from and what it says."""
     parsed = parse_key(key, prefix)
     vehicle, kind = (parsed[0], parsed[1]) if parsed else (None, None)
+    if parse_stats_key(key, prefix) is not None:  # a gateway's, not a vehicle's
+        vehicle, kind = None, STATS_KIND
     line: dict[str, Any] = {"key": key, "vehicle": vehicle, "kind": kind}
     if kind == RAW:
         msgs = decode_all(payload)
@@ -103,25 +111,32 @@ def describe(key: str, payload: bytes, encoding: str, prefix: str) -> dict[str, 
 
 
 class CompactView:
-    """One status line for every vehicle seen, rewritten in place at most 10 times a second."""
+    """One status line for every vehicle seen (sorted by name; at most MAX_VEHICLES, any
+    further one counted in the last line), then a line of totals: the block is rewritten in
+    place at most 10 times a second."""
 
     def __init__(self, out: TextIO) -> None:
         self.out = out
         self.vehicles: dict[str, str] = {}
+        self.untracked = 0
         self._last = 0.0
+        self._drawn = 0
 
     def update(self, line: dict[str, Any], stats: str) -> None:
         v, kind, value = line.get("vehicle"), line.get("kind"), line.get("value")
         if v is None or not isinstance(value, dict):
             return
+        if v not in self.vehicles and len(self.vehicles) >= MAX_VEHICLES:
+            self.untracked += 1
+            return
         if kind == "sm_update":
             self.vehicles[v] = (
-                f"{v} {value.get('state_name', '?'):<9} "
+                f"{value.get('state_name', '?'):<9} "
                 f"{'ARMED' if value.get('armed') else 'safe '} "
                 f"alt {_num(value.get('altitude_m')):8.1f} m "
                 f"vel {_num(value.get('velocity_mps')):7.1f} m/s")
         elif kind == "link" and not value.get("up"):
-            self.vehicles[v] = f"{v} LINK DOWN ({value.get('source')})"
+            self.vehicles[v] = f"LINK DOWN ({value.get('source')})"
         else:
             return
         now = time.monotonic()
@@ -129,10 +144,20 @@ class CompactView:
             self._last = now
             self.render(stats)
 
+    def lines(self, stats: str) -> list[str]:
+        """What :meth:`render` shows: a line per vehicle, then the totals."""
+        width = max(map(len, self.vehicles), default=0)
+        rows = [f"{v:<{width}} {self.vehicles[v]}" for v in sorted(self.vehicles)] or ["waiting"]
+        more = f", {self.untracked} updates of further vehicles" if self.untracked else ""
+        return [*rows, f"{len(self.vehicles)} vehicle(s), {stats}{more}"]
+
     def render(self, stats: str) -> None:
-        text = " | ".join(self.vehicles[v] for v in sorted(self.vehicles)) or "waiting"
-        self.out.write(f"\r{text} | {stats}\x1b[K")
+        lines = self.lines(stats)
+        # back to the first line of the block drawn last, then every line cleared and written
+        up = f"\x1b[{self._drawn - 1}F" if self._drawn > 1 else "\r"
+        self.out.write(up + "\n".join(f"{ln}\x1b[K" for ln in lines))
         self.out.flush()
+        self._drawn = len(lines)
 
 
 def _num(v: Any) -> float:
@@ -252,7 +277,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
                     out.flush()
                 continue
             gw, seq = parse_attachment(att)
-            if gw is not None:
+            if gw is not None and len(gateways) < MAX_GATEWAYS:
                 gateways.add(gw)
             if not from_query:
                 tracker.see(gw, k, seq)

@@ -1,6 +1,7 @@
 """The Zenoh key layout, the attachment that identifies a publication, and loop prevention.
 
-Keys (``prefix`` default ``aurora``, ``vehicle`` default ``rocket1``)::
+Keys (``prefix`` default ``aurora``; ``<vehicle>`` is each message's vehicle, see
+:mod:`gateway.vehicles`)::
 
     <prefix>/<vehicle>/sm_update        state-machine snapshot (JSON, or packed)
     <prefix>/<vehicle>/status           health heartbeat (JSON, or packed)
@@ -9,8 +10,13 @@ Keys (``prefix`` default ``aurora``, ``vehicle`` default ``rocket1``)::
     <prefix>/<vehicle>/position         GNSS fix (JSON)
     <prefix>/<vehicle>/battery          battery (JSON)
     <prefix>/<vehicle>/vehicle_state    non-Aurora vehicle state (JSON)
+    <prefix>/<vehicle>/rc_channels      pilot or servo commands (JSON)
     <prefix>/<vehicle>/raw/<type>       the untouched wire frame; <type> in decimal (1, 2, 171)
-    <prefix>/<vehicle>/gateway/<id>     liveliness token of each publishing gateway
+    <prefix>/<vehicle>/gateway/<id>     liveliness token of each gateway publishing it
+    <prefix>/@gateways/<id>/stats       a gateway's own counters (JSON), for a monitor
+
+``@gateways`` is a Zenoh *verbatim* chunk: no wildcard matches it (``aurora/**`` and
+``aurora/*/*`` never see a gateway's counters) and no vehicle name can be it.
 
 Every publication carries an attachment ``gw=<gateway id>;seq=<n>``: the gateway that
 published it and a sequence number counted per key from 0, so a subscriber can tell
@@ -22,7 +28,6 @@ from __future__ import annotations
 import re
 
 DEFAULT_PREFIX = "aurora"
-DEFAULT_VEHICLE = "rocket1"
 #: Where the embedded default listens and where ``aurora-gateway listen`` looks first: a
 #: loopback port of its own, so it never collides with a Zenoh router (zenohd, rmw_zenoh) on
 #: the usual 7447.
@@ -35,9 +40,18 @@ GATEWAY = "gateway"
 JSON_KINDS = ("sm_update", "status", "link", "link_stats", "position", "battery",
               "vehicle_state", "rc_channels")
 
-#: The kind under which a gateway publishes its own counters (every backend's and source's
-#: ``stats()``), every ``stats_interval_s``: for a monitor that follows it.
+#: The kind of a gateway's own counters (every backend's and source's ``stats()``), published
+#: every ``stats_interval_s`` on :func:`stats_key`: for a monitor that follows it.
 STATS_KIND = "gateway_stats"
+#: The verbatim chunk under which gateways publish what is theirs, not a vehicle's.
+GATEWAYS = "@gateways"
+STATS = "stats"
+#: The gateway service (``GatewayContext.services``) naming this gateway's Zenoh sources (a
+#: set of source names): their vehicles are another gateway's, never published here again.
+SOURCES_SERVICE = "zenoh.sources"
+#: Vehicles one backend publishes, or one source follows, at most; beyond, a vehicle's
+#: messages are counted (``dropped_vehicle_limit``) and not published or emitted.
+MAX_VEHICLES = 256
 
 _FORBIDDEN = re.compile(r"[*$?#\s]")
 
@@ -69,19 +83,42 @@ def check_chunk(value: str, what: str = "vehicle", wildcard: bool = False) -> st
 VIA_ZENOH = "zenoh:"
 
 
+def stats_key(prefix: str, gateway_id: str) -> str:
+    """Where gateway ``gateway_id`` publishes its counters: ``<prefix>/@gateways/<id>/stats``."""
+    return f"{prefix}/{GATEWAYS}/{gateway_id}/{STATS}"
+
+
+def stats_key_expr(prefix: str) -> str:
+    """Every gateway's counters under ``prefix``."""
+    return f"{prefix}/{GATEWAYS}/*/{STATS}"
+
+
+def parse_stats_key(key: str, prefix: str) -> str | None:
+    """The gateway id of a :func:`stats_key`; None if ``key`` is not one."""
+    head = f"{prefix}/{GATEWAYS}/"
+    if not key.startswith(head) or not key.endswith("/" + STATS):
+        return None
+    gateway = key[len(head):-len(STATS) - 1]
+    return gateway if gateway and "/" not in gateway else None
+
+
 class KeyLayout:
-    """The keys of one vehicle under one prefix."""
+    """The keys of one vehicle under one prefix, built once (a dict lookup per message)."""
 
-    __slots__ = ("_raw", "base", "prefix", "vehicle")
+    __slots__ = ("_kinds", "_raw", "base", "prefix", "vehicle")
 
-    def __init__(self, prefix: str = DEFAULT_PREFIX, vehicle: str = DEFAULT_VEHICLE) -> None:
+    def __init__(self, prefix: str, vehicle: str) -> None:
         self.prefix = check_prefix(prefix)
         self.vehicle = check_chunk(vehicle, "vehicle")
         self.base = f"{prefix}/{vehicle}"
         self._raw: dict[int, str] = {}
+        self._kinds: dict[str, str] = {}
 
     def kind(self, kind: str) -> str:
-        return f"{self.base}/{kind}"
+        key = self._kinds.get(kind)
+        if key is None:
+            key = self._kinds[kind] = f"{self.base}/{kind}"
+        return key
 
     def raw(self, frame_type: int) -> str:
         key = self._raw.get(frame_type)
@@ -94,7 +131,7 @@ class KeyLayout:
 
     @property
     def everything(self) -> str:
-        """What the gateway's queryable answers for: ``<prefix>/<vehicle>/**``."""
+        """Every key of this vehicle: ``<prefix>/<vehicle>/**``."""
         return f"{self.base}/**"
 
 
@@ -143,24 +180,36 @@ class SeqTracker:
     """Counts publications lost on the way, from the per-key sequence numbers.
 
     ``lost`` grows by the size of every forward gap; a sequence number that goes backwards
-    means the publisher restarted (``restarts``), never a loss."""
+    means the publisher restarted (``restarts``), never a loss.  At most ``max_keys``
+    (gateway, key) pairs are remembered: a new one beyond makes the oldest forgotten
+    (``forgotten``; a forgotten key's next gap goes uncounted)."""
 
-    __slots__ = ("_last", "lost", "restarts")
+    __slots__ = ("_last", "forgotten", "lost", "max_keys", "restarts")
 
-    def __init__(self) -> None:
+    def __init__(self, max_keys: int = 65536) -> None:
         self._last: dict[tuple[str, str], int] = {}
+        self.max_keys = max_keys
         self.lost = 0
         self.restarts = 0
+        self.forgotten = 0
 
     def see(self, gateway: str | None, key: str, seq: int | None) -> int:
         """Record one sample; return how many were lost just before it."""
         if gateway is None or seq is None:
             return 0
         k = (gateway, key)
-        last = self._last.get(k)
-        self._last[k] = seq
+        table = self._last
+        last = table.get(k)
         if last is None:
+            if len(table) >= self.max_keys:
+                try:  # (another of Zenoh's threads may be at it too)
+                    del table[next(iter(table))]
+                    self.forgotten += 1
+                except (RuntimeError, KeyError, StopIteration):
+                    pass
+            table[k] = seq
             return 0
+        table[k] = seq
         if seq > last + 1:
             gap = seq - last - 1
             self.lost += gap

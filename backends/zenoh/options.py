@@ -7,19 +7,21 @@ here, their HOST:PORT by the endpoint grammar (:mod:`gateway.io.endpoints`)."""
 
 from __future__ import annotations
 
+import argparse
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from backends.zenoh.keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_PREFIX,
-    DEFAULT_VEHICLE,
     check_chunk,
     check_prefix,
 )
 from gateway.io.endpoints import EndpointError, parse_address
-from gateway.options import Flag, Options, lazy, option
+from gateway.options import ConfigError, Flag, Options, Schema, lazy, option
+from gateway.vehicles import check_name
 
 #: Zenoh's session modes
 MODES = ("peer", "client", "router")
@@ -67,8 +69,35 @@ def _locator(text: str) -> str:
     return text
 
 
-def _check_vehicle(value: str) -> None:
-    check_chunk(value, "vehicle")
+#: Why the backend's ``vehicle`` key (``--zenoh-vehicle``) is refused: keys follow each
+#: message's vehicle since issue 22.
+VEHICLE_REMOVED = ("removed: keys are <prefix>/<each message's vehicle>/…; name a vehicle "
+                   "with vehicle = \"NAME\" in its [[sources]] table or --source NAME=URL")
+REMOVED_FLAG = "--zenoh-vehicle"
+
+
+class _BackendSchema(Schema):
+    """The backend's schema, which names what replaced a removed key."""
+
+    def validate(self, table: dict[str, Any], where: str,
+                 ignore: Iterable[str] = ()) -> dict[str, Any]:
+        if isinstance(table, dict) and "vehicle" in table:
+            raise ConfigError(f"{where}.vehicle: {VEHICLE_REMOVED}")
+        return super().validate(table, where, ignore)
+
+
+def _removed_flag(_text: str) -> str:
+    raise argparse.ArgumentTypeError(VEHICLE_REMOVED)
+
+
+def check_follow(value: str) -> str:
+    """The vehicle a Zenoh source follows: a vehicle name, or ``*`` (every vehicle)."""
+    if value == "*":
+        return value
+    try:
+        return check_name(value)
+    except ValueError as exc:
+        raise ValueError(f"{exc}, or '*' (every vehicle)") from None
 
 
 def _check_gateway_id(value: str) -> None:
@@ -118,12 +147,10 @@ class ZenohOptions(ZenohSessionOptions):
     """``[backends.zenoh]``: the rocket's frames and documents published over Zenoh."""
 
     TITLE: ClassVar[str] = "zenoh backend"
-    prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key",
+    prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key: "
+                         "<prefix>/<each message's vehicle>/…",
                          validator=check_prefix,
                          flag=Flag("--zenoh-prefix", metavar="PREFIX"))
-    vehicle: str = option(DEFAULT_VEHICLE, "this vehicle's key chunk", validator=_check_vehicle,
-                          flag=Flag("--zenoh-vehicle", "vehicle key chunk (default "
-                                    f"{DEFAULT_VEHICLE})", metavar="ID"))
     gateway_id: str = option("", "this gateway's id in attachments and its liveliness token "
                              "(default: the gateway's own, <host>-<pid>-<n>)",
                              validator=_check_gateway_id)
@@ -135,22 +162,47 @@ class ZenohOptions(ZenohSessionOptions):
     priority: str = option("data", "Zenoh priority of the publications", choices=PRIORITIES)
     queue_depth: int = option(1024, "updates waiting for the worker before new ones are "
                               "dropped", minimum=1, maximum=1_000_000)
-    liveliness: bool = option(True, "declare a liveliness token for this gateway")
-    queryable: bool = option(True, "answer get() with the latest value of each key")
+    liveliness: bool = option(True, "declare a liveliness token <prefix>/<vehicle>/gateway/<id> "
+                              "per vehicle published")
+    queryable: bool = option(True, "answer get() with the latest value of each key, per "
+                             "vehicle")
     stats_interval_s: float = option(1.0, "seconds between publications of this gateway's "
-                                     "counters on gateway_stats (for a monitor); 0 = none",
-                                     minimum=0)
+                                     "counters on <prefix>/@gateways/<id>/stats (for a "
+                                     "monitor); 0 = none", minimum=0)
+
+    @classmethod
+    def schema(cls) -> Schema:
+        """The declared keys; a removed key (``vehicle``) is refused saying what replaced
+        it."""
+        cached = cls.__dict__.get("_backend_schema")
+        if cached is None:
+            cached = _BackendSchema(**super().schema().keys)
+            type.__setattr__(cls, "_backend_schema", cached)
+        return cached
+
+    @classmethod
+    def add_cli_arguments(cls, parser: Any, seen: set[str] | None = None,
+                          sources: bool = False) -> None:
+        """The flags, and the removed ``--zenoh-vehicle`` (hidden), refused by argparse with
+        what replaced it (exit 2)."""
+        super().add_cli_arguments(parser, seen, sources)
+        if not sources and (seen is None or REMOVED_FLAG not in seen):
+            parser.add_argument(REMOVED_FLAG, dest="zenoh_vehicle_removed",
+                                type=_removed_flag, help=argparse.SUPPRESS)
+            if seen is not None:
+                seen.add(REMOVED_FLAG)
 
 
 @dataclass(frozen=True, kw_only=True)
 class ZenohSourceOptions(ZenohSessionOptions):
     """``[[sources]] type = "zenoh"``: another gateway's frames over Zenoh."""
 
-    url: str = option("", "zenoh:[VEHICLE@][ENDPOINT,...] (sets follow and connect)",
+    url: str = option("", "zenoh:[FOLLOW@][ENDPOINT,...] (sets follow and connect)",
                       validator=lazy("backends.zenoh.source:check_url"))
     prefix: str = option(DEFAULT_PREFIX, "key prefix of the publishing gateways")
     follow: str = option("*", "the vehicle to follow (its name in the publishing gateway's "
-                         "keys); '*' = every vehicle, each kept apart under its own name")
+                         "keys); '*' = every vehicle, each kept apart under its own name",
+                         validator=check_follow)
     keys: str = option("raw", "subscribe to the raw wire frames or to the JSON documents",
                        choices=KEY_SETS)
     queue_depth: int = option(1024, "samples waiting for the sources' loop before new ones "

@@ -1,9 +1,17 @@
 """Zenoh source: another gateway's publications, fed into this gateway's dispatcher.
 
 A rocket-side gateway publishes; a ground-side one subscribes to
-``<prefix>/<vehicle>/raw/**`` (the untouched wire frames, decoded here with the same codec
-as a serial port) — or, with ``keys = "json"``, to the JSON documents — and drives its local
-tools (QGroundControl, a radio) as if the rocket were plugged in.
+``<prefix>/<follow>/raw/**`` (the untouched wire frames, decoded here with the same codec
+as a serial port) — or, with ``keys = "json"``, to the JSON documents and to the gateways'
+counters (``<prefix>/@gateways/*/stats``, for a monitor) — and drives its local tools
+(QGroundControl, a radio) as if the rocket were plugged in.
+
+One vehicle per remote vehicle: the vehicle chunk of the key a sample arrived on becomes the
+message's ``vehicle`` (gateway A's ``alpha`` is ``alpha`` here too); ``follow`` (``*``, the
+default: every vehicle) chooses which.  Each remote vehicle has its own wire decoder; at most
+:data:`~backends.zenoh.keys.MAX_VEHICLES` are followed (samples of any further one are
+counted, ``dropped_vehicle_limit``), and a chunk that is not a vehicle name
+(:func:`gateway.vehicles.check_name`) is ignored (``bad_vehicle_names``).
 
 Loop prevention, both ways:
 
@@ -17,7 +25,7 @@ The URL form (``--source``) is ``zenoh:[VEHICLE@][ENDPOINT[,ENDPOINT...]]``::
 
     zenoh:                                  every vehicle, via tcp/127.0.0.1:7450
     zenoh:tcp/10.0.0.5:7447                 every vehicle, via that router or gateway
-    zenoh:rocket1@tcp/10.0.0.5:7447         only rocket1
+    zenoh:alpha@tcp/10.0.0.5:7447           only alpha
 
 The session is opened (and retried with backoff, and closed) on the source's I/O loop's
 blocking calls; samples are handed from Zenoh's callback thread to the loop through a bounded
@@ -36,27 +44,32 @@ from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
     DEFAULT_ENDPOINT,
     JSON_KINDS,
+    MAX_VEHICLES,
     RAW,
-    STATS_KIND,
+    SOURCES_SERVICE,
     VIA_ZENOH,
     SeqTracker,
-    check_chunk,
     check_prefix,
     parse_attachment,
     parse_key,
+    parse_stats_key,
+    stats_key_expr,
 )
-from backends.zenoh.options import KEY_SETS, ZenohSourceOptions
+from backends.zenoh.options import KEY_SETS, ZenohSourceOptions, check_follow
 from backends.zenoh.session import SessionOptions, check_endpoints, zerror_text
+from gateway.backend import GatewayContext
 from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import Timer
 from gateway.sources import Source
-from gateway.wire import Decoder
+from gateway.vehicles import check_name
+from gateway.wire import Decoder, DecoderStats
 
 log = logging.getLogger(__name__)
 
 URL_SCHEME = "zenoh"
 DRAIN_BATCH = 256  # samples handled per turn of the loop
+LOGGED_VEHICLES = 8  # new remote vehicles logged one by one; beyond, one line
 
 
 def parse_url(url: str) -> dict[str, Any]:
@@ -69,7 +82,7 @@ def parse_url(url: str) -> dict[str, Any]:
         return opts
     head, at, tail = rest.partition("@")
     if at and "/" not in head:
-        opts["follow"] = check_chunk(head, "vehicle", wildcard=True)
+        opts["follow"] = check_follow(head)
         rest = tail
     if rest:
         try:
@@ -120,7 +133,7 @@ class ZenohSource(Source):
         except ValueError as exc:
             raise ConfigError(f"prefix: {exc}") from None
         try:
-            self.follow = check_chunk(follow, "vehicle", wildcard=True)
+            self.follow = check_follow(follow)
         except ValueError as exc:
             raise ConfigError(f"follow: {exc}") from None
         if keys not in KEY_SETS:
@@ -133,7 +146,13 @@ class ZenohSource(Source):
         self.queue_depth = options.queue_depth
         self.key_expr = (f"{self.prefix}/{self.follow}/{RAW}/**" if keys == "raw"
                          else f"{self.prefix}/{self.follow}/*")
-        self.decoder = Decoder(origin=self.name)
+        #: what else it subscribes to: with the documents, the gateways' counters
+        self.stats_key_expr = stats_key_expr(self.prefix) if keys == "json" else None
+        #: one wire decoder per remote vehicle (the loop's thread), their counters summed in
+        #: one :class:`DecoderStats`
+        self.decoders: dict[str, Decoder] = {}
+        self.decoder_stats = DecoderStats()
+        self._bad_names: set[str] = set()
         self.tracker = SeqTracker()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._backoff = Backoff(0.1, max(0.1, self.session_options.reconnect_max_s))
@@ -147,9 +166,18 @@ class ZenohSource(Source):
         self.ignored_own = 0
         self.ignored_other = 0
         self.bad_payloads = 0
+        self.bad_vehicle_names = 0
+        self.dropped_vehicle_limit = 0
         self.dropped_queue_full = 0
         self.session_opens = 0
         self.open_failures = 0
+
+    def attach(self, context: GatewayContext) -> None:
+        """Say in the gateway's context that this source's vehicles are another gateway's
+        (:data:`~backends.zenoh.keys.SOURCES_SERVICE`): a Zenoh backend declares no presence
+        for this source's own vehicle name."""
+        super().attach(context)
+        context.services.setdefault(SOURCES_SERVICE, set()).add(self.name)
 
     # -- zenoh's callback thread ------------------------------------------------------------------
 
@@ -261,6 +289,8 @@ class ZenohSource(Source):
             return None
         try:
             session.declare_subscriber(self.key_expr, self._on_sample)
+            if self.stats_key_expr is not None:
+                session.declare_subscriber(self.stats_key_expr, self._on_sample)
         except zenoh.ZError as exc:
             self.open_failures += 1
             log.warning("source %s: cannot subscribe to %s: %s", self.name, self.key_expr,
@@ -273,6 +303,37 @@ class ZenohSource(Source):
         self.ready.set()
         return session
 
+    def _decoder(self, vehicle: str) -> Decoder | None:
+        """``vehicle``'s wire decoder, made on its first sample; None (counted) for a chunk
+        that is not a vehicle name, or a vehicle beyond MAX_VEHICLES."""
+        dec = self.decoders.get(vehicle)
+        if dec is not None:
+            return dec
+        try:
+            check_name(vehicle)
+        except ValueError as exc:
+            self.bad_vehicle_names += 1
+            if vehicle not in self._bad_names and len(self._bad_names) < 16:
+                self._bad_names.add(vehicle)
+                log.warning("source %s: ignoring vehicle %s", self.name, exc)
+            return None
+        if len(self.decoders) >= MAX_VEHICLES:
+            self.dropped_vehicle_limit += 1
+            if self.dropped_vehicle_limit == 1:
+                log.warning("source %s: more than %d vehicles; %r and any further one "
+                            "ignored (dropped_vehicle_limit)", self.name, MAX_VEHICLES,
+                            vehicle)
+            return None
+        dec = self.decoders[vehicle] = Decoder(origin=self.name, vehicle=vehicle)
+        dec.stats = self.decoder_stats
+        n = len(self.decoders)
+        if n <= LOGGED_VEHICLES:
+            log.info("source %s: following vehicle %s", self.name, vehicle)
+        elif n == LOGGED_VEHICLES + 1:
+            log.info("source %s: following more vehicles (%s, …; not logged: counted in its "
+                     "stats' vehicles)", self.name, vehicle)
+        return dec
+
     def _handle(self, key: str, payload: bytes, encoding: str, gateway: str = "?") -> None:
         """One sample, from the gateway whose id its attachment names ("?" = none)."""
         via = VIA_ZENOH + gateway
@@ -280,32 +341,32 @@ class ZenohSource(Source):
         if parsed is None:
             self.ignored_other += 1
             return
-        _, kind, _ = parsed
+        vehicle, kind, _ = parsed
+        if self.stats_key_expr is not None:
+            publisher = parse_stats_key(key, self.prefix)
+            if publisher is not None:  # a gateway's counters, for a monitor
+                self._handle_stats(publisher, payload, via)
+                return
+        dec = self._decoder(vehicle)
+        if dec is None:
+            return
         if kind == RAW:
-            dec = self.decoder
+            stats = self.decoder_stats
             dec.via = via
-            before = dec.stats.frames
+            before = stats.frames
             msgs = dec.feed(payload) + dec.flush()
-            if dec.stats.frames == before:
+            if stats.frames == before:
                 self.bad_payloads += 1
             for msg in msgs:
                 self.emitted += 1
                 self.emit(msg)
             return
-        if kind == STATS_KIND:  # another gateway's counters, for a monitor
-            try:
-                stats = enc.gateway_stats(gateway, payload, origin=self.name)._replace(via=via)
-            except enc.PayloadError:
-                self.bad_payloads += 1
-                return
-            self.emitted += 1
-            self.emit(stats)
-            return
         if kind not in JSON_KINDS or kind == "link":  # link events are this gateway's own
             self.ignored_other += 1
             return
         try:
-            msg = enc.decode(kind, payload, encoding, origin=self.name)._replace(via=via)
+            msg = enc.decode(kind, payload, encoding, origin=self.name)._replace(
+                via=via, vehicle=vehicle)
         except enc.PayloadError as exc:
             self.bad_payloads += 1
             if self.bad_payloads == 1:
@@ -313,6 +374,15 @@ class ZenohSource(Source):
             return
         self.emitted += 1
         self.emit(msg)
+
+    def _handle_stats(self, publisher: str, payload: bytes, via: str) -> None:
+        try:
+            stats = enc.gateway_stats(publisher, payload, origin=self.name)._replace(via=via)
+        except enc.PayloadError:
+            self.bad_payloads += 1
+            return
+        self.emitted += 1
+        self.emit(stats)
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -322,7 +392,10 @@ class ZenohSource(Source):
             "dropped_queue_full": self.dropped_queue_full,
             "ignored_own": self.ignored_own,
             "bad_payloads": self.bad_payloads,
-            "crc_failures": self.decoder.stats.crc_failures,
+            "crc_failures": self.decoder_stats.crc_failures,
+            "vehicles": len(self.decoders),
+            "bad_vehicle_names": self.bad_vehicle_names,
+            "dropped_vehicle_limit": self.dropped_vehicle_limit,
             "session_opens": self.session_opens,
             "open_failures": self.open_failures,
         }

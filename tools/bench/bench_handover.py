@@ -70,7 +70,7 @@ def _messages(n: int) -> list[Any]:
             frames.append(wire.encode(SmUpdate(
                 10 * k, 3, True, 0, 0.5 * k, 9.8, -9.8, 30.0 - 0.001 * k, 0.01 * k, 0.1,
                 -0.02 * k)))
-    msgs = wire.Decoder("bench-serial").feed(b"".join(frames))
+    msgs = wire.Decoder("bench-serial", vehicle="bench").feed(b"".join(frames))
     assert len(msgs) == n
     return msgs
 

@@ -63,6 +63,7 @@ from zenoh_peer import (  # noqa: E402
     free_endpoint,
     peer_config,
     read_line,
+    serving,
     stop_process,
     wait_for_gateway,
 )
@@ -89,7 +90,7 @@ def updates(n: int) -> list[SmUpdate]:
     """``n`` SM_UPDATEs of the simulated flight at 100 Hz, decoded from their frames."""
     out = []
     for _, m in flight_messages(FlightModel(), 100.0, 0.0, 0):
-        out.append(wire.decode_all(wire.encode(m), origin="bench")[0])
+        out.append(wire.decode_all(wire.encode(m), origin="bench", vehicle=VEHICLE)[0])
         if len(out) == n:
             return out
     return out
@@ -175,9 +176,9 @@ def run_backend(msgs: list[SmUpdate], *, depth: int, congestion: str = "drop",
                 slow_s: float = 0.0) -> dict[str, Any]:
     """Publish ``msgs`` through a fresh backend to a subscriber process; the figures."""
     ep = free_endpoint()
-    b = ZenohBackend(ZenohOptions(listen=[ep], vehicle=VEHICLE, encoding=encoding, raw=raw,
-                                  queue_depth=depth, congestion_control=congestion,
-                                  liveliness=True))
+    b = serving(ZenohBackend(ZenohOptions(listen=[ep], encoding=encoding, raw=raw,
+                                          queue_depth=depth, congestion_control=congestion,
+                                          liveliness=True)), VEHICLE, source="bench")
     dispatcher = Dispatcher([b])  # the hook is what the dispatcher calls (a hand-over)
     dispatcher.start()
     dispatch = dispatcher.dispatch
@@ -331,8 +332,8 @@ def latency(seconds: float, repeat: int, rate_hz: float = 100.0) -> None:
     ep = free_endpoint()
     cfg = Path(f"/tmp/bench-zenoh-{os.getpid()}.toml")
     cfg.write_text(f'[gateway]\nstatus_interval_s = 0\nlog_level = "warning"\n\n'
-                   f'[[sources]]\ntype = "serial"\nurl = "{port}"\n\n'
-                   f'[backends.zenoh]\nlisten = ["{ep}"]\nvehicle = "{VEHICLE}"\n')
+                   f'[[sources]]\ntype = "serial"\nurl = "{port}"\nvehicle = "{VEHICLE}"\n\n'
+                   f'[backends.zenoh]\nlisten = ["{ep}"]\n')
     gw_log = cfg.with_suffix(".log")
     with gw_log.open("w") as log:
         gw = subprocess.Popen([sys.executable, "-m", "gateway", "run", "-c", str(cfg)],
