@@ -24,7 +24,15 @@ from test_crsf_backend import PtyPeer, read_until
 from test_crsf_edgetx import EdgeTxRadio
 
 from backends.crsf.backend import CrsfBackend
-from backends.crsf.frames import FRAME_BARO_ALTITUDE, FRAME_BATTERY, FRAME_GPS, FlightMode
+from backends.crsf.frames import (
+    FRAME_BARO_ALTITUDE,
+    FRAME_BATTERY,
+    FRAME_GPS,
+    FlightMode,
+    LinkStatistics,
+)
+from backends.crsf.frames import RcChannels as CrsfRc
+from backends.crsf.frames import encode as crsf_encode
 from backends.crsf.options import CrsfOptions
 from gateway import config
 from gateway.backend import GatewayContext
@@ -68,7 +76,7 @@ class WireFeed:
         self.after = after
         self.after_frames = after_frames
         self.server = socket.create_server(("127.0.0.1", 0))
-        self.url = "socket://127.0.0.1:%d" % self.server.getsockname()[1]
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
         self.sent = 0
         self.progress = threading.Condition()
         self.stop = threading.Event()
@@ -198,9 +206,6 @@ def test_another_vehicles_messages_are_skipped_first_and_counted() -> None:
 
 
 def test_rc_channels_and_link_stats_carry_the_served_vehicle() -> None:
-    from backends.crsf.frames import LinkStatistics, encode as crsf_encode
-    from backends.crsf.frames import RcChannels as CrsfRc
-
     got: list[Any] = []
     b = CrsfBackend(CrsfOptions(vehicle="beta"), sink=got.append)
     b.feed(crsf_encode(CrsfRc((992,) * 16), 0xC8))

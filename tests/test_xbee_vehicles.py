@@ -106,7 +106,8 @@ def test_the_ground_sends_up_only_its_own_vehicles_commands() -> None:
                                              for m in items if isinstance(m, RcChannels)))
         post(ground, RcChannels((1500, 1600, 1700), vehicle="rocket"))
         assert air_in.wait(lambda items: any(m.channels_us[:3] == (1500, 1600, 1700)
-                                             for m in items if isinstance(m, RcChannels)))
+                                             for m in items if isinstance(m, RcChannels))), \
+            (air_in.items[-5:], ground.stats(), ground.inbox_stats(), air.stats())
         inbox = ground.inbox_stats()
         seen = {m.channels_us[:3] for m in air_in.items if isinstance(m, RcChannels)}
     assert inbox["other_vehicles"] == 1 and inbox["sent"] == 2
