@@ -23,7 +23,9 @@ nobody else waits.
 The F´ deployment is one spacecraft, so the backend serves one vehicle: the one named by
 ``vehicle`` in ``[backends.fprime]``, or else the first source's
 (:class:`gateway.vehicles.VehicleSelector`); another vehicle's message is dropped first thing
-(counted as ``other_vehicles``).  Messages about no vehicle (``vehicle`` "") are served.
+(counted as ``other_vehicles``).  Messages about no vehicle (``vehicle`` "") are served, but
+for a link event, which names its source: it is served when that source is the served
+vehicle's (or yields it), or no source of this gateway.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from gateway.io.links import (
 from gateway.io.port import PortEngine
 from gateway.io.server import ClientLimits
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
-from gateway.vehicles import VehicleSelector
+from gateway.vehicles import SERVICE, VehicleSelector
 
 from .channels import ChannelCodec, Getter, codecs
 from .commands import NO_OP, CommandHandler
@@ -142,6 +144,8 @@ class FprimeBackend(Backend):
         #: the vehicle this deployment is
         self.selector = VehicleSelector(options.vehicle)
         self.other_vehicles = 0
+        self._source_vehicles: dict[str, str] = {}  # source → its vehicle (or their stem)
+        self._first_source = ""
         self.packets = 0
         self.entries = 0
 
@@ -166,6 +170,9 @@ class FprimeBackend(Backend):
         """Learn which vehicle is served by default (the first source's)."""
         super().attach(context)
         self.selector.attach(context)
+        sources = context.services.get(SERVICE) or []
+        self._source_vehicles = {s[0]: s[1] for s in sources}
+        self._first_source = sources[0][0] if sources else ""
 
     def init(self) -> None:
         self.linkset.open(BackendError)
@@ -202,7 +209,7 @@ class FprimeBackend(Backend):
 
     def routes(self) -> Routes:
         return (Routes().on(SmUpdate, self.send_timed).on(Status, self.send_timed)
-                .on(LinkEvent, self.send_message).on(LinkStats, self.send_message)
+                .on(LinkEvent, self.send_link_event).on(LinkStats, self.send_message)
                 .on(Position, self.send_message).on(Battery, self.send_message)
                 .on(VehicleState, self.send_message))
 
@@ -211,6 +218,26 @@ class FprimeBackend(Backend):
         if not self.selector.accepts(msg):
             return self._other()
         return self._send(msg, self.clock.tag(msg.timestamp_ms))
+
+    def send_link_event(self, msg: LinkEvent) -> Outcome:
+        """A source's link went up or down: the served vehicle's, or one of no vehicle."""
+        if not msg.vehicle and not self._serves_source(msg.source):
+            return self._other()
+        return self.send_message(msg)
+
+    def _serves_source(self, source: str) -> bool:
+        """Whether ``source`` is the served vehicle's: its vehicle is the one served, or (a
+        source hearing several systems) their stem; a name that is no source's: yes."""
+        vehicle = self._source_vehicles.get(source)
+        if vehicle is None:
+            return True
+        chosen = self.selector.chosen
+        if not chosen:  # not chosen yet (nothing heard): the first source's
+            return source == self._first_source
+        if chosen == vehicle:
+            return True
+        return (chosen.startswith(vehicle + "-")
+                and chosen not in self._source_vehicles.values())
 
     def send_message(self, msg: Any) -> Outcome:
         if not self.selector.accepts(msg):
