@@ -204,6 +204,7 @@ def sim() -> Any:
 def test_connects_and_emits_vehicle_position_battery(sim: FlightSim) -> None:
     got = Collector()
     src = UavtalkSource(UavtalkSourceOptions(url=f"tcp:127.0.0.1:{sim.port}", rate_hz=20.0))
+    src.vehicle = "revo"  # the gateway names it from the configuration
     src.start(got)
     try:
         assert wait_until(lambda: src.state == Status.CONNECTED, 5.0), src.stats()
@@ -233,6 +234,7 @@ def test_connects_and_emits_vehicle_position_battery(sim: FlightSim) -> None:
         with got.cond:
             msgs = list(got.messages)
         assert all(m.origin == src.name and m.via == "uavtalk" for m in msgs)
+        assert {m.vehicle for m in msgs} == {"revo"}  # one flight controller: one vehicle
         st = src.stats()
         assert st["connects"] == 1 and st["state"] == "connected" and st["link"] == 1
         assert st["bad_objects"] == 0 and st["rx_obj"] > 0 and st["tx_obj_req"] >= 7

@@ -36,6 +36,7 @@ from backends.xbee.packets import (
     StatusTelemetry,
     encode,
     iter_decode,
+    next_seq,
 )
 from gateway.model import LinkStats, SmUpdate, Status
 
@@ -450,6 +451,22 @@ def test_ground_does_not_bump_while_acks_are_stale() -> None:
     assert g.seq == 3 and not g.delivered
     assert [(c.seq, c.servos) for c, _ in sent_commands(g.tick(0.75))] == [(3, {0: 4})]
     g.on_packet(encode(Ack(3, 0)), None, 0.76)
+    assert g.delivered
+
+
+def test_an_ack_of_what_went_out_before_the_sticks_moved_does_not_deliver_them() -> None:
+    """The sticks move in place (no ACK yet: stale) while a keep-alive is out and before the
+    new values could go (< 30 ms): the keep-alive's ACK says nothing about them."""
+    g = GroundLink()
+    ka = sent_commands(g.tick(0.0))
+    assert [c.mask for c, _ in ka] == [0]
+    seq = g.seq
+    assert g.set_servos({0: 5}, 0.01) == [] and g.seq == seq  # in place, not sent yet
+    g.on_packet(encode(Ack(seq, 0)), None, 0.02)
+    assert not g.delivered
+    out = sent_commands(g.tick(0.05))
+    assert [(c.seq, c.servos) for c, _ in out] == [(next_seq(seq), {0: 5})]
+    g.on_packet(encode(Ack(next_seq(seq), 0)), None, 0.06)
     assert g.delivered
 
 

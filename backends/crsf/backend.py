@@ -17,6 +17,11 @@ else runs on its thread, so the backend starts no thread of its own:
   :class:`gateway.model.LinkStats` messages handed to the gateway (so other backends can
   publish them), RC channels are decoded and counted.
 
+The link carries one vehicle: the one named by ``vehicle`` in ``[backends.crsf]``, or else the
+first source's (:class:`gateway.vehicles.VehicleSelector`); every handler first drops another
+vehicle's message (counted as ``other_vehicles``).  The RC channels and link statistics it hands
+to the gateway carry that vehicle's name once known.
+
 Mapping (what each gateway message feeds):
 
 ========================  =====================================================================
@@ -71,6 +76,7 @@ from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Rout
 from gateway.io.ioloop import Timer
 from gateway.io.port import PortEngine
 from gateway.io.transport import open_serial
+from gateway.vehicles import VehicleSelector
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +129,9 @@ class CrsfBackend(Backend):
                                       else math.inf)
         self._clock = clock
         self._sink = sink
+        #: the vehicle this link serves
+        self.selector = VehicleSelector(options.vehicle)
+        self.other_vehicles = 0
         self.scheduler = Scheduler(
             {FRAME_ATTITUDE: options.attitude_hz, FRAME_BARO_ALTITUDE: options.altitude_hz,
              FRAME_VARIO: options.vario_hz, FRAME_FLIGHT_MODE: options.flight_mode_hz,
@@ -163,9 +172,11 @@ class CrsfBackend(Backend):
     # -- configuration ---------------------------------------------------------------------
 
     def attach(self, context: GatewayContext) -> None:
-        """Where decoded link statistics go (the gateway's ingest; or set ``sink=``)."""
+        """Where decoded link statistics go (the gateway's ingest; or set ``sink=``), and
+        which vehicle is served by default (the first source's)."""
         super().attach(context)
         self._sink = context.emit
+        self.selector.attach(context)
 
     # -- life cycle ------------------------------------------------------------------------
 
@@ -254,7 +265,14 @@ class CrsfBackend(Backend):
                 .on(model.Battery, self.send_battery)
                 .on(model.VehicleState, self.send_vehicle_state))
 
+    def _other(self) -> Outcome:
+        """Another vehicle's message: not for this link (counted, not an error)."""
+        self.other_vehicles += 1
+        return ACCEPTED
+
     def send_sm_update(self, m: model.SmUpdate) -> Outcome:
+        if not self.selector.accepts(m):
+            return self._other()
         pub = self.scheduler.publish
         pub(FRAME_ATTITUDE, Attitude(m.pitch_rad * self.pitch_sign, m.roll_rad, m.yaw_rad))
         pub(FRAME_BARO_ALTITUDE, BaroAltitude(m.altitude_m, m.velocity_mps))
@@ -263,17 +281,23 @@ class CrsfBackend(Backend):
         return self._published()
 
     def send_status(self, s: model.Status) -> Outcome:
+        if not self.selector.accepts(s):
+            return self._other()
         self._health = health_marker(s)
         self._flight_mode(s.state_name, s.armed)
         return self._published()
 
     def send_position(self, p: model.Position) -> Outcome:
+        if not self.selector.accepts(p):
+            return self._other()
         kmh = None if p.ground_speed_mps is None else p.ground_speed_mps * 3.6
         self.scheduler.publish(FRAME_GPS, Gps(p.lat_deg, p.lon_deg, kmh, p.course_deg,
                                               p.alt_amsl_m, p.satellites))
         return self._published()
 
     def send_battery(self, b: model.Battery) -> Outcome:
+        if not self.selector.accepts(b):
+            return self._other()
         if b.battery_id == 0:
             self.scheduler.publish(FRAME_BATTERY, Battery(b.voltage_v, b.current_a,
                                                           b.consumed_mah, b.remaining_pct))
@@ -288,6 +312,8 @@ class CrsfBackend(Backend):
         return self._published()
 
     def send_vehicle_state(self, v: model.VehicleState) -> Outcome:
+        if not self.selector.accepts(v):
+            return self._other()
         pub = self.scheduler.publish
         if not (v.roll_rad is None and v.pitch_rad is None and v.yaw_rad is None):
             pitch = None if v.pitch_rad is None else v.pitch_rad * self.pitch_sign
@@ -386,7 +412,7 @@ class CrsfBackend(Backend):
         self._last_rc, self._last_rc_emit = rec.channels, now
         us = tuple(round(v) for v in rec.microseconds())
         try:
-            sink(model.RcChannels(us, origin=self.name))
+            sink(model.RcChannels(us, origin=self.name, vehicle=self.selector.chosen))
         except Exception:
             self.emit_errors += 1
             if self.emit_errors == 1:
@@ -413,6 +439,7 @@ class CrsfBackend(Backend):
             rf_mode=rec.rf_mode,
             antenna=rec.active_antenna,
             origin=self.name,
+            vehicle=self.selector.chosen,
         )
         try:
             sink(msg)
@@ -449,6 +476,7 @@ class CrsfBackend(Backend):
             "rc_frames": self.rc_frames,
             "rc_emitted": self.rc_emitted,
             "rx_other": self.rx_other,
+            "other_vehicles": self.other_vehicles,
         }
         if self.encode_errors:
             out["encode_errors"] = self.encode_errors

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import SERIAL, check_serial_port, text_of
-from gateway.options import Flag, Options, option
+from gateway.options import Flag, option
+from gateway.vehicles import VehicleOptions
 
 #: 'pty': create a pseudo-terminal and log its path
 PTY_URL = "pty"
@@ -39,8 +40,9 @@ def _url(text: str) -> str:
 
 
 @dataclass(frozen=True, kw_only=True)
-class CrsfOptions(Options):
-    """``[backends.crsf]``: CRSF telemetry to an ExpressLRS/TBS receiver."""
+class CrsfOptions(VehicleOptions):
+    """``[backends.crsf]``: CRSF telemetry to an ExpressLRS/TBS receiver, of one vehicle
+    (``vehicle``; default: the first source's)."""
 
     TITLE: ClassVar[str] = "CRSF backend"
     url: str = option(PTY_URL, "receiver UART: serial port or pyserial URL (/dev/ttyUSB0, "

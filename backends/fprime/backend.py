@@ -19,6 +19,13 @@ the event ``CommandNotSupported`` (and a log line, once per opcode): see :mod:`.
 Framing runs on the dispatcher's thread (a few µs per message); the engines only queue and
 write, and a peer that does not read fills its own queue and loses frames (``dropped``),
 nobody else waits.
+
+The F´ deployment is one spacecraft, so the backend serves one vehicle: the one named by
+``vehicle`` in ``[backends.fprime]``, or else the first source's
+(:class:`gateway.vehicles.VehicleSelector`); another vehicle's message is dropped first thing
+(counted as ``other_vehicles``).  Messages about no vehicle (``vehicle`` "") are served, but
+for a link event, which names its source: it is served when that source is the served
+vehicle's (or yields it), or no source of this gateway.
 """
 
 from __future__ import annotations
@@ -27,7 +34,7 @@ import logging
 import threading
 from typing import Any, ClassVar
 
-from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop
 from gateway.io.links import (
@@ -37,6 +44,7 @@ from gateway.io.links import (
 from gateway.io.port import PortEngine
 from gateway.io.server import ClientLimits
 from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status, VehicleState
+from gateway.vehicles import SERVICE, VehicleSelector
 
 from .channels import ChannelCodec, Getter, codecs
 from .commands import NO_OP, CommandHandler
@@ -133,6 +141,11 @@ class FprimeBackend(Backend):
         self.commands = CommandHandler(options.id_base)
         self._commands_seen: set[int] = set()
         self.messages = 0
+        #: the vehicle this deployment is
+        self.selector = VehicleSelector(options.vehicle)
+        self.other_vehicles = 0
+        self._source_vehicles: dict[str, str] = {}  # source → its vehicle (or their stem)
+        self._first_source = ""
         self.packets = 0
         self.entries = 0
 
@@ -152,6 +165,14 @@ class FprimeBackend(Backend):
     def address(self, endpoint: str | None = None) -> Any:
         """The bound (host, port) of a tcpin endpoint (the first when None)."""
         return self.linkset.address(endpoint)
+
+    def attach(self, context: GatewayContext) -> None:
+        """Learn which vehicle is served by default (the first source's)."""
+        super().attach(context)
+        self.selector.attach(context)
+        sources = context.services.get(SERVICE) or []
+        self._source_vehicles = {s[0]: s[1] for s in sources}
+        self._first_source = sources[0][0] if sources else ""
 
     def init(self) -> None:
         self.linkset.open(BackendError)
@@ -188,16 +209,45 @@ class FprimeBackend(Backend):
 
     def routes(self) -> Routes:
         return (Routes().on(SmUpdate, self.send_timed).on(Status, self.send_timed)
-                .on(LinkEvent, self.send_message).on(LinkStats, self.send_message)
+                .on(LinkEvent, self.send_link_event).on(LinkStats, self.send_message)
                 .on(Position, self.send_message).on(Battery, self.send_message)
                 .on(VehicleState, self.send_message))
 
     def send_timed(self, msg: SmUpdate | Status) -> Outcome:
         """A message stamped by the flight computer: its channels carry that time."""
+        if not self.selector.accepts(msg):
+            return self._other()
         return self._send(msg, self.clock.tag(msg.timestamp_ms))
 
+    def send_link_event(self, msg: LinkEvent) -> Outcome:
+        """A source's link went up or down: the served vehicle's, or one of no vehicle."""
+        if not msg.vehicle and not self._serves_source(msg.source):
+            return self._other()
+        return self.send_message(msg)
+
+    def _serves_source(self, source: str) -> bool:
+        """Whether ``source`` is the served vehicle's: its vehicle is the one served, or (a
+        source hearing several systems) their stem; a name that is no source's: yes."""
+        vehicle = self._source_vehicles.get(source)
+        if vehicle is None:
+            return True
+        chosen = self.selector.chosen
+        if not chosen:  # not chosen yet (nothing heard): the first source's
+            return source == self._first_source
+        if chosen == vehicle:
+            return True
+        return (chosen.startswith(vehicle + "-")
+                and chosen not in self._source_vehicles.values())
+
     def send_message(self, msg: Any) -> Outcome:
+        if not self.selector.accepts(msg):
+            return self._other()
         return self._send(msg, self.clock.tag())
+
+    def _other(self) -> Outcome:
+        """Another vehicle's message: not for this deployment (counted, not an error)."""
+        self.other_vehicles += 1
+        return _ACCEPTED
 
     def _send(self, msg: Any, tag: tuple[int, int, int, int]) -> Outcome:
         self.messages += 1
@@ -228,7 +278,8 @@ class FprimeBackend(Backend):
                  for key in ("sent", "sent_bytes", "dropped", "errors", "commands")}
         connected = sum(d["link"] for d in per.values())
         return {**total, "dropped": total["dropped"] + self.packer.too_big,
-                "link": int(connected > 0), "messages": self.messages, "packets": self.packets,
+                "link": int(connected > 0), "messages": self.messages,
+                "other_vehicles": self.other_vehicles, "packets": self.packets,
                 "channel_values": self.entries, "dropped_too_big": self.packer.too_big,
                 "time_resyncs": self.clock.resyncs, "clients": len(links),
                 "commands_not_supported": self.commands.not_supported,

@@ -11,6 +11,7 @@ from typing import ClassVar
 
 from gateway.io.endpoints import STREAM_KINDS, list_validator, text_of
 from gateway.options import Flag, ListenerOptions, lazy, option
+from gateway.vehicles import VehicleOptions
 
 #: The framings (``backends.fprime.framing.FRAMINGS``); the first is the default.
 FRAMINGS = ("ccsds", "fprime")
@@ -29,8 +30,9 @@ USAGE = ("tcpin:HOST:PORT (fprime-gds --ip-client connects), tcp:HOST:PORT, "
 
 
 @dataclass(frozen=True, kw_only=True)
-class FprimeOptions(ListenerOptions):
-    """``[backends.fprime]``: the rocket's channels to the F´ ground system, fprime-gds."""
+class FprimeOptions(ListenerOptions, VehicleOptions):
+    """``[backends.fprime]``: one vehicle's channels (``vehicle``; default: the first
+    source's) to the F´ ground system, fprime-gds."""
 
     TITLE: ClassVar[str] = "F´ backend"
     endpoints: list[str] = option(

@@ -17,6 +17,10 @@ Modes:
     the backend encodes SM_UPDATEs itself in the configured revision (36 or 64 bytes),
     STATUS and unknown frames as they are.
 
+The radio carries one vehicle: the one named by ``vehicle`` in ``[backends.hc12]``, or else
+the first source's (:class:`gateway.vehicles.VehicleSelector`); another vehicle's frames are
+not sent (counted as ``other_vehicles``), nor judged by provisioning.
+
 Messages whose ``origin`` is this backend's port are never sent back to it.  The backend also
 serves provisioning (``aurora-gateway hc12 …``) through its control socket, on the engine's
 own thread: the exchange takes the port with :meth:`~gateway.io.port.PortEngine.exclusive` (the
@@ -40,10 +44,11 @@ from backends.hc12.port import open_port
 from backends.hc12.provision import Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, make_set_line, parse_set_line
 from backends.hc12.vehicle import VehicleWatch
-from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.io.port import PortEngine, PortNotReady
 from gateway.io.server import ClientLimits, server_stats
 from gateway.model import RawFrame, SmUpdate, Status
+from gateway.vehicles import VehicleSelector
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)
@@ -70,6 +75,9 @@ class Hc12Backend(Backend):
         self.control = options.control
         self.control_limits = ClientLimits.of(options, queue_depth=2)
         self._clock = clock
+        #: the vehicle this radio relays
+        self.selector = VehicleSelector(options.vehicle)
+        self.other_vehicles = 0
         self.budget = AirBudget(figures(min(options.baudrate, options.air_baud),
                                         options.utilisation_pct, options.burst_bytes,
                                         DEFAULT_PRIORITY_RESERVE), clock=clock)
@@ -88,6 +96,11 @@ class Hc12Backend(Backend):
         self.at_refused = 0
 
     # -- life cycle ----------------------------------------------------------------------------
+
+    def attach(self, context: GatewayContext) -> None:
+        """Learn which vehicle is relayed by default (the first source's)."""
+        super().attach(context)
+        self.selector.attach(context)
 
     def _open(self) -> Any:
         """The engine's opener: SET released while opening; reads return at once."""
@@ -152,15 +165,26 @@ class Hc12Backend(Backend):
                 .on(RawFrame, self.send_raw))
 
     def send_sm_update(self, msg: SmUpdate) -> Outcome:
+        if not self.selector.accepts(msg):
+            return self._other()
         self.watch.observe(msg)
         return self._forward(msg, rate_limited=True, priority=False)
 
     def send_status(self, msg: Status) -> Outcome:
+        if not self.selector.accepts(msg):
+            return self._other()
         self.watch.observe(msg)
         return self._forward(msg, rate_limited=False, priority=True)
 
     def send_raw(self, msg: RawFrame) -> Outcome:
+        if not self.selector.accepts(msg):
+            return self._other()
         return self._forward(msg, rate_limited=False, priority=False)
+
+    def _other(self) -> Outcome:
+        """Another vehicle's message: not for this radio (counted, not an error)."""
+        self.other_vehicles += 1
+        return Outcome.ACCEPTED
 
     def _forward(self, msg: SmUpdate | Status | RawFrame, *, rate_limited: bool,
                  priority: bool) -> Outcome:
@@ -245,6 +269,7 @@ class Hc12Backend(Backend):
             "disconnects": s.disconnects,
             "encoded": self.encoded,
             "skipped_loop": self.skipped_loop,
+            "other_vehicles": self.other_vehicles,
             "at_exchanges": self.at_exchanges,
             "at_failures": self.at_failures,
             "at_refused": self.at_refused,

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.options import Flag, ListenerOptions, option, serial_port_option
+from gateway.vehicles import VehicleOptions
 
 #: relay frames byte-identical, or generate them
 MODES = ("relay", "generate")
@@ -22,8 +23,9 @@ DEFAULT_MAX_AGE_S = 3.0
 
 
 @dataclass(frozen=True, kw_only=True)
-class Hc12Options(ListenerOptions):
-    """``[backends.hc12]``: an HC-12 433 MHz UART radio."""
+class Hc12Options(ListenerOptions, VehicleOptions):
+    """``[backends.hc12]``: an HC-12 433 MHz UART radio, relaying one vehicle (``vehicle``;
+    default: the first source's)."""
 
     TITLE: ClassVar[str] = "HC-12 backend"
     url: str = serial_port_option("the HC-12's serial port or pyserial URL: /dev/ttyUSB0, "

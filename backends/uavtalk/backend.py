@@ -23,6 +23,11 @@ the gateway's messages by :class:`~.translate.Vehicle` on the loop's thread: the
 the loop through the gateway's :class:`~gateway.handover.Handover` (bounded, ``inbox_depth``;
 full: ``QUEUE_FULL``, counted), and the objects a batch of messages changed are stored once
 after the batch.
+
+The flight side plays one flight controller, so it serves one vehicle: the one named by
+``vehicle`` in ``[backends.uavtalk]``, or else the first source's
+(:class:`gateway.vehicles.VehicleSelector`); every handler first drops another vehicle's
+message (counted as ``other_vehicles``).
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ import time
 from collections.abc import Callable
 from typing import Any, ClassVar
 
-from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.handover import Handover
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop, Timer
@@ -43,6 +48,7 @@ from gateway.io.links import (
 from gateway.io.port import PortEngine
 from gateway.io.server import ClientLimits
 from gateway.model import Battery, Position, SmUpdate, Status
+from gateway.vehicles import VehicleSelector
 
 from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
@@ -187,6 +193,9 @@ class UavtalkBackend(Backend):
         self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
                               "garbage_bytes": 0}
         self.messages = 0
+        #: the vehicle this flight controller is
+        self.selector = VehicleSelector(options.vehicle)
+        self.other_vehicles = 0
 
     # -- sessions --------------------------------------------------------------------------------
 
@@ -199,6 +208,11 @@ class UavtalkBackend(Backend):
     def links(self) -> list[Link]:
         """Every link now (the loop thread mutates the list)."""
         return self.linkset.links
+
+    def attach(self, context: GatewayContext) -> None:
+        """Learn which vehicle is served by default (the first source's)."""
+        super().attach(context)
+        self.selector.attach(context)
 
     def init(self) -> None:
         self.linkset.open(BackendError, on_loop=lambda: self.handover.open(self.loop))
@@ -246,18 +260,30 @@ class UavtalkBackend(Backend):
                 .on(Battery, self.send_battery))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         self.messages += 1
         self._changed.update(self.vehicle.sm_update(msg))
 
     def send_status(self, msg: Status) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         self.messages += 1
         self._changed.update(self.vehicle.status(msg))
 
     def send_position(self, msg: Position) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         self.messages += 1
         self._changed.update(self.vehicle.position(msg))
 
     def send_battery(self, msg: Battery) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         self.messages += 1
         self._changed.update(self.vehicle.battery(msg))
 
@@ -281,6 +307,7 @@ class UavtalkBackend(Backend):
                 "link": int(connected > 0), "dropped_queue_full": h.dropped_queue_full,
                 "dropped_not_ready": h.dropped_not_ready, "dropped_closed": h.dropped_closed,
                 "dropped_queue": sum(d["dropped"] for d in per.values()) + t["dropped"],
-                "messages": self.messages, "clients": len(links), "connected": connected,
+                "messages": self.messages, "other_vehicles": self.other_vehicles,
+                "clients": len(links), "connected": connected,
                 "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,
                 **self.linkset.server_stats(), "links": per}

@@ -8,6 +8,7 @@ from typing import ClassVar
 
 from gateway.io.endpoints import SERIAL, STREAM_KINDS, TCP, list_validator, text_of, validator
 from gateway.options import Flag, ListenerOptions, Options, option
+from gateway.vehicles import VehicleOptions
 
 #: A serial endpoint's baud rate when it names none (LibrePilot's telemetry port).
 DEFAULT_SERIAL_BAUD = 57600
@@ -21,8 +22,9 @@ URL_KINDS = (TCP, SERIAL)
 
 
 @dataclass(frozen=True, kw_only=True)
-class UavtalkOptions(ListenerOptions):
-    """``[backends.uavtalk]``: the rocket to LibrePilot ground stations."""
+class UavtalkOptions(ListenerOptions, VehicleOptions):
+    """``[backends.uavtalk]``: one vehicle (``vehicle``; default: the first source's) to
+    LibrePilot ground stations."""
 
     TITLE: ClassVar[str] = "UAVTalk backend"
     endpoints: list[str] = option([], "tcpin:HOST:PORT (the GCS connects), tcp:HOST:PORT, "

@@ -8,7 +8,7 @@ protocol object: received bytes go through the :class:`~.codec.Decoder` into the
 timer on the engine ticks the session and writes its ``outgoing()``.
 
 The objects received become gateway messages (``origin`` = the source's name, ``via`` =
-``"uavtalk"``):
+``"uavtalk"``, ``vehicle`` = the source's vehicle):
 
 * :class:`~gateway.model.VehicleState`: armed (FlightStatus.Armed = Armed), mode (the name of
   FlightStatus.FlightMode's option; ``custom_mode`` its index), attitude (AttitudeState's
@@ -20,6 +20,12 @@ The objects received become gateway messages (``origin`` = the source's name, ``
   0 no GPS, 1 no fix, 2 2D, 3 3D — MAVLink's numbering), at most ``rate_hz``; none without a fix;
 * :class:`~gateway.model.Battery` from FlightBatteryState (Voltage V, Current A,
   ConsumedEnergy mAh).
+
+One vehicle per source: UAVTalk has no sender address (a packet is a sync byte, type, length,
+object id, instance id, data and CRC), and a telemetry link (a serial port, an OPLink radio
+pair, a TCP connection) joins one flight controller to one ground station, so everything a
+source hears is one flight controller, named by the source's ``vehicle`` (``--source
+NAME=URL``, ``vehicle = "NAME"``).  Several flight controllers are several sources.
 
 Link up/down is nothing special: the gateway's monitor sees the messages; the session's state
 changes are counted.  An object that fails to convert is counted, never raised.
@@ -240,7 +246,8 @@ class UavtalkSource(Source):
         r, p, y = self.attitude if self.attitude is not None else (None, None, None)
         alt = self.baro_alt_m if self.baro_alt_m is not None else self.position_alt_m
         self._out.append(VehicleState(self.armed, name, mode, r, p, y, alt, None,
-                                      origin=self.name, via=VIA_UAVTALK))
+                                      origin=self.name, via=VIA_UAVTALK,
+                                      vehicle=self.vehicle))
         self.counts["vehicle_states"] += 1
 
     def _gps(self, v: dict[str, Any]) -> None:
@@ -255,7 +262,8 @@ class UavtalkSource(Source):
         self._out.append(Position(
             int(v["Latitude"]) / 1e7, int(v["Longitude"]) / 1e7, _finite(v["Altitude"]), None,
             _finite(v["Groundspeed"]), heading % 360.0 if math.isfinite(heading) else None,
-            sats if sats >= 0 else None, fix, origin=self.name, via=VIA_UAVTALK))
+            sats if sats >= 0 else None, fix, origin=self.name, via=VIA_UAVTALK,
+            vehicle=self.vehicle))
         self.counts["positions"] += 1
 
     def _battery(self, v: dict[str, Any]) -> None:
@@ -263,7 +271,8 @@ class UavtalkSource(Source):
         if not math.isfinite(volts):
             raise ValueError("voltage not finite")
         self._out.append(Battery(volts, _finite(v["Current"]), _finite(v["ConsumedEnergy"]),
-                                 None, 0, origin=self.name, via=VIA_UAVTALK))
+                                 None, 0, origin=self.name, via=VIA_UAVTALK,
+                                 vehicle=self.vehicle))
         self.counts["batteries"] += 1
 
     # -- life cycle -------------------------------------------------------------------------------

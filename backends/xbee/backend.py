@@ -6,6 +6,11 @@ the link's compact telemetry packets, grouped (:class:`~.link.AirLink`); the air
 PINGs (every 500 ms, PL cycling 0..4) and STATS (every 100 ms) go with them; command packets
 from the ground become :class:`~gateway.model.RcChannels` for the other backends (MAVLink
 RC_CHANNELS to a ground station, …).  Without ``dest`` the air side broadcasts.
+
+The air side carries one vehicle: the one named by ``vehicle`` in ``[backends.xbee]``, or else
+the first source's (:class:`gateway.vehicles.VehicleSelector`); another vehicle's messages are
+not sent (counted as ``other_vehicles``), and the commands from the ground carry the vehicle's
+name once known (they address it).
 """
 
 from __future__ import annotations
@@ -13,8 +18,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any, ClassVar
 
-from gateway.backend import Backend, Routes
+from gateway.backend import Backend, GatewayContext, Routes
 from gateway.model import SmUpdate, Status
+from gateway.vehicles import VehicleSelector
 
 from .link import AirLink, RcCommand, Send
 from .options import MIN_PAYLOAD, XbeeOptions
@@ -32,6 +38,9 @@ class XbeeBackend(Backend):
         super().__init__(name)
         self.link = AirLink(max_payload=options.max_payload)
         self.commands = 0
+        #: the vehicle this air side carries
+        self.selector = VehicleSelector(options.vehicle)
+        self.other_vehicles = 0
         self.radio = Radio(f"{self.name} {options.url}", options.url, options.baudrate,
                            options.api_mode,
                            dest64=parse_dest(options.dest), perform=self._perform,
@@ -47,7 +56,7 @@ class XbeeBackend(Backend):
                 self.radio.send(out)
             elif isinstance(out, RcCommand):
                 self.commands += 1
-                self.emit(rc_message(out, self.name))
+                self.emit(rc_message(out, self.name, self.selector.chosen))
 
     def _on_payload(self, data: bytes, src64: int, now: float) -> list[Any]:
         return self.link.on_packet(data, None, now)
@@ -63,6 +72,11 @@ class XbeeBackend(Backend):
 
     # -- life cycle and routes --------------------------------------------------------------
 
+    def attach(self, context: GatewayContext) -> None:
+        """Learn which vehicle is carried by default (the first source's)."""
+        super().attach(context)
+        self.selector.attach(context)
+
     def init(self) -> None:
         self.radio.start()
 
@@ -75,10 +89,16 @@ class XbeeBackend(Backend):
                 .on(Status, self.send_status))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         radio = self.radio
         radio.perform(self.link.sm_update(msg, radio.clock()))
 
     def send_status(self, msg: Status) -> None:
+        if not self.selector.accepts(msg):
+            self.other_vehicles += 1
+            return
         radio = self.radio
         radio.perform(self.link.status(msg, radio.clock()))
 
@@ -88,5 +108,5 @@ class XbeeBackend(Backend):
         return {"sent": r["payloads_sent"],
                 "dropped": r["payloads_refused"] + r["dropped_handover"],
                 "errors": r["errors"] + r["at_errors"], "link": r["link"],
-                "commands_applied": self.commands, **r,
+                "commands_applied": self.commands, "other_vehicles": self.other_vehicles, **r,
                 **{f"air_{k}": v for k, v in c.as_dict().items()}}

@@ -612,7 +612,11 @@ class GroundLink:
             c.acked += 1
             self._latencies.append(now - first)
         if p.seq == self._seq and self._pending:
-            if len(self._sent_current) > 1:  # which values arrived? send them again
+            servos = {} if self._keepalive else self.values
+            now_sent = Command.from_servos(servos, self._seq, 0)
+            if self._sent_current != {(now_sent.mask, now_sent.values)}:
+                # the sequence went out with other values too (which arrived?), or only with
+                # others (the sticks moved in place since): send these again
                 self._bump(now)
             else:
                 self._pending = False

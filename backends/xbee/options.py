@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.options import Flag, Options, lazy, option, serial_port_option
+from gateway.vehicles import VehicleOptions
 
 #: an XBee's factory UART rate (BD = 3), ``backends.xbee.radio.DEFAULT_BAUD``
 DEFAULT_BAUD = 9600
@@ -32,8 +33,9 @@ class XbeeModuleOptions(Options):
 
 
 @dataclass(frozen=True, kw_only=True)
-class XbeeOptions(XbeeModuleOptions):
-    """``[backends.xbee]``: the air side, the rocket's telemetry down and commands up."""
+class XbeeOptions(XbeeModuleOptions, VehicleOptions):
+    """``[backends.xbee]``: the air side, one vehicle's telemetry down (``vehicle``; default:
+    the first source's) and commands up."""
 
     TITLE: ClassVar[str] = "XBee backend"
     url: str = serial_port_option("the XBee module: a serial device or pyserial URL "

@@ -45,11 +45,12 @@ def us_from_servo(value: int) -> int:
     return US_MIN + round(value * US_SPAN / SERVO_MAX)
 
 
-def rc_message(cmd: RcCommand, origin: str) -> RcChannels:
-    """The servo values a command carried, as a gateway message (channel i = servo i)."""
+def rc_message(cmd: RcCommand, origin: str, vehicle: str = "") -> RcChannels:
+    """The servo values a command carried, as a gateway message (channel i = servo i) for
+    ``vehicle`` ("": not known)."""
     top = max(cmd.values, default=-1) + 1
     return RcChannels(tuple(us_from_servo(cmd.values[i]) if i in cmd.values else None
-                            for i in range(top)), cmd.seq, origin=origin)
+                            for i in range(top)), cmd.seq, origin=origin, vehicle=vehicle)
 
 
 def parse_dest(text: str) -> int:

@@ -10,6 +10,11 @@ come from any :class:`~gateway.model.RcChannels` the gateway carries — a CRSF 
 channels, a ground station's MAVLink RC_CHANNELS_OVERRIDE or MANUAL_CONTROL — channel i
 driving servo i (0..5; 1000..2000 µs ↔ 0..1023).  The ground answers the address the air's
 packets come from (broadcast until the first one).
+
+The source is one vehicle (the XBee link is point to point: one air side, one rocket): its
+messages carry the source's :attr:`~gateway.sources.Source.vehicle` (the gateway stamps it by
+``origin``), and it sends up only the commands addressed to that vehicle or to none
+(``vehicle`` ""); others are counted as ``other_vehicles``.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ class XbeeSource(Source):
                            tick_s=options.tick_s, poll_s=options.poll_s)
         self.messages = 0
         self.commands_in = 0
+        self.other_vehicles = 0
 
     # -- the radio's thread -----------------------------------------------------------------
 
@@ -75,6 +81,9 @@ class XbeeSource(Source):
     def send_rc(self, msg: RcChannels) -> None:
         if msg.origin == self.name:
             return
+        if msg.vehicle and msg.vehicle != self.vehicle:
+            self.other_vehicles += 1  # another vehicle's sticks
+            return
         values = {i: servo_from_us(us) for i, us in enumerate(msg.channels_us[:SERVOS])
                   if us is not None}
         self.commands_in += 1
@@ -85,6 +94,7 @@ class XbeeSource(Source):
         h = self.radio.handover
         return {"sent": self.commands_in, "dropped": h.dropped,
                 "dropped_queue_full": h.dropped_queue_full, "errors": h.handler_errors,
+                "other_vehicles": self.other_vehicles,
                 "link": int(self.radio.engine.connected)}
 
     # -- life cycle --------------------------------------------------------------------------
