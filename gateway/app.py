@@ -79,7 +79,9 @@ class Gateway:
         self._vehicle_of = {s.name: getattr(s, "vehicle", "") for s in self.sources}
         self.context.services[vehicles.SERVICE] = [
             vehicles.SourceVehicle(s.name, getattr(s, "vehicle", ""),
-                                   getattr(s, "mavlink_sysid", None)) for s in self.sources]
+                                   getattr(s, "mavlink_sysid", None),
+                                   bool(getattr(s, "YIELDS_SYSTEMS", False)))
+            for s in self.sources]
         for p in cfg.backends:
             self.dispatcher.add(_build(p, f"backends.{p.name}"))
         for src in self.sources:  # a source that also takes messages (commands to send up)

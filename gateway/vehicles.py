@@ -17,12 +17,15 @@ F´) serve the vehicle named by ``vehicle = "NAME"`` in their table, or the firs
 
 from __future__ import annotations
 
+import logging
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from gateway.options import Options, option
+
+log = logging.getLogger(__name__)
 
 #: what a vehicle name matches
 NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*\Z")
@@ -36,12 +39,14 @@ SERVICE = "gateway.vehicles"
 
 
 class SourceVehicle(NamedTuple):
-    """A configured source and its vehicle (for a source hearing several systems: the stem
-    of their names), with the MAVLink system id fixed for it (None: assigned)."""
+    """A configured source and its vehicle, with the MAVLink system id fixed for it (None:
+    assigned).  ``systems``: the source yields one vehicle per system it hears, ``vehicle``
+    being only the stem of their names (``<vehicle>-<id>``), never a vehicle itself."""
 
     source: str
     vehicle: str
     mavlink_sysid: int | None = None
+    systems: bool = False
 
 
 def check_name(name: object) -> str:
@@ -107,14 +112,26 @@ class VehicleSelector:
         self._first_source = ""
         self._first_vehicle = ""
 
-    def attach(self, context: Any) -> None:
+    def attach(self, context: Any, who: str = "") -> None:
         """Learn the configured sources (their names and vehicles, in order) from the
-        gateway's context (:data:`SERVICE`), when no vehicle was configured."""
-        if self.chosen or context is None:
+        gateway's context (:data:`SERVICE`): the first, when no vehicle was configured; a
+        configured name no source can yield is logged (``who``: the link's name), once —
+        the link would otherwise show nothing, silently."""
+        if context is None:
             return
-        sources = context.services.get(SERVICE)
+        sources: list[SourceVehicle] = context.services.get(SERVICE) or []
+        if self.chosen:
+            # (a source of several systems may yield any name: a Zenoh source relays another
+            # gateway's)
+            if sources and not any(self.chosen == sv.vehicle or sv.systems for sv in sources):
+                log.warning("%s: vehicle %r is no source's (%s): nothing is served until a "
+                            "vehicle of that name is heard", who or "a link", self.chosen,
+                            ", ".join(sv.vehicle for sv in sources))
+            return
         if sources:
-            self._first_source, self._first_vehicle = sources[0][:2]
+            first = sources[0]
+            self._first_source = first.source
+            self._first_vehicle = "" if first.systems else first.vehicle
 
     def accepts(self, msg: Any) -> bool:
         """True for a message about the vehicle served."""
@@ -124,9 +141,10 @@ class VehicleSelector:
             return vehicle == chosen or not vehicle
         if not vehicle:
             return True
-        # not chosen yet: the first source's vehicle, or the first one it yields
-        if (vehicle == self._first_vehicle or msg.origin == self._first_source
-                or not self._first_source):
+        # not chosen yet: the first source's vehicle, or the first one it yields (a link
+        # event names its source in ``source``, with no origin)
+        if (vehicle == self._first_vehicle or not self._first_source
+                or (msg.origin or getattr(msg, "source", "")) == self._first_source):
             self.chosen = vehicle
             return True
         return False

@@ -15,7 +15,7 @@ from gateway.app import Gateway
 from gateway.backend import Backend, GatewayContext, Routes
 from gateway.commands.cli import split_vehicle
 from gateway.config import ConfigError
-from gateway.model import RcChannels, SmUpdate, Status
+from gateway.model import LinkEvent, RcChannels, SmUpdate, Status
 
 
 @pytest.mark.parametrize("name", ["alpha", "b", "Rocket_2", "x-1", "a" * 64])
@@ -187,9 +187,10 @@ def test_ingest_stamps_the_source_vehicle_on_what_comes_without_one() -> None:
         "alpha": [1], "other": [2], "": [3]}
 
 
-def context_with(*pairs: tuple[str, str]) -> GatewayContext:
+def context_with(*pairs: tuple[str, str], systems: str = "") -> GatewayContext:
     ctx = GatewayContext()
-    ctx.services[vehicles.SERVICE] = [vehicles.SourceVehicle(s, v) for s, v in pairs]
+    ctx.services[vehicles.SERVICE] = [vehicles.SourceVehicle(s, v, None, s == systems)
+                                      for s, v in pairs]
     return ctx
 
 
@@ -204,10 +205,33 @@ def test_a_single_vehicle_link_serves_the_first_source_by_default() -> None:
 
 def test_a_single_vehicle_link_of_a_many_system_source_takes_its_first_system() -> None:
     sel = vehicles.VehicleSelector()
-    sel.attach(context_with(("mav", "mav"), ("b", "beta")))
+    sel.attach(context_with(("mav", "mav"), ("b", "beta"), systems="mav"))
     assert not sel.accepts(Status(0, 0, 0, 0, origin="b", vehicle="beta"))
+    assert not sel.accepts(Status(0, 0, 0, 0, origin="b", vehicle="mav"))  # the stem is none
     assert sel.accepts(Status(0, 0, 0, 0, origin="mav", vehicle="mav-3"))
     assert not sel.accepts(Status(0, 0, 0, 0, origin="mav", vehicle="mav-4"))
+
+
+def test_a_link_event_of_the_first_source_chooses_its_vehicle() -> None:
+    """A link comes up before its first message is dispatched: its event (which names its
+    source in ``source``, with no origin) is the first thing a link sees of a vehicle."""
+    sel = vehicles.VehicleSelector()
+    sel.attach(context_with(("mav", "mav"), ("b", "beta"), systems="mav"))
+    assert not sel.accepts(LinkEvent("b", True, vehicle="beta"))
+    assert sel.accepts(LinkEvent("mav", True, vehicle="mav-1"))
+    assert sel.chosen == "mav-1"
+
+
+def test_a_configured_vehicle_no_source_has_is_logged(caplog: Any) -> None:
+    sel = vehicles.VehicleSelector("alhpa")
+    with caplog.at_level("WARNING"):
+        sel.attach(context_with(("a", "alpha"), ("b", "beta")), "backends.crsf")
+    assert "backends.crsf: vehicle 'alhpa' is no source's (alpha, beta)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        vehicles.VehicleSelector("beta").attach(context_with(("a", "alpha"), ("b", "beta")))
+        vehicles.VehicleSelector("x-1").attach(context_with(("z", "z"), systems="z"))
+    assert caplog.text == ""
 
 
 def test_a_configured_vehicle_is_served_whatever_comes_first() -> None:

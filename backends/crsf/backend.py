@@ -176,7 +176,7 @@ class CrsfBackend(Backend):
         which vehicle is served by default (the first source's)."""
         super().attach(context)
         self._sink = context.emit
-        self.selector.attach(context)
+        self.selector.attach(context, f"backends.{self.name}")
 
     # -- life cycle ------------------------------------------------------------------------
 

@@ -169,7 +169,7 @@ class FprimeBackend(Backend):
     def attach(self, context: GatewayContext) -> None:
         """Learn which vehicle is served by default (the first source's)."""
         super().attach(context)
-        self.selector.attach(context)
+        self.selector.attach(context, f"backends.{self.name}")
         sources = context.services.get(SERVICE) or []
         self._source_vehicles = {s[0]: s[1] for s in sources}
         self._first_source = sources[0][0] if sources else ""

@@ -100,7 +100,7 @@ class Hc12Backend(Backend):
     def attach(self, context: GatewayContext) -> None:
         """Learn which vehicle is relayed by default (the first source's)."""
         super().attach(context)
-        self.selector.attach(context)
+        self.selector.attach(context, f"backends.{self.name}")
 
     def _open(self) -> Any:
         """The engine's opener: SET released while opening; reads return at once."""

@@ -212,7 +212,7 @@ class UavtalkBackend(Backend):
     def attach(self, context: GatewayContext) -> None:
         """Learn which vehicle is served by default (the first source's)."""
         super().attach(context)
-        self.selector.attach(context)
+        self.selector.attach(context, f"backends.{self.name}")
 
     def init(self) -> None:
         self.linkset.open(BackendError, on_loop=lambda: self.handover.open(self.loop))

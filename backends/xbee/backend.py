@@ -75,7 +75,7 @@ class XbeeBackend(Backend):
     def attach(self, context: GatewayContext) -> None:
         """Learn which vehicle is carried by default (the first source's)."""
         super().attach(context)
-        self.selector.attach(context)
+        self.selector.attach(context, f"backends.{self.name}")
 
     def init(self) -> None:
         self.radio.start()

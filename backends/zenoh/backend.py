@@ -177,12 +177,14 @@ class ZenohBackend(Backend):
 
     def _learn_sources(self) -> None:
         """The configured sources' vehicles (the ``gateway.vehicles`` service), but for the
-        Zenoh sources' (another gateway's vehicles, never published here): where a message
+        Zenoh sources' (another gateway's vehicles, never published here) and those of sources
+        yielding one vehicle per system (a MAVLink source's ``drone-1``, declared when first
+        heard; the stem ``drone`` is no vehicle): where a message
         without a vehicle goes, and whose presence is declared at start."""
         services = self.context.services
         relayed = services.get(SOURCES_SERVICE) or set()
         configured = [sv for sv in services.get(VEHICLES_SERVICE) or []
-                      if sv.vehicle and sv.source not in relayed]
+                      if sv.vehicle and sv.source not in relayed and not sv.systems]
         self._source_vehicle = {sv.source: sv.vehicle for sv in configured}
         self._first_vehicle = configured[0].vehicle if configured else ""
 

@@ -104,6 +104,7 @@ class ZenohSource(Source):
 
     NAME = "zenoh"
     OPTIONS = ZenohSourceOptions
+    YIELDS_SYSTEMS = True  # the publishing gateway's vehicles, under their names
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:

@@ -70,6 +70,9 @@ class Source(Plugin):
     #: its name when its table gives none: ``str.format`` over its validated options, e.g.
     #: ``"uavtalk:{url}"`` (empty: the type's name); a source may override :meth:`default_name`
     NAME_FORMAT: ClassVar[str] = ""
+    #: True for a source that yields one vehicle per system it hears (its :attr:`vehicle` is
+    #: then only the stem of their names, ``<vehicle>-<id>``, or unused)
+    YIELDS_SYSTEMS: ClassVar[bool] = False
 
     @classmethod
     def default_name(cls, options: dict[str, Any]) -> str | None:
