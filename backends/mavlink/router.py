@@ -241,6 +241,10 @@ class Router:
                                      logger=log),
             }
 
+    def log_lines(self) -> dict[str, int]:
+        """Lines logged so far about new systems, moves and conflicts (by kind)."""
+        return {kind: b.lines for kind, b in self._logs.items()}
+
     def _say(self, kind: str, level: int, detail: str) -> None:
         burst = self._logs.get(kind)
         if burst is not None:
