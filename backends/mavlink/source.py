@@ -1,8 +1,9 @@
 """MAVLink in: a MAVLink vehicle (ArduPilot, PX4, or another Aurora gateway) as a source.
 
 The source runs a small router (:mod:`.router`) whose local node is :class:`VehicleListener`,
-a ground-station-like component that decodes only what it uses from one vehicle — its
-heartbeat, attitude, altitude, position and battery — and turns it into gateway messages:
+a ground-station-like component that decodes only what it uses from the vehicles it hears —
+their heartbeats, attitude, altitude, position and battery — and turns it into gateway
+messages, one gateway vehicle per MAVLink system (``<the source's vehicle>-<system id>``):
 
 * :class:`~gateway.model.VehicleState` (armed, mode name, attitude, altitude, climb);
 * :class:`~gateway.model.Position` (GLOBAL_POSITION_INT, with GPS_RAW_INT's fix and satellites);
