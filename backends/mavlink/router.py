@@ -77,6 +77,8 @@ _NO_IDS: frozenset[int] = frozenset()
 #: A system silent for this long is forgotten (its id is free again); the backend's
 #: ``system_timeout_s`` option sets it.
 SYSTEM_TIMEOUT_S = 30.0
+#: A node in conflict (its id in use, none free) looks for a free id again after this long.
+CONFLICT_RETRY_S = 1.0
 #: The system ids a node of ours may use (0 is broadcast, 255 the ground stations').
 FIRST_ID, LAST_ID = 1, 254
 
@@ -185,6 +187,8 @@ class _Slot:
         self.sent_ids: set[int] = set()
         self.claimed = False
         self.mailbox: dict[int, tuple[Frame, Link]] = {}
+        #: in conflict (no free id): when to look for one again (not on every frame)
+        self.retry_at = 0.0
 
     def wants(self, tsys: int, tcomp: int) -> bool:
         """Whether a frame with these targets is for the node (broadcast, or its id)."""
@@ -384,8 +388,12 @@ class Router:
         old = node.sysid
         self.seen_systems.setdefault(old, link.name)
         self.seen_at[old] = self._now
+        if self._now < slot.retry_at:  # in conflict: counted, a new search once a second
+            self.stats.sysid_conflicts += 1
+            return
         new = self._free_id(slot)
         if new is None:
+            slot.retry_at = self._now + CONFLICT_RETRY_S
             self.stats.sysid_conflicts += 1
             self._say("conflict", logging.WARNING,
                       f"system {f.sysid} component {f.compid} on {link.name} uses the id of "
