@@ -209,6 +209,22 @@ def test_ids_in_source_order_fixed_ones_kept_and_later_vehicles_get_the_next_fre
     assert [m.altitude_relative for m in gcs.messages("ALTITUDE")] == [42.0, 7.0]
 
 
+def test_a_source_that_names_the_vehicles_it_hears_has_no_system_of_its_own() -> None:
+    """E.g. a Zenoh source following another gateway: the first vehicle it names takes the
+    system planned for the source (nobody heard of the source's own name), the next ones the
+    next free ids."""
+    configured = [vehicles.SourceVehicle("zenoh:far", "far")]
+    with MavPeer(255, 190) as gcs, fleet(gcs.port, configured) as (b, d, _):
+        assert gcs.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=WAIT)
+        d.dispatch(sm("alpha", 100.0)._replace(origin="zenoh:far", via="zenoh:gw1"))
+        d.dispatch(sm("beta", 500.0)._replace(origin="zenoh:far", via="zenoh:gw1"))
+        assert gcs.wait_for("ALTITUDE", count=2, timeout=WAIT)
+        systems = b.stats()["systems"]
+    assert {n: s["sysid"] for n, s in systems.items()} == {"alpha": 1, "beta": 2}
+    assert {(m.get_srcSystem(), m.altitude_relative) for m in gcs.messages("ALTITUDE")} == {
+        (1, 100.0), (2, 500.0)}
+
+
 def test_commands_are_answered_by_the_system_they_address() -> None:
     configured = [vehicles.SourceVehicle("a", "alpha"), vehicles.SourceVehicle("b", "beta")]
     with MavPeer(255, 190) as gcs, fleet(gcs.port, configured) as (_b, _, keep):

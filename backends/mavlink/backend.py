@@ -92,9 +92,11 @@ class MavlinkBackend(Backend):
         self.nodes: dict[str, AuroraVehicle] = {}
         self._node_list: list[AuroraVehicle] = []  # each node once, in creation order
         self._refused: set[str] = set()  # vehicles no id was free for (bounded)
-        #: a backend on its own (no configured vehicles): its one node, from the start,
-        #: becomes the first vehicle it hears (as a single-vehicle gateway always was)
-        self._unnamed: AuroraVehicle | None = None
+        #: a configured source's node, until that source's first message: if it names
+        #: another vehicle (a source that names those it hears, e.g. a Zenoh source following
+        #: another gateway), that vehicle takes the node over, so no system stands for the
+        #: source itself; "*": a backend on its own, whose one node the first name takes
+        self._vacant: dict[str, AuroraVehicle] = {}
         self.vehicles_without_id = 0  # their messages, dropped (counted)
         self.hub: MavlinkHub | None = None
         self.router: Router | None = None
@@ -125,17 +127,17 @@ class MavlinkBackend(Backend):
         self._node_list.append(node)
         return node
 
-    def _configured(self, hub: MavlinkHub) -> list[tuple[str, int]]:
+    def _configured(self, hub: MavlinkHub) -> list[tuple[str, str, int]]:
         """The configured vehicles with their ids: fixed ones kept, the others from ``sysid``
         on in source order, skipping the fixed ones.  A source that names one vehicle per
         system it hears (the MAVLink source) has none of its own."""
         service = self.context.services.get(vehicles.SERVICE) if self.context else None
         if service is None:  # a backend on its own (a test, a tool): one vehicle, as before
-            return [("", self.sysid)]  # (named by the first message that names one)
+            return [("*", "", self.sysid)]  # (named by the first message that names one)
         wanted = [sv for sv in service if sv.vehicle not in hub.stems]
         fixed = {sv.mavlink_sysid for sv in wanted if sv.mavlink_sysid}
         taken = set(fixed)
-        out: list[tuple[str, int]] = []
+        out: list[tuple[str, str, int]] = []
         nxt = self.sysid
         for sv in wanted:
             sysid = sv.mavlink_sysid
@@ -150,7 +152,7 @@ class MavlinkBackend(Backend):
                     continue
                 sysid = nxt
             taken.add(sysid)
-            out.append((sv.vehicle, sysid))
+            out.append((sv.source, sv.vehicle, sysid))
         return out
 
     # -- life cycle ----------------------------------------------------------------------------
@@ -173,12 +175,12 @@ class MavlinkBackend(Backend):
         with router.lock:
             router.system_timeout_s = self.options.system_timeout_s
             planned = self._configured(hub)
-            for name, sysid in planned:  # (an unclaimed node's id is no other node's)
-                hub.add(self._new_node(name, sysid), GCS)
+            for source, name, sysid in planned:  # (an unclaimed node's id is no other's)
+                node = self._new_node(name, sysid)
+                hub.add(node, GCS)
+                self._vacant[source] = node
             if planned and "" not in self.nodes:
                 self.nodes[""] = self._node_list[0]  # what comes without a vehicle name
-            if planned == [("", self.sysid)]:
-                self._unnamed = self.nodes[""]
         try:
             endpoints = hub.open(self.specs, GCS, self.serial_queue_depth, self.limits)
         except OSError as exc:
@@ -212,20 +214,28 @@ class MavlinkBackend(Backend):
 
     # -- the vehicles ----------------------------------------------------------------------------
 
-    def _node(self, name: str) -> AuroraVehicle | None:
+    def _node(self, msg: Any) -> AuroraVehicle | None:
         """The node of a vehicle not seen before (the loop's thread, under the router's
-        lock): the next free id from ``sysid``; None (its messages dropped, counted) when no
-        id is free."""
+        lock): its source's vacant node (see ``_vacant``), else one with the next free id
+        from ``sysid``; None (its messages dropped, counted) when no id is free."""
+        name = msg.vehicle
         node = self.nodes.get(name)
         if node is not None:
             return node
-        node = self._unnamed
-        if node is not None:  # the one node of a backend on its own takes the first name
-            self._unnamed = None
-            node.vehicle = name
-            node.on_rc = lambda channels: self._on_rc(channels, name)
-            self.nodes[name] = node
-            return node
+        vacant = self._vacant
+        if vacant:
+            node = vacant.pop("*", None)
+            if node is None:
+                node = vacant.pop(msg.origin, None)
+                if node is not None and node.stats.updates:
+                    node = None  # it speaks for its own vehicle: taken
+            if node is not None:
+                log.info("%s: vehicle %s is MAVLink system %d (its source's)", self.name,
+                         name, node.sysid)
+                node.vehicle = name
+                node.on_rc = lambda channels: self._on_rc(channels, name)
+                self.nodes[name] = node
+                return node
         router, hub = self.router, self.hub
         if router is None or hub is None or name in self._refused:
             self.vehicles_without_id += 1
@@ -312,7 +322,7 @@ class MavlinkBackend(Backend):
     def send_rc_channels(self, msg: RcChannels) -> None:
         if msg.origin == self.name:
             return  # a ground station's override: not the rocket's to repeat
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_rc_channels(msg))
 
@@ -322,37 +332,37 @@ class MavlinkBackend(Backend):
         self.emit(RcChannels(channels, origin=self.name, vehicle=vehicle))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_sm_update(msg))
 
     def send_status(self, msg: Status) -> None:
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_status(msg))
 
     def send_position(self, msg: Position) -> None:
         if msg.via.startswith(VIA_MAVLINK):
             return  # it came from a MAVLink vehicle: it speaks for itself
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_position(msg))
 
     def send_battery(self, msg: Battery) -> None:
         if msg.via.startswith(VIA_MAVLINK):
             return
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_battery(msg))
 
     def send_vehicle_state(self, msg: VehicleState) -> None:
         # a non-Aurora vehicle (UAVTalk): shown as a system of its own
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_vehicle_state(msg))
 
     def send_link_stats(self, msg: LinkStats) -> None:
-        node = self.nodes.get(msg.vehicle) or self._node(msg.vehicle)
+        node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_link_stats(msg))  # → RADIO_STATUS
 
