@@ -317,7 +317,11 @@ class MavlinkBackend(Backend):
 
     def _add(self, node: AuroraVehicle, msgs: list[Any]) -> None:
         if msgs:
-            self._out.append((node, msgs))
+            out = self._out
+            if out and out[-1][0] is node:  # one broadcast per run of one vehicle's messages
+                out[-1][1].extend(msgs)
+            else:
+                out.append((node, msgs))
 
     def send_rc_channels(self, msg: RcChannels) -> None:
         if msg.origin == self.name:
