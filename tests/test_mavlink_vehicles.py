@@ -309,12 +309,15 @@ def test_with_signing_unsigned_frames_never_take_the_rockets_id() -> None:
         assert gcs.wait_for("COMMAND_ACK", lambda m: m.get_srcSystem() == 1, timeout=WAIT)
         st = b.stats()
         new_system_lines = router.log_lines()["new"]
+        impostor_lines = router.log_lines()["impostor"]
     r, sig = st["router"], st["signing"]
     assert r["impostor_frames"] == 1001  # the 1000, and the flood's system 1
     assert r["unverified_systems"] == 253  # the flood's others: not evidence of anything
     assert (r["id_changes"], r["sysid_conflicts"]) == (0, 0)
     assert sig["rejected_unsigned"] == 1254 and sig["good"] == 1  # (the signed command)
     assert st["endpoints"][ep]["rejected_signing"] == 1001
+    assert (st["impostor_frames"], st["rejected_signing"], st["sysid_conflicts"]) == (1001, 1001, 0)
+    assert impostor_lines == 1  # one line, then a count per interval while more come
     assert set(router.seen_at) == {255}  # only the signed ground station counts as seen
     assert {m.get_srcSystem() for m in gcs.messages("HEARTBEAT")} == {1}
     assert new_system_lines <= 2  # 254 new systems: one line, a count per interval

@@ -400,9 +400,13 @@ class MavlinkBackend(Backend):
                                             if isinstance(ep, TcpServerEndpoint)
                                             and ep.server is not None),
                              "endpoints": eps}
+        d["rejected_signing"] = sum(s.get("rejected_signing", 0) for s in eps.values())
         if self.router is not None:
             rs = self.router.stats
             d["errors"] += rs.node_errors + rs.encode_errors
+            # who tried to take a vehicle's id, and what came of it (also under "router")
+            d["impostor_frames"], d["sysid_conflicts"] = rs.impostor_frames, rs.sysid_conflicts
+            d["id_changes"] = rs.id_changes
             d["router"] = rs.as_dict()
             if self.router.verifier is not None:
                 d["signing"] = self.router.verifier.stats.as_dict()

@@ -243,18 +243,20 @@ class Router:
                                  logger=log),
                 "conflict": BurstLog(loop, "MAVLink: system id conflict, no free id",
                                      logger=log),
+                "impostor": BurstLog(loop, "MAVLink: frames carrying a gateway node's id, not "
+                                     "correctly signed, dropped", logger=log),
             }
 
     def log_lines(self) -> dict[str, int]:
         """Lines logged so far about new systems, moves and conflicts (by kind)."""
         return {kind: b.lines for kind, b in self._logs.items()}
 
-    def _say(self, kind: str, level: int, detail: str) -> None:
+    def _say(self, kind: str, detail: str) -> None:
         burst = self._logs.get(kind)
         if burst is not None:
             burst.event(detail)
-        else:  # a router without a loop (a test, a tool): bounded by its caller
-            log.log(level, "MAVLink: %s", detail)
+        else:  # a router without a loop (a test, a tool): not rate-limited, so debug only
+            log.debug("MAVLink: %s", detail)
 
     def set_signing_key(self, key: bytes) -> None:
         """Sign what we send and verify what our nodes read; one key per router."""
@@ -365,8 +367,8 @@ class Router:
                     new = self._free_id(slot)
                     if new is None:
                         self.stats.sysid_conflicts += 1
-                        self._say("conflict", logging.WARNING, f"system {old} is in use: the "
-                                  f"gateway's {type(node).__name__} keeps it (no free id)")
+                        self._say("conflict", f"system {old} is in use: the gateway's "
+                                  f"{type(node).__name__} keeps it (no free id)")
                     else:
                         node.sysid = new
                         log.info("MAVLink: system %d is in use (on %s): the gateway's %s "
@@ -395,18 +397,17 @@ class Router:
         if new is None:
             slot.retry_at = self._now + CONFLICT_RETRY_S
             self.stats.sysid_conflicts += 1
-            self._say("conflict", logging.WARNING,
-                      f"system {f.sysid} component {f.compid} on {link.name} uses the id of "
-                      f"the gateway's {type(node).__name__}, which keeps it (no free id)")
+            self._say("conflict", f"system {f.sysid} component {f.compid} on {link.name} uses "
+                      f"the id of the gateway's {type(node).__name__}, which keeps it (no free "
+                      "id)")
             return
         if self._own.get(old) is slot:
             del self._own[old]
         node.sysid = new
         self._own[new] = slot
         self.stats.id_changes += 1
-        self._say("move", logging.WARNING,
-                  f"system {f.sysid} component {f.compid} on {link.name} uses the id of the "
-                  f"gateway's {type(node).__name__}: it moves to system {new}")
+        self._say("move", f"system {f.sysid} component {f.compid} on {link.name} uses the id "
+                  f"of the gateway's {type(node).__name__}: it moves to system {new}")
 
     def _is_echo(self, slot: _Slot, f: Frame) -> bool:
         """A frame from a claimed node's system id: ours coming back, or an impostor?  (With
@@ -462,6 +463,8 @@ class Router:
                 if verdict is not Verdict.OK:  # not evidence: dropped, never forwarded
                     self.stats.impostor_frames += 1
                     c.rejected_signing += 1
+                    self._say("impostor", f"system {sysid} component {compid} on "
+                              f"{link.name}, {verdict.value}")
                     return
             self._move(slot, link, f)
         last_seq = link.last_seq
@@ -482,7 +485,7 @@ class Router:
         if key not in link.seen:
             link.seen.add(key)
             link.seen_sys.add(sysid)
-            self._say("new", logging.INFO, f"system {sysid} component {compid} on {link.name}")
+            self._say("new", f"system {sysid} component {compid} on {link.name}")
         readers = self._wants.get(msgid)
         if readers is not None:
             mine = [s for s in readers if s.claimed and s.wants(tsys, tcomp)]
