@@ -22,6 +22,7 @@ from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__, vehicles
 from gateway.backend import Backend, BackendError, Outcome, Routes
 from gateway.handover import Handover
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import KINDS, list_validator
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.server import ClientLimits, server_stats
@@ -46,6 +47,9 @@ POLL_S = 0.02
 CLAIM_GRACE_S = 1.5
 #: How often the router forgets the systems silent for ``system_timeout_s``.
 EXPIRE_EVERY_S = 1.0
+#: A vehicle no id was free for is looked for one again after this long (its messages in
+#: between are dropped, counted).
+NO_ID_RETRY_S = 5.0
 
 
 _CHECK_ENDPOINTS = list_validator(KINDS)
@@ -91,7 +95,9 @@ class MavlinkBackend(Backend):
         #: vehicle name → its node ("" → the first vehicle's: what comes without a name)
         self.nodes: dict[str, AuroraVehicle] = {}
         self._node_list: list[AuroraVehicle] = []  # each node once, in creation order
-        self._refused: set[str] = set()  # vehicles no id was free for (bounded)
+        #: vehicles no id was free for → when to look again (bounded)
+        self._refused: dict[str, float] = {}
+        self._no_id_log: BurstLog | None = None
         #: a configured source's node, until that source's first message: if it names
         #: another vehicle (a source that names those it hears, e.g. a Zenoh source following
         #: another gateway), that vehicle takes the node over, so no system stands for the
@@ -190,6 +196,8 @@ class MavlinkBackend(Backend):
         self._started_at = time.monotonic()
         self.handover.lock = hub.router.lock  # the vehicles' state is the router's too
         self.handover.open(hub.loop)
+        self._no_id_log = BurstLog(hub.loop, f"{self.name}: no free MAVLink system id for a "
+                                   "vehicle: not shown", logger=log)
         self._ticker = hub.loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
         ids = ", ".join(f"{n.vehicle or 'rocket'} {n.sysid}" for n in self._node_list)
         log.info("%s: MAVLink system%s %s on %s%s", self.name,
@@ -210,6 +218,8 @@ class MavlinkBackend(Backend):
         self.loop = None
         if self._ticker is not None:
             self._ticker.cancel()
+        if self._no_id_log is not None:
+            self._no_id_log.cancel()
         self._leave(hub, self.endpoints)  # queued frames are written first
 
     # -- the vehicles ----------------------------------------------------------------------------
@@ -237,7 +247,10 @@ class MavlinkBackend(Backend):
                 self.nodes[name] = node
                 return node
         router, hub = self.router, self.hub
-        if router is None or hub is None or name in self._refused:
+        if router is None or hub is None:
+            return None
+        retry = self._refused.get(name)
+        if retry is not None and time.monotonic() < retry:
             self.vehicles_without_id += 1
             return None
         sysid = router.free_id(self.sysid)
@@ -245,10 +258,11 @@ class MavlinkBackend(Backend):
             self.vehicles_without_id += 1
             if len(self._refused) >= LAST_ID:
                 self._refused.clear()
-            self._refused.add(name)
-            log.warning("%s: no free MAVLink system id for vehicle %s: not shown", self.name,
-                        name)
+            self._refused[name] = time.monotonic() + NO_ID_RETRY_S
+            if self._no_id_log is not None:
+                self._no_id_log.event(name)
             return None
+        self._refused.pop(name, None)
         node = self._new_node(name, sysid)
         hub.add(node, GCS)
         log.info("%s: vehicle %s is MAVLink system %d", self.name, name or "(unnamed)", sysid)
