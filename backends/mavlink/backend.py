@@ -179,6 +179,7 @@ class MavlinkBackend(Backend):
             raise BackendError(str(exc)) from None
         router = hub.router
         with router.lock:
+            self.nodes, self._node_list, self._vacant = {}, [], {}  # (a second init: anew)
             router.system_timeout_s = self.options.system_timeout_s
             planned = self._configured(hub)
             for source, name, sysid in planned:  # (an unclaimed node's id is no other's)
