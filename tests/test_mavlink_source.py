@@ -8,6 +8,7 @@ import time
 from typing import Any
 
 import pytest
+from helpers import wait_for
 from mavlink_peer import MavPeer, upstream_dialect
 
 from backends.mavlink.backend import MavlinkBackend
@@ -208,3 +209,55 @@ def test_config_and_mode_names() -> None:
     assert classic_mode_name(dev.MAV_AUTOPILOT_PX4, dev.MAV_TYPE_QUADROTOR, custom,
                              (4 << 16) | (4 << 24)) == "AUTO_MISSION"
     assert classic_mode_name(dev.MAV_AUTOPILOT_GENERIC, 9, custom, 3) == "MODE_3"
+
+
+def test_each_system_heard_is_a_vehicle_of_its_own() -> None:
+    """Two autopilots (and a ground station, which is no vehicle) on one link: one gateway
+    vehicle each, ``<source's vehicle>-<system id>``, each with its own state."""
+    from backends.mavlink import source as mavsource
+
+    sink = Sink()
+    src = MavlinkSource(MavlinkSourceOptions(url="udpin:127.0.0.1:0"), name="mavlink:x")
+    src.vehicle = "drone"  # as the gateway names it (--source drone=mavlink:…)
+    started(src, sink)
+    dest = src.endpoints[0].address
+    peers = [MavPeer(i, 1, dest=dest) for i in (3, 4)]
+    gcs = MavPeer(255, 190, dest=dest)
+    try:
+        gcs.send(dev.MAVLink_heartbeat_message(dev.MAV_TYPE_GCS, dev.MAV_AUTOPILOT_INVALID, 0, 0,
+                                               4, 3))
+        for peer, mode in zip(peers, (4, 10), strict=True):
+            peer.send(dev.MAVLink_heartbeat_message(dev.MAV_TYPE_GROUND_ROVER,
+                                                    dev.MAV_AUTOPILOT_ARDUPILOTMEGA, 1, mode,
+                                                    4, 3))
+        got = sink.wait(VehicleState, lambda m: m.vehicle == "drone-4")
+        assert got and sink.wait(VehicleState, lambda m: m.vehicle == "drone-3")
+        for peer, alt in zip(peers, (20.5, 77.25), strict=True):
+            peer.send(dev.MAVLink_global_position_int_message(
+                1100, 473977420, 85455940, 500000, round(alt * 1000), 0, 0, 0, 9000))
+        pos = {p.vehicle: p for p in
+               [*sink.wait(Position, lambda m: m.vehicle == "drone-3"),
+                *sink.wait(Position, lambda m: m.vehicle == "drone-4")]}
+        # more systems than the bound: the extra ones are ignored, counted
+        extra = [MavPeer(10 + i, 1, dest=dest) for i in range(mavsource.MAX_SYSTEMS)]
+        for peer in extra:
+            peer.send(dev.MAVLink_heartbeat_message(dev.MAV_TYPE_QUADROTOR,
+                                                    dev.MAV_AUTOPILOT_ARDUPILOTMEGA, 1, 0, 4, 3))
+        assert wait_for(lambda: src.stats()["systems_ignored"] == 2, WAIT)
+        for peer in extra:
+            peer.close()
+        stats = src.stats()
+    finally:
+        for p in [*peers, gcs]:
+            p.close()
+        src.stop()
+        sink.dispatcher.close()
+    states = {m.vehicle: m for m in sink.keeper.got if isinstance(m, VehicleState)}
+    assert {v: (m.mode, m.via, m.origin) for v, m in states.items()
+            if v in ("drone-3", "drone-4")} == {
+        "drone-3": ("HOLD", "mavlink:3", "mavlink:x"),
+        "drone-4": ("AUTO", "mavlink:4", "mavlink:x")}
+    assert {v: p.relative_alt_m for v, p in pos.items()} == {"drone-3": 20.5, "drone-4": 77.25}
+    assert len(stats["systems"]) == mavsource.MAX_SYSTEMS
+    assert stats["systems"]["3"] == "drone-3"
+

@@ -35,10 +35,14 @@ class MavlinkHub:
         self.name = name
         self.router = Router()
         self.loop = IoLoop(name)
+        self.router.use_loop(self.loop)
         self._users = 0
         self._lock = threading.Lock()
         self._started = False
         self.groups: set[str] = set()
+        #: the vehicle names of this gateway's sources that hear several systems and name one
+        #: vehicle per system (the MAVLink source): not vehicles of their own (no node)
+        self.stems: set[str] = set()
 
     @classmethod
     def of(cls, context: GatewayContext) -> MavlinkHub:
@@ -60,10 +64,11 @@ class MavlinkHub:
         with self._lock:
             self.groups.add(group)
 
-    def join(self, node: LocalNode, group: str, *, step: int = 1,
+    def join(self, node: LocalNode | None, group: str, *, step: int = 1,
              forward: bool | None = None, signing_key: bytes | None = None) -> None:
-        """Serve ``node``; its own messages go to links of ``group``.  ValueError for a
-        signing key that differs from another user's (then nothing is joined)."""
+        """Serve ``node`` (None: none yet, see :meth:`add`); its own messages go to links of
+        ``group``.  ValueError for a signing key that differs from another user's (then
+        nothing is joined)."""
         router = self.router
         with self._lock:
             if signing_key is not None:
@@ -75,7 +80,16 @@ class MavlinkHub:
                 self._started = True
             self._users += 1
             self.groups.add(group)
-        router.add_node(node, (group,), step=step)
+        if node is not None:
+            router.add_node(node, (group,), step=step)
+
+    def add(self, node: LocalNode, group: str) -> None:
+        """Serve another node of a user that has joined (its messages to ``group``'s links);
+        it stops with :meth:`remove` or with the user's :meth:`leave`."""
+        self.router.add_node(node, (group,))
+
+    def remove(self, node: LocalNode) -> None:
+        self.router.remove_node(node)
 
     def open(self, specs: Sequence[EndpointSpec], group: str, queue_depth: int,
              limits: ClientLimits | None = None) -> list[Endpoint]:
@@ -102,7 +116,7 @@ class MavlinkHub:
                                     if link.group == group)
         return present, heard
 
-    def leave(self, node: LocalNode, endpoints: Sequence[Endpoint] = (),
+    def leave(self, node: LocalNode | None, endpoints: Sequence[Endpoint] = (),
               timeout: float = 0.5) -> None:
         """Close ``endpoints`` (queued frames are written first) and stop serving ``node``;
         the last user stops the loop."""
@@ -112,7 +126,8 @@ class MavlinkHub:
                 ep.close(each)
             except Exception:
                 log.debug("%s: closing %s failed", self.name, ep.name, exc_info=True)
-        self.router.remove_node(node)
+        if node is not None:
+            self.router.remove_node(node)
         self.groups = set(self.router.node_groups())
         with self._lock:
             self._users -= 1

@@ -62,12 +62,15 @@ class MavlinkOptions(ListenerOptions):
                   "machine); with --source mavlink:ENDPOINT, the vehicle is routed to and "
                   "from them, as by mavlink-router", metavar="ENDPOINT",
                   convert=text_of(KINDS)))
-    sysid: int = option(1, "MAVLink system id of the rocket; when another system on the links "
-                        "uses it, the next free one (logged)", minimum=1, maximum=254,
-                        flag=Flag("--mavlink-sysid", metavar="N"))
+    sysid: int = option(1, "MAVLink system id of the first vehicle (the first source's); the "
+                        "next vehicles take the next ids (a source's mavlink_sysid fixes its "
+                        "own); an id another system on the links uses is skipped (logged)",
+                        minimum=1, maximum=254, flag=Flag("--mavlink-sysid", metavar="N"))
     compid: int = option(1, "component id (1 = autopilot: what QGroundControl needs)",
                          minimum=1, maximum=255)
     route: bool = option(True, "forward traffic between endpoints (mavlink-router style)")
+    system_timeout_s: float = option(30.0, "a system silent this long is forgotten: its id "
+                                     "counts as free again", minimum=1.0, maximum=3600.0)
     stale_after_s: float = option(3.0, "no update for this long: system status 'uninit'",
                                   minimum=0.1)
     pad_altitude_amsl_m: float = option(0.0, "pad altitude above mean sea level, added to "
@@ -117,8 +120,9 @@ class MavlinkSourceOptions(Options):
                         "next lower one nobody on the links uses", minimum=0, maximum=254)
     compid: int = option(MAV_COMP_ID_ONBOARD_COMPUTER, "our component id", minimum=1,
                          maximum=255)
-    target_system: int = option(0, "the vehicle's system id; 0 = the first autopilot heard",
-                                minimum=0, maximum=255)
+    target_system: int = option(0, "the vehicle's system id; 0 = every autopilot heard, each "
+                                "its own vehicle '<vehicle>-<system id>'", minimum=0,
+                                maximum=255)
     rate_hz: float = option(10.0, "most vehicle-state and position messages per second",
                             minimum=0.1, maximum=1000)
     heartbeat_hz: float = option(1.0, "our heartbeat (ground stations are recognised by it); "

@@ -36,6 +36,18 @@ moves the node to a free id, logged.  A node answers only what is addressed to i
 and nothing before it has claimed one (the rocket routing a vehicle stays off the air until it
 has something to say).
 
+The table of systems seen (:attr:`Router.seen_at`) is what those rules read.  It is bounded
+(one entry per system id, ≤ 256) and forgets a system silent for :attr:`Router.system_timeout_s`
+(30 s by default).  With signing on, only a correctly signed frame (verdict ``OK``) is
+evidence: a system enters the table, or moves a node, only by a signed frame; a frame carrying
+one of our ids that is not correctly signed is dropped and counted (``impostor_frames``), and
+one from a system not in the table that is not correctly signed does not enter it (counted
+``unverified_systems``).  Each frame is verified at most once (the same verdict serves its
+delivery).  When no id is free, a node keeps its own and the conflict is counted
+(``sysid_conflicts``): nothing raises.  New systems, moves and conflicts are logged once per
+burst, with a count per interval (:class:`~gateway.io.burstlog.BurstLog`), once the router has
+a loop (:meth:`Router.use_loop`).
+
 All state is guarded by :attr:`Router.lock`; links call :meth:`Router.receive` from whatever
 thread reads them, and every ``Link.send`` is non-blocking.
 """
@@ -44,6 +56,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -51,13 +64,23 @@ from typing import Any, Protocol
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.frames import Frame, FramerStats, StreamFramer, split_datagram
+from backends.mavlink.signing import Verdict
 from gateway.counters import Counters
+from gateway.io.burstlog import BurstLog
+from gateway.io.ioloop import IoLoop
 
 log = logging.getLogger(__name__)
 
 MSG_HEARTBEAT = 0
 HEARTBEAT_TYPE_OFS = 4  # payload: custom_mode (u32), then type (u8)
 _NO_IDS: frozenset[int] = frozenset()
+#: A system silent for this long is forgotten (its id is free again); the backend's
+#: ``system_timeout_s`` option sets it.
+SYSTEM_TIMEOUT_S = 30.0
+#: A node in conflict (its id in use, none free) looks for a free id again after this long.
+CONFLICT_RETRY_S = 1.0
+#: The system ids a node of ours may use (0 is broadcast, 255 the ground stations').
+FIRST_ID, LAST_ID = 1, 254
 
 
 class LocalNode(Protocol):
@@ -132,6 +155,10 @@ class RouterStats(Counters):
     mailboxed: int = 0  # frames kept for a node (only the latest of each is decoded)
     own_id_seen: int = 0  # our own frames coming back (a loop in the network)
     id_changes: int = 0  # a node moved to another system id (someone else used its id)
+    sysid_conflicts: int = 0  # a node's id was in use and no other was free: it kept it
+    impostor_frames: int = 0  # signing on: frames with one of our ids, not signed right
+    unverified_systems: int = 0  # signing on: frames of an unknown system, not signed right
+    systems_forgotten: int = 0  # systems silent for system_timeout_s, dropped from the table
     node_errors: int = 0  # a local node raised on a request (a bug; logged)
     encode_errors: int = 0  # one of our messages could not be packed (a bug; logged)
     sent_own: int = 0  # local messages sent (counted once per link)
@@ -160,6 +187,8 @@ class _Slot:
         self.sent_ids: set[int] = set()
         self.claimed = False
         self.mailbox: dict[int, tuple[Frame, Link]] = {}
+        #: in conflict (no free id): when to look for one again (not on every frame)
+        self.retry_at = 0.0
 
     def wants(self, tsys: int, tcomp: int) -> bool:
         """Whether a frame with these targets is for the node (broadcast, or its id)."""
@@ -185,7 +214,13 @@ class Router:
         self._by_node: dict[int, _Slot] = {}
         self._wants: dict[int, tuple[_Slot, ...]] = {}  # msgid → nodes that read it
         self._own: dict[int, _Slot] = {}  # system id → the claimed node using it
-        self.seen_systems: dict[int, str] = {}  # every system seen → the first link it was on
+        #: systems seen (the identity evidence, see the module docstring): id → when last
+        #: heard (monotonic), and → the link it was first heard on; ≤ 256 entries each
+        self.seen_at: dict[int, float] = {}
+        self.seen_systems: dict[int, str] = {}
+        self.system_timeout_s = SYSTEM_TIMEOUT_S
+        self._now = time.monotonic()
+        self._logs: dict[str, BurstLog] = {}
         if signing_key is not None:
             self.set_signing_key(signing_key)
         if node is not None:
@@ -197,6 +232,31 @@ class Router:
         return self._slots[0].node if self._slots else None
 
     # -- configuration -----------------------------------------------------------------------
+
+    def use_loop(self, loop: IoLoop) -> None:
+        """Log new systems, id changes and conflicts once per burst on ``loop``'s timers."""
+        with self.lock:
+            self._logs = {
+                "new": BurstLog(loop, "MAVLink: new system seen", level=logging.INFO,
+                                logger=log),
+                "move": BurstLog(loop, "MAVLink: a system uses the id of a gateway node",
+                                 logger=log),
+                "conflict": BurstLog(loop, "MAVLink: system id conflict, no free id",
+                                     logger=log),
+                "impostor": BurstLog(loop, "MAVLink: frames carrying a gateway node's id, not "
+                                     "correctly signed, dropped", logger=log),
+            }
+
+    def log_lines(self) -> dict[str, int]:
+        """Lines logged so far about new systems, moves and conflicts (by kind)."""
+        return {kind: b.lines for kind, b in self._logs.items()}
+
+    def _say(self, kind: str, detail: str) -> None:
+        burst = self._logs.get(kind)
+        if burst is not None:
+            burst.event(detail)
+        else:  # a router without a loop (a test, a tool): not rate-limited, so debug only
+            log.debug("MAVLink: %s", detail)
 
     def set_signing_key(self, key: bytes) -> None:
         """Sign what we send and verify what our nodes read; one key per router."""
@@ -262,46 +322,99 @@ class Router:
 
     # -- system ids ----------------------------------------------------------------------------
 
+    def in_use(self, sysid: int, now: float | None = None) -> bool:
+        """Whether a system other than our nodes was heard with ``sysid`` within
+        :attr:`system_timeout_s`."""
+        t = self.seen_at.get(sysid)
+        if t is None:
+            return False
+        return (time.monotonic() if now is None else now) - t <= self.system_timeout_s
+
+    def expire(self, now: float | None = None) -> int:
+        """Forget the systems silent for :attr:`system_timeout_s`; returns how many."""
+        with self.lock:
+            now = time.monotonic() if now is None else now
+            old = [k for k, t in self.seen_at.items() if now - t > self.system_timeout_s]
+            for k in old:
+                del self.seen_at[k]
+                self.seen_systems.pop(k, None)
+            self.stats.systems_forgotten += len(old)
+            return len(old)
+
+    def free_id(self, start: int, step: int = 1, avoid: Iterable[int] = ()) -> int | None:
+        """The first id from ``start`` on (then ``start + step`` …, round 1..254) that no
+        system seen and no node of ours uses (on the air or not yet: an unclaimed node's id
+        is kept for it), and not in ``avoid``; None when there is none."""
+        with self.lock:
+            now = time.monotonic()
+            taken = set(avoid) | set(self._own)
+            taken.update(s.node.sysid for s in self._slots if not s.claimed)
+            for i in range(LAST_ID):
+                cand = (start - FIRST_ID + step * i) % LAST_ID + FIRST_ID
+                if cand not in taken and not self.in_use(cand, now):
+                    return cand
+            return None
+
     def claim(self, node: LocalNode) -> int:
         """Settle ``node``'s system id before it first speaks: its own unless a system seen on
-        a link (or another node) uses it; returns the id."""
+        a link (or another node) uses it; returns the id.  When no other id is free the node
+        keeps its own (counted ``sysid_conflicts``)."""
         with self.lock:
             slot = self._by_node[id(node)]
             if not slot.claimed:
                 old = node.sysid
-                if old in self.seen_systems or old in self._own:
-                    node.sysid = self._free_id(slot)
-                    log.info("MAVLink: system %d is in use (on %s): the gateway's %s takes "
-                             "system %d", old, self.seen_systems.get(old, "this gateway"),
-                             type(node).__name__, node.sysid)
+                if self.in_use(old) or old in self._own:
+                    new = self._free_id(slot)
+                    if new is None:
+                        self.stats.sysid_conflicts += 1
+                        self._say("conflict", f"system {old} is in use: the gateway's "
+                                  f"{type(node).__name__} keeps it (no free id)")
+                    else:
+                        node.sysid = new
+                        log.info("MAVLink: system %d is in use (on %s): the gateway's %s "
+                                 "takes system %d", old,
+                                 self.seen_systems.get(old, "this gateway"),
+                                 type(node).__name__, node.sysid)
                 slot.claimed = True
-                self._own[node.sysid] = slot
+                self._own.setdefault(node.sysid, slot)
             return node.sysid
 
-    def _free_id(self, slot: _Slot) -> int:
+    def _free_id(self, slot: _Slot) -> int | None:
         start = slot.node.sysid
-        for i in range(1, 255):
-            cand = (start - 1 + slot.step * i) % 254 + 1  # 1..254, round from where we are
-            if cand != start and cand not in self.seen_systems and cand not in self._own:
-                return cand
-        raise RuntimeError("no free MAVLink system id")  # 254 systems seen: cannot happen
+        return self.free_id(start + slot.step, slot.step, avoid=(start,))
 
     def _move(self, slot: _Slot, link: Link, f: Frame) -> None:
-        """Another system uses a claimed node's id: the node moves to a free one."""
+        """Another system uses a claimed node's id: the node moves to a free one (or, with
+        none free, keeps it: counted)."""
         node = slot.node
         old = node.sysid
-        del self._own[old]
         self.seen_systems.setdefault(old, link.name)
-        node.sysid = self._free_id(slot)
-        self._own[node.sysid] = slot
+        self.seen_at[old] = self._now
+        if self._now < slot.retry_at:  # in conflict: counted, a new search once a second
+            self.stats.sysid_conflicts += 1
+            return
+        new = self._free_id(slot)
+        if new is None:
+            slot.retry_at = self._now + CONFLICT_RETRY_S
+            self.stats.sysid_conflicts += 1
+            self._say("conflict", f"system {f.sysid} component {f.compid} on {link.name} uses "
+                      f"the id of the gateway's {type(node).__name__}, which keeps it (no free "
+                      "id)")
+            return
+        if self._own.get(old) is slot:
+            del self._own[old]
+        node.sysid = new
+        self._own[new] = slot
         self.stats.id_changes += 1
-        log.warning("MAVLink: system %d component %d on %s uses the id of the gateway's %s: "
-                    "it moves to system %d", f.sysid, f.compid, link.name,
-                    type(node).__name__, node.sysid)
+        self._say("move", f"system {f.sysid} component {f.compid} on {link.name} uses the id "
+                  f"of the gateway's {type(node).__name__}: it moves to system {new}")
 
     def _is_echo(self, slot: _Slot, f: Frame) -> bool:
-        """A frame from a claimed node's system id: ours coming back, or an impostor?"""
+        """A frame from a claimed node's system id: ours coming back, or an impostor?  (With
+        signing on we sign everything: an unsigned frame is never ours.)"""
         if f.compid not in slot.compids or f.msgid not in slot.sent_ids:
+            return False
+        if self.verifier is not None and not f.signed:
             return False
         if f.msgid == MSG_HEARTBEAT and slot.heartbeat_type is not None:
             head = 10 if f.version == 2 else 6
@@ -315,6 +428,7 @@ class Router:
     def receive(self, link: Link, data: bytes) -> None:
         """Bytes read from ``link`` (one datagram, or any piece of a stream)."""
         with self.lock:
+            self._now = time.monotonic()
             frames = (split_datagram(data, link.framer_stats) if link.datagram
                       else link.framer.feed(data))  # type: ignore[union-attr]
             for f in frames:
@@ -323,6 +437,7 @@ class Router:
     def receive_many(self, link: Link, datagrams: Iterable[bytes]) -> None:
         """Several datagrams read from ``link`` in one go (one lock round trip)."""
         with self.lock:
+            self._now = time.monotonic()
             stats = link.framer_stats
             route = self._route
             for data in datagrams:
@@ -336,11 +451,21 @@ class Router:
         c.rx_bytes += len(raw)
         key = (sysid << 8) | compid
         own = self._own
+        verifier = self.verifier
+        verdict: Verdict | None = None  # checked at most once per frame, when it matters
         if sysid in own:
             slot = own[sysid]
             if self._is_echo(slot, f):
                 self.stats.own_id_seen += 1  # our own frame, back round a loop: drop
                 return
+            if verifier is not None:
+                verdict = verifier.check(f)
+                if verdict is not Verdict.OK:  # not evidence: dropped, never forwarded
+                    self.stats.impostor_frames += 1
+                    c.rejected_signing += 1
+                    self._say("impostor", f"system {sysid} component {compid} on "
+                              f"{link.name}, {verdict.value}")
+                    return
             self._move(slot, link, f)
         last_seq = link.last_seq
         last = last_seq.get(key)
@@ -349,20 +474,28 @@ class Router:
             if gap:
                 c.seq_lost += gap
         last_seq[key] = seq
+        seen_at = self.seen_at
+        if sysid in seen_at:
+            seen_at[sysid] = self._now
+        elif verifier is None or (verdict := verifier.check(f)) is Verdict.OK:
+            seen_at[sysid] = self._now
+            self.seen_systems.setdefault(sysid, link.name)
+        else:
+            self.stats.unverified_systems += 1
         if key not in link.seen:
             link.seen.add(key)
             link.seen_sys.add(sysid)
-            self.seen_systems.setdefault(sysid, link.name)
-            log.info("%s: system %d component %d seen", link.name, sysid, compid)
+            self._say("new", f"system {sysid} component {compid} on {link.name}")
         readers = self._wants.get(msgid)
         if readers is not None:
-            for slot in readers:
-                if slot.claimed and slot.wants(tsys, tcomp):  # not yet on the air: not ours
-                    if msgid in slot.consumed:
-                        self._deliver(slot, link, f)
-                    elif self.verifier is None or self._verified(link, f):
-                        slot.mailbox[(key << 24) | msgid] = (f, link)
-                        self.stats.mailboxed += 1
+            mine = [s for s in readers if s.claimed and s.wants(tsys, tcomp)]
+            if mine:  # (not yet on the air: not ours)
+                if verifier is not None and verdict is None:
+                    verdict = verifier.check(f)
+                if verdict is not None and not verdict.accepted:
+                    c.rejected_signing += 1
+                else:
+                    self._hand_over(mine, link, f, key)
         if not self.forward:
             return
         others = self._others.get(link, ())
@@ -385,20 +518,29 @@ class Router:
                 n += 1
         self.stats.forwarded += n
 
-    def _verified(self, link: Link, f: Frame) -> bool:
-        if self.verifier is not None and not self.verifier.check(f).accepted:
-            link.counters.rejected_signing += 1
-            return False
-        return True
+    def _hand_over(self, slots: list[_Slot], link: Link, f: Frame, key: int) -> None:
+        """A verified frame for our nodes: decoded once for those that consume it at once,
+        kept in the mailbox of those that read it later."""
+        msg: Any = None
+        for slot in slots:
+            if f.msgid in slot.consumed:
+                if msg is None:
+                    msg = self._decode(link, f)
+                    if msg is None:
+                        return
+                self._handle(slot, link, f, msg)
+            else:
+                slot.mailbox[(key << 24) | f.msgid] = (f, link)
+                self.stats.mailboxed += 1
 
-    def _deliver(self, slot: _Slot, link: Link, f: Frame, verify: bool = True) -> None:
-        if verify and not self._verified(link, f):
-            return
+    def _decode(self, link: Link, f: Frame) -> Any:
         try:
-            msg = self._decoder.decode(bytearray(f.raw))
+            return self._decoder.decode(bytearray(f.raw))
         except Exception:  # MAVError, struct.error: counted, the frame was routed anyway
             link.counters.decode_errors += 1
-            return
+            return None
+
+    def _handle(self, slot: _Slot, link: Link, f: Frame, msg: Any) -> None:
         self.stats.delivered += 1
         try:
             replies = slot.node.handle(msg, f.sysid, f.compid)
@@ -419,8 +561,10 @@ class Router:
             if not box:
                 return 0
             slot.mailbox = {}
-            for f, link in box.values():
-                self._deliver(slot, link, f, verify=False)  # verified when kept
+            for f, link in box.values():  # verified when kept
+                msg = self._decode(link, f)
+                if msg is not None:
+                    self._handle(slot, link, f, msg)
             return len(box)
 
     # -- sending our own messages ------------------------------------------------------------

@@ -1,8 +1,9 @@
 """MAVLink in: a MAVLink vehicle (ArduPilot, PX4, or another Aurora gateway) as a source.
 
 The source runs a small router (:mod:`.router`) whose local node is :class:`VehicleListener`,
-a ground-station-like component that decodes only what it uses from one vehicle — its
-heartbeat, attitude, altitude, position and battery — and turns it into gateway messages:
+a ground-station-like component that decodes only what it uses from the vehicles it hears —
+their heartbeats, attitude, altitude, position and battery — and turns it into gateway
+messages, one gateway vehicle per MAVLink system (``<the source's vehicle>-<system id>``):
 
 * :class:`~gateway.model.VehicleState` (armed, mode name, attitude, altitude, climb);
 * :class:`~gateway.model.Position` (GLOBAL_POSITION_INT, with GPS_RAW_INT's fix and satellites);
@@ -38,6 +39,7 @@ from backends.mavlink.translate import (
     sm_update_from_mavlink,
     status_from_mavlink,
 )
+from gateway import vehicles
 from gateway.backend import GatewayContext
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import Battery, Position, VehicleState
@@ -94,9 +96,53 @@ def classic_mode_name(autopilot: int, vehicle_type: int, base_mode: int, custom_
     return f"MODE_{custom_mode}"
 
 
+#: At most this many vehicles followed by one source; the systems heard beyond it are ignored
+#: (counted ``systems_ignored``).
+MAX_SYSTEMS = 32
+
+
+class FollowedSystem:
+    """What the listener knows of one vehicle it follows (a MAVLink system), and the gateway
+    vehicle it is (``<source's vehicle>-<system id>``)."""
+
+    def __init__(self, sysid: int, vehicle: str, rate_hz: float) -> None:
+        self.sysid = sysid
+        self.vehicle = vehicle
+        #: ``via`` of every message about it: the vehicle's MAVLink system
+        self.via = f"{VIA_MAVLINK}{sysid}"
+        self.vehicle_type = 0
+        self.autopilot = 0
+        self.base_mode = 0
+        self.custom_mode: int | None = None
+        self.armed = False
+        self.mode_names: dict[int, str] = {}
+        self.attitude: tuple[float, float, float] | None = None
+        self.altitude_m: float | None = None
+        self.climb_mps: float | None = None
+        self.gps: Any = None
+        self.saw_battery_status = False
+        self.requested = False
+        self.heard = 0
+        self.state_gate = RateGate(rate_hz)
+        self.position_gate = RateGate(rate_hz)
+
+    def mode_name(self) -> str:
+        cm = self.custom_mode or 0
+        name = self.mode_names.get(cm)
+        if name:
+            return name
+        return classic_mode_name(self.autopilot, self.vehicle_type, self.base_mode, cm)
+
+
 class VehicleListener:
-    """The source's local MAVLink node: decodes one vehicle's telemetry into gateway messages
-    (sans-I/O: messages go to ``emit``; requests to the vehicle are returned as replies).
+    """The source's local MAVLink node: decodes the telemetry of the vehicles it hears into
+    gateway messages, one gateway vehicle per MAVLink system (sans-I/O: messages go to
+    ``emit``; requests to the vehicles are returned as replies).
+
+    A system is followed from its first autopilot HEARTBEAT (component 1, not a ground
+    station's or a peripheral's type): every one (``target_system`` 0, at most
+    :data:`MAX_SYSTEMS`) or only ``target_system``.  Each is kept apart (state, mode names,
+    rate limits) and named :func:`gateway.vehicles.system_vehicle` of ``stem`` and its id.
 
     What must not be missed is decoded as it arrives (``CONSUMED``: heartbeats, mode names,
     batteries, the Aurora messages); the telemetry that is only ever shown at ``rate_hz`` is
@@ -120,72 +166,68 @@ class VehicleListener:
     def __init__(self, emit: Callable[[Any], None], origin: str, *, sysid: int = AUTO_SYSID,
                  compid: int = MAV_COMP_ID_ONBOARD_COMPUTER, target_system: int = 0,
                  rate_hz: float = 10.0, request_streams: bool = True,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, stem: str = "") -> None:
         self.emit = emit
         self.origin = origin
         self.sysid = sysid
         self.compid = compid
         self.consumed = self.CONSUMED
         self.latest = self.LATEST
-        self.target_system = target_system  # 0 until locked on the first autopilot
+        self.target_system = target_system  # 0: every autopilot heard
         self.request_streams = request_streams
         self.clock = clock
-        self.vehicle_type = 0
-        self.autopilot = 0
-        self.base_mode = 0
-        self.custom_mode: int | None = None
-        self.armed = False
-        self.mode_names: dict[int, str] = {}
-        self.attitude: tuple[float, float, float] | None = None
-        self.altitude_m: float | None = None
-        self.climb_mps: float | None = None
-        self.gps: Any = None
-        self.saw_battery_status = False
-        self.requested = False
-        self._state_gate = RateGate(rate_hz)
-        self._position_gate = RateGate(rate_hz)
+        self.rate_hz = rate_hz
+        #: the stem of the vehicles' names (the source's vehicle)
+        self.stem = stem or vehicles.derive_name(origin, fallback="mavlink")
+        self.systems: dict[int, FollowedSystem] = {}
+        self.systems_ignored = 0
         self.heard = 0
 
-    def _from_vehicle(self, sysid: int, compid: int, msg: Any) -> bool:
-        if self.target_system == 0:
-            if (msg.get_msgId() == mav.MAVLINK_MSG_ID_HEARTBEAT and compid == 1
+    def _system(self, sysid: int, compid: int, msg: Any) -> FollowedSystem | None:
+        """The followed system a message is from (None: not one we follow)."""
+        s = self.systems.get(sysid)
+        if s is None:
+            if (self.target_system and sysid != self.target_system) or not (
+                    msg.get_msgId() == mav.MAVLINK_MSG_ID_HEARTBEAT and compid == 1
                     and msg.type not in _GCS_TYPES
                     and msg.autopilot != mav.MAV_AUTOPILOT_INVALID):
-                self.target_system = sysid
-                log.info("%s: following vehicle %d", self.origin, sysid)
-            else:
-                return False
-        return sysid == self.target_system and (
-            compid == 1 or msg.get_msgId() in self._ANY_COMPONENT)  # a gateway's Aurora part
-
-    @property
-    def via(self) -> str:
-        """``via`` of every message this listener emits: the vehicle's MAVLink system."""
-        return f"{VIA_MAVLINK}{self.target_system}"
+                return None
+            if len(self.systems) >= MAX_SYSTEMS:
+                self.systems_ignored += 1
+                return None
+            s = self.systems[sysid] = FollowedSystem(
+                sysid, vehicles.system_vehicle(self.stem, sysid), self.rate_hz)
+            log.info("%s: following vehicle %d as %s", self.origin, sysid, s.vehicle)
+        if compid == 1 or msg.get_msgId() in self._ANY_COMPONENT:  # a gateway's Aurora part
+            return s
+        return None
 
     def handle(self, msg: Any, src_sysid: int, src_compid: int) -> list[Any]:
-        if not self._from_vehicle(src_sysid, src_compid, msg):
+        s = self._system(src_sysid, src_compid, msg)
+        if s is None:
             return []
         self.heard += 1
+        s.heard += 1
         name = _HANDLERS.get(msg.get_msgId())
         if name is None:
             return []
-        return getattr(self, name)(msg)
+        result: list[Any] = getattr(self, name)(s, msg)
+        return result
 
     # -- per message -----------------------------------------------------------------------------
 
-    def _heartbeat(self, m: Any) -> list[Any]:
-        changed = (m.custom_mode != self.custom_mode
-                   or bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED) != self.armed)
-        self.vehicle_type, self.autopilot = m.type, m.autopilot
-        self.base_mode, self.custom_mode = m.base_mode, m.custom_mode
-        self.armed = bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
+    def _heartbeat(self, s: FollowedSystem, m: Any) -> list[Any]:
+        changed = (m.custom_mode != s.custom_mode
+                   or bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED) != s.armed)
+        s.vehicle_type, s.autopilot = m.type, m.autopilot
+        s.base_mode, s.custom_mode = m.base_mode, m.custom_mode
+        s.armed = bool(m.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED)
         if changed:
-            self._emit_state(force=True)
-        if self.requested or not self.request_streams:
+            self._emit_state(s, force=True)
+        if s.requested or not self.request_streams:
             return []
-        self.requested = True
-        t, c = self.target_system, 1
+        s.requested = True
+        t, c = s.sysid, 1
         return [
             # Ask for the mode table (newer ArduPilot and PX4 answer; others ACK unsupported).
             mav.MAVLink_command_long_message(t, c, mav.MAV_CMD_REQUEST_MESSAGE, 0,
@@ -195,62 +237,57 @@ class VehicleListener:
             mav.MAVLink_request_data_stream_message(t, c, mav.MAV_DATA_STREAM_ALL, 10, 1),
         ]
 
-    def _available_modes(self, m: Any) -> list[Any]:
+    def _available_modes(self, s: FollowedSystem, m: Any) -> list[Any]:
         name = m.mode_name if isinstance(m.mode_name, str) else m.mode_name.decode(errors="replace")
         if name:
-            self.mode_names[m.custom_mode] = name
+            s.mode_names[m.custom_mode] = name
         return []
 
-    def mode_name(self) -> str:
-        cm = self.custom_mode or 0
-        name = self.mode_names.get(cm)
-        if name:
-            return name
-        return classic_mode_name(self.autopilot, self.vehicle_type, self.base_mode, cm)
-
-    def _attitude(self, m: Any) -> list[Any]:
-        self.attitude = (m.roll, m.pitch, m.yaw)
-        self._emit_state()
+    def _attitude(self, s: FollowedSystem, m: Any) -> list[Any]:
+        s.attitude = (m.roll, m.pitch, m.yaw)
+        self._emit_state(s)
         return []
 
-    def _emit_state(self, force: bool = False) -> None:
-        if self.custom_mode is None:
+    def _emit_state(self, s: FollowedSystem, force: bool = False) -> None:
+        if s.custom_mode is None:
             return  # no heartbeat yet: armed and mode unknown
-        if not self._state_gate.ready(self.clock()) and not force:
+        if not s.state_gate.ready(self.clock()) and not force:
             return
-        r, p, y = self.attitude if self.attitude is not None else (None, None, None)
-        self.emit(VehicleState(self.armed, self.mode_name(), self.custom_mode, r, p, y,
-                               self.altitude_m, self.climb_mps, origin=self.origin, via=self.via))
+        r, p, y = s.attitude if s.attitude is not None else (None, None, None)
+        self.emit(VehicleState(s.armed, s.mode_name(), s.custom_mode, r, p, y,
+                               s.altitude_m, s.climb_mps, origin=self.origin, via=s.via,
+                               vehicle=s.vehicle))
 
-    def _altitude(self, m: Any) -> list[Any]:
+    def _altitude(self, s: FollowedSystem, m: Any) -> list[Any]:
         if math.isfinite(m.altitude_relative):
-            self.altitude_m = m.altitude_relative
+            s.altitude_m = m.altitude_relative
         return []
 
-    def _vfr_hud(self, m: Any) -> list[Any]:
-        self.climb_mps = m.climb
+    def _vfr_hud(self, s: FollowedSystem, m: Any) -> list[Any]:
+        s.climb_mps = m.climb
         return []
 
-    def _gps_raw_int(self, m: Any) -> list[Any]:
-        self.gps = m
+    def _gps_raw_int(self, s: FollowedSystem, m: Any) -> list[Any]:
+        s.gps = m
         return []
 
-    def _global_position_int(self, m: Any) -> list[Any]:
-        self.altitude_m = m.relative_alt / 1000.0
-        if self.climb_mps is None:
-            self.climb_mps = -m.vz / 100.0
-        if not self._position_gate.ready(self.clock()):
+    def _global_position_int(self, s: FollowedSystem, m: Any) -> list[Any]:
+        s.altitude_m = m.relative_alt / 1000.0
+        if s.climb_mps is None:
+            s.climb_mps = -m.vz / 100.0
+        if not s.position_gate.ready(self.clock()):
             return []
         gs = math.hypot(m.vx, m.vy) / 100.0
         course = (m.hdg / 100.0) if m.hdg != 0xFFFF else None
-        g = self.gps
+        g = s.gps
         self.emit(Position(m.lat / 1e7, m.lon / 1e7, m.alt / 1000.0, m.relative_alt / 1000.0, gs,
                            course, g.satellites_visible if g is not None else None,
-                           g.fix_type if g is not None else None, origin=self.origin, via=self.via))
+                           g.fix_type if g is not None else None, origin=self.origin, via=s.via,
+                           vehicle=s.vehicle))
         return []
 
-    def _battery_status(self, m: Any) -> list[Any]:
-        self.saw_battery_status = True
+    def _battery_status(self, s: FollowedSystem, m: Any) -> list[Any]:
+        s.saw_battery_status = True
         cells = [v for v in m.voltages if v != 0xFFFF]
         ext = [v for v in getattr(m, "voltages_ext", []) or [] if v]
         volts = (sum(cells) + sum(ext)) / 1000.0 if cells else math.nan
@@ -258,24 +295,24 @@ class VehicleListener:
                           m.current_battery / 100.0 if m.current_battery != -1 else None,
                           float(m.current_consumed) if m.current_consumed != -1 else None,
                           m.battery_remaining if m.battery_remaining != -1 else None,
-                          m.id, origin=self.origin, via=self.via))
+                          m.id, origin=self.origin, via=s.via, vehicle=s.vehicle))
         return []
 
-    def _sys_status(self, m: Any) -> list[Any]:
-        if self.saw_battery_status or m.voltage_battery == 0xFFFF:
+    def _sys_status(self, s: FollowedSystem, m: Any) -> list[Any]:
+        if s.saw_battery_status or m.voltage_battery == 0xFFFF:
             return []
         self.emit(Battery(m.voltage_battery / 1000.0,
                           m.current_battery / 100.0 if m.current_battery != -1 else None, None,
                           m.battery_remaining if m.battery_remaining != -1 else None, 0,
-                          origin=self.origin, via=self.via))
+                          origin=self.origin, via=s.via, vehicle=s.vehicle))
         return []
 
-    def _aurora_sm_update(self, m: Any) -> list[Any]:
-        self.emit(sm_update_from_mavlink(m, self.origin)._replace(via=self.via))
+    def _aurora_sm_update(self, s: FollowedSystem, m: Any) -> list[Any]:
+        self.emit(sm_update_from_mavlink(m, self.origin)._replace(via=s.via, vehicle=s.vehicle))
         return []
 
-    def _aurora_status(self, m: Any) -> list[Any]:
-        self.emit(status_from_mavlink(m, self.origin)._replace(via=self.via))
+    def _aurora_status(self, s: FollowedSystem, m: Any) -> list[Any]:
+        self.emit(status_from_mavlink(m, self.origin)._replace(via=s.via, vehicle=s.vehicle))
         return []
 
 
@@ -336,7 +373,9 @@ class MavlinkSource(Source):
 
     def attach(self, context: GatewayContext) -> None:
         super().attach(context)
-        MavlinkHub.of(context).expect(VEHICLE)  # before the backend's first tick
+        hub = MavlinkHub.of(context)
+        hub.expect(VEHICLE)  # before the backend's first tick
+        hub.stems.add(self.vehicle)  # one vehicle per system heard: none of its own
 
     def _queue(self, msg: Any) -> None:  # the loop thread, under the router lock
         self._pending.append(msg)
@@ -372,6 +411,7 @@ class MavlinkSource(Source):
         self._sink = sink
         hub = MavlinkHub.of(self.context)
         listener = self.listener
+        listener.stem = self.vehicle  # (named by the gateway after construction)
         try:
             hub.join(listener, VEHICLE, step=-1, signing_key=self.signing_key)
         except ValueError as exc:
@@ -418,5 +458,7 @@ class MavlinkSource(Source):
         router = self.router
         with router.lock if router is not None else contextlib.nullcontext():
             eps = {ep.name: ep.stats() for ep in self.endpoints}
+            systems = {str(s.sysid): s.vehicle for s in self.listener.systems.values()}
         return {"emitted": self.emitted, "target_system": self.listener.target_system,
-                "sysid": self.listener.sysid, "endpoints": eps}
+                "sysid": self.listener.sysid, "systems": systems,
+                "systems_ignored": self.listener.systems_ignored, "endpoints": eps}

@@ -233,6 +233,7 @@ class AuroraVehicle:
         mav.MAVLINK_MSG_ID_MISSION_REQUEST_LIST, mav.MAVLINK_MSG_ID_MISSION_COUNT,
         mav.MAVLINK_MSG_ID_MISSION_CLEAR_ALL, mav.MAVLINK_MSG_ID_MISSION_ACK,
         mav.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE, mav.MAVLINK_MSG_ID_MANUAL_CONTROL,
+        mav.MAVLINK_MSG_ID_PING,
     })
 
     #: Our HEARTBEAT's type: how the router tells our own frames coming back from another
@@ -252,9 +253,14 @@ class AuroraVehicle:
         pad_altitude_amsl_m: float = 0.0,
         version: str = "0.0.0",
         clock: Callable[[], float] = time.monotonic,
+        vehicle: str = "",
     ) -> None:
         self.sysid = sysid
         self.compid = compid
+        #: the gateway's name of the vehicle this system is ("" for a backend on its own)
+        self.vehicle = vehicle
+        #: on the air: its id is claimed (see the backend)
+        self.spoken = False
         self.consumed = self.CONSUMED
         self.stale_after_s = stale_after_s
         self.pad_altitude_amsl_m = pad_altitude_amsl_m
@@ -552,9 +558,16 @@ class AuroraVehicle:
         """Answers to one decoded request addressed to this vehicle (or broadcast)."""
         mid = msg.get_msgId()
         if mid in (mav.MAVLINK_MSG_ID_COMMAND_LONG, mav.MAVLINK_MSG_ID_COMMAND_INT):
+            if msg.target_system == 0 and _discovery(msg):
+                # every system answers who it is (each of the gateway's vehicles, from its id)
+                return self._command(msg, src_sysid, src_compid)
             if msg.target_system != self.sysid or msg.target_component not in (0, self.compid):
-                return []  # broadcast commands are not acknowledged by every system
+                return []  # other broadcast commands are not acknowledged by every system
             return self._command(msg, src_sysid, src_compid)
+        if mid == mav.MAVLINK_MSG_ID_PING:
+            if msg.target_system != 0 or msg.target_component != 0:
+                return []  # an answer to somebody's ping, or a ping for another system
+            return [mav.MAVLink_ping_message(msg.time_usec, msg.seq, src_sysid, src_compid)]
         if mid == mav.MAVLINK_MSG_ID_MISSION_REQUEST_LIST:
             if not self._mine(msg):
                 return []
@@ -695,6 +708,14 @@ class AuroraVehicle:
             n, i + 1, mav.MAV_STANDARD_MODE_NON_STANDARD, number,
             mav.MAV_MODE_PROPERTY_NOT_USER_SELECTABLE, _text(name, 35))
             for i, (number, name) in enumerate(names)]
+
+
+def _discovery(msg: Any) -> bool:
+    """A broadcast command every system answers: who are you (AUTOPILOT_VERSION)."""
+    cmd = msg.command
+    return cmd == mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES or (
+        cmd == mav.MAV_CMD_REQUEST_MESSAGE
+        and int(msg.param1) == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 
 
 def aurora_sm_update(m: SmUpdate) -> Any:
