@@ -23,7 +23,8 @@ from gateway.backend import Backend, BackendError, GatewayContext, Routes
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkEvent, SmUpdate, Status
-from gateway.vehicles import SERVICE as VEHICLES, SourceVehicle
+from gateway.vehicles import SERVICE as VEHICLES
+from gateway.vehicles import SourceVehicle
 
 SIMPLE = 0  # sm_type of the SIMPLE state machine
 STATES = {"IDLE": 0, "ARMED": 1, "BOOST": 2}  # dialects/states.py: the SIMPLE enum

@@ -1,7 +1,8 @@
 """The status page in a real browser: Debian's headless Chromium loads the page of an HTTP
 backend fed two simulated climbs (vehicles alpha and beta), and the altitude each vehicle's
-card shows changes (the EventSource updates the DOM).  Chromium is driven over its DevTools protocol (the ``websockets`` client); skips,
-saying why, where no Chromium is installed (``.ci/run`` installs it)."""
+card shows changes (the EventSource updates the DOM).  Chromium is driven over its DevTools
+protocol (the ``websockets`` client); skips, saying why, where no Chromium is installed
+(``.ci/run`` installs it)."""
 
 from __future__ import annotations
 

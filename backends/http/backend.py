@@ -180,7 +180,11 @@ class HttpBackend(Backend):
         view.heard_at = time.monotonic()
         return view
 
-    def _store(self, msg: Any) -> VehicleView | None:
+    def _store(self, msg: Any) -> None:
+        self._keep(msg)
+
+    def _keep(self, msg: Any) -> VehicleView | None:
+        """Keep ``msg`` as its vehicle's latest of its kind, count it; its vehicle's view."""
         k = kind(msg)
         self.messages_in[k] += 1
         view = self._view(msg)
@@ -190,14 +194,14 @@ class HttpBackend(Backend):
         return view
 
     def on_sm_update(self, msg: SmUpdate) -> None:
-        view = self._store(msg)
+        view = self._keep(msg)
         alt = msg.altitude_m
         if view is not None and alt == alt and (view.max_altitude is None
                                                 or alt > view.max_altitude):
             view.max_altitude = alt  # alt == alt: NaN never becomes the maximum
 
     def on_vehicle_state(self, msg: VehicleState) -> None:
-        view = self._store(msg)
+        view = self._keep(msg)
         alt = msg.altitude_m
         if view is not None and alt is not None and alt == alt and (
                 view.max_altitude is None or alt > view.max_altitude):
