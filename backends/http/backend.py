@@ -164,20 +164,15 @@ class HttpBackend(Backend):
                 .on(Position, self._store).on(Battery, self._store)
                 .on(VehicleState, self.on_vehicle_state))
 
-    def _view(self, msg: Any) -> VehicleView | None:
-        name = msg.vehicle or self._unnamed
-        view = self.vehicles.get(name)
-        if view is None:
-            if len(self.vehicles) >= MAX_VEHICLES:
-                self.vehicles_refused += 1
-                if self.vehicles_refused == 1:
-                    log.warning("%s: more than %d vehicles: the messages of the others are "
-                                "counted (vehicles_refused), not shown", self.name,
-                                MAX_VEHICLES)
-                return None
-            view = self.vehicles[name] = VehicleView(name)
-        view.origin = msg.origin
-        view.heard_at = time.monotonic()
+    def _new_view(self, name: str) -> VehicleView | None:
+        """A view for a vehicle first heard (None past the cap: counted, logged once)."""
+        if len(self.vehicles) >= MAX_VEHICLES:
+            self.vehicles_refused += 1
+            if self.vehicles_refused == 1:
+                log.warning("%s: more than %d vehicles: the messages of the others are "
+                            "counted (vehicles_refused), not shown", self.name, MAX_VEHICLES)
+            return None
+        view = self.vehicles[name] = VehicleView(name)
         return view
 
     def _store(self, msg: Any) -> None:
@@ -187,8 +182,11 @@ class HttpBackend(Backend):
         """Keep ``msg`` as its vehicle's latest of its kind, count it; its vehicle's view."""
         k = kind(msg)
         self.messages_in[k] += 1
-        view = self._view(msg)
+        name = msg.vehicle or self._unnamed
+        view = self.vehicles.get(name) or self._new_view(name)
         if view is not None:
+            view.origin = msg.origin
+            view.heard_at = _monotonic()
             view.latest[k] = msg
             view.messages_in[k] += 1
         return view
@@ -464,6 +462,7 @@ class HttpBackend(Backend):
 
 
 _ACCEPTED = Outcome.ACCEPTED
+_monotonic = time.monotonic
 #: An event stream lasts ``client_timeout_s``; then it ends and the viewer's EventSource
 #: reconnects after this many milliseconds.  A viewer that stopped reading is so let go
 #: within that time: a server cannot see it otherwise, as the viewer's kernel keeps taking
