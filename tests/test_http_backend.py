@@ -361,7 +361,7 @@ def test_status_json_and_metrics_keep_each_vehicle_apart(gw: Any) -> None:
     # the configured source's vehicle, once heard, is the single-vehicle view
     d.dispatch(sm(5000, 42.0))
     s = json.loads(request(b, "GET", "/status.json")[2])
-    assert list(s["vehicles"]) == ["alpha", "beta", "sim"]
+    assert list(s["vehicles"]) == ["sim", "alpha", "beta"]  # the configured one first
     assert s["vehicle"]["name"] == "sim" and s["vehicle"]["altitude_m"] == 42.0
 
 

@@ -243,6 +243,9 @@ def test_a_row_per_vehicle_and_the_detail_of_the_selected_one() -> None:
     assert "vehicle beta" in text and re.search(r"altitude\s+509\.0 m", text)
     assert "7.90 V" in text and re.search(r"▶\s+beta", text)
     assert state.select(1) == "alpha" and state.select(-1) == "beta"  # wrapping
+    state.set_order(["beta", "alpha"])  # the configured sources' order comes first
+    assert [v.name for v in state.vehicle_list()] == ["beta", "alpha"]
+    assert re.search(r"▶\s+beta\s+APOGEE.*\n.*alpha\s+BOOST", screen(state, 1.0))
 
 
 def test_plain_lines_one_per_vehicle_with_its_own_values() -> None:

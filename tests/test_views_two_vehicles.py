@@ -114,6 +114,7 @@ def test_status_json_metrics_and_foxglove_keep_each_vehicle(feeds: list[str]) ->
             return set(status["vehicles"]) == set(BASE_M)
 
         assert wait_for(both_heard, timeout=15), status
+        assert list(status["vehicles"]) == ["alpha", "beta"]  # the sources' order
         for name, entry in status["vehicles"].items():
             assert entry["name"] == name and entry["source"] == name
             assert in_range(name, entry["altitude_m"]), (name, entry)
@@ -161,6 +162,8 @@ def test_the_monitor_prints_a_line_per_vehicle(feeds: list[str]) -> None:
              for line in proc.stdout.splitlines()]
     heard = [f for f in lines if f["alt_m"] != "–"]
     assert {f["vehicle"] for f in heard} == set(BASE_M), proc.stdout[-2000:]
+    names = [f["vehicle"] for f in lines]
+    assert names[-2:] == ["alpha", "beta"]  # each refresh: a line each, the sources' order
     for f in heard:
         assert in_range(f["vehicle"], float(f["alt_m"])), f
         assert in_range(f["vehicle"], float(f["max_alt_m"])), f

@@ -13,9 +13,10 @@ connection: :mod:`backends.http.connection`; no thread per connection):
     values (the same JSON as ``/status.json``);
 ``/status.json``
     that JSON once: ``vehicles``, one entry per vehicle keyed by its name (see
-    :meth:`HttpBackend.vehicle_entry`), the gateway-wide fields beside it (uptime, links per
-    source, messages in, every backend's and source's counters) and ``vehicle``, the entry
-    of the first vehicle (:meth:`HttpBackend.primary`: a single-vehicle view, as before);
+    :meth:`HttpBackend.vehicle_entry`; in the order of :meth:`HttpBackend.ordered`), the
+    gateway-wide fields beside it (uptime, links per source, messages in, every backend's
+    and source's counters) and ``vehicle``, the entry of the first vehicle
+    (:meth:`HttpBackend.primary`: a single-vehicle view, as before);
 ``/metrics``
     Prometheus text format, written by ``prometheus-client`` from a collector of our own:
     gauges for altitude, max altitude, state, armed and link and messages in per kind, each
@@ -137,6 +138,7 @@ class HttpBackend(Backend):
         self.vehicles_refused = 0
         self._unnamed = UNNAMED  # the vehicle of a message without one (see init)
         self._first = ""  # the first configured source's vehicle (see primary)
+        self._rank: dict[str, int] = {}  # configured vehicle → its place (see ordered)
         self._links: dict[str, bool] = {}  # source → up, from LinkEvents
         self.messages_in: Counter[str] = Counter()
         self.limits = ClientLimits.of(options, EVENTS_QUEUED)
@@ -247,6 +249,12 @@ class HttpBackend(Backend):
                 out["armed"] = st.armed
         return out
 
+    def ordered(self) -> list[VehicleView]:
+        """Every vehicle: the configured sources' in their order, then the others in the
+        order first heard (the page's cards keep their places from one run to the next)."""
+        rank, last = self._rank, len(self._rank)
+        return sorted(self.vehicles.copy().values(), key=lambda v: rank.get(v.name, last))
+
     def vehicle_link(self, view: VehicleView) -> bool | None:
         """The link of the source ``view`` is heard from (None: no link event of it yet)."""
         return self._links.get(view.origin)
@@ -290,8 +298,7 @@ class HttpBackend(Backend):
         backends = {name: _counters(st) for name, st in stats.get("backends", {}).items()}
         sources = {name: _counters(st) for name, st in stats.get("sources", {}).items()}
         now = time.monotonic()
-        vehicles = {name: self.vehicle_entry(view, now)
-                    for name, view in self.vehicles.copy().items()}
+        vehicles = {view.name: self.vehicle_entry(view, now) for view in self.ordered()}
         primary = self.primary()
         return {
             "time": time.time(),
@@ -319,6 +326,7 @@ class HttpBackend(Backend):
         configured = self.context.services.get(VEHICLES_SERVICE) or ()
         if configured:
             self._first = self._unnamed = configured[0].vehicle or UNNAMED
+        self._rank = {sv.vehicle: i for i, sv in enumerate(configured)}
         try:
             from prometheus_client import CollectorRegistry
         except ImportError as exc:
@@ -511,7 +519,7 @@ class _Collector:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         b = self.backend
-        views = list(b.vehicles.copy().values())
+        views = b.ordered()
         gauges = {name: GaugeMetricFamily(name, doc, labels=["vehicle"]) for name, doc in (
             ("aurora_altitude_meters", "altitude of the vehicle"),
             ("aurora_max_altitude_meters", "highest altitude seen"),

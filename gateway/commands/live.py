@@ -168,6 +168,7 @@ class LiveState:
         self.vehicles: dict[str, VehicleLive] = {}
         self.vehicles_refused = 0
         self.selected: str | None = None  # None: the first vehicle
+        self._rank: dict[str, int] = {}  # configured vehicle → its place (set_order)
         self.links: dict[str, bool] = {}
         self.messages = 0
         self.frames = 0
@@ -264,18 +265,25 @@ class LiveState:
 
     # -- selecting (the view's thread) --------------------------------------------------------
 
-    def vehicle_list(self) -> list[VehicleLive]:
-        """Every vehicle, in the order first heard."""
+    def set_order(self, configured: Iterable[str]) -> None:
+        """The configured sources' vehicles, in order: they are listed first, in that order."""
         with self._lock:
-            return list(self.vehicles.values())
+            self._rank = {name: i for i, name in enumerate(configured)}
+
+    def vehicle_list(self) -> list[VehicleLive]:
+        """Every vehicle: the configured ones in their order (:meth:`set_order`), then the
+        others in the order first heard."""
+        with self._lock:
+            rank, last = self._rank, len(self._rank)
+            return sorted(self.vehicles.values(), key=lambda v: rank.get(v.name, last))
 
     def current(self) -> VehicleLive:
-        """The selected vehicle (the first heard until one is selected; before any, an empty
-        one)."""
+        """The selected vehicle (the first listed until one is selected; before any, an
+        empty one)."""
         with self._lock:
             v = self.vehicles.get(self.selected) if self.selected is not None else None
-            if v is None:
-                v = next(iter(self.vehicles.values()), None)
+        if v is None:
+            v = next(iter(self.vehicle_list()), None)
         return v if v is not None else VehicleLive("–", self.window_s)
 
     def select(self, step: int) -> str:
@@ -404,8 +412,8 @@ def plain_line(state: LiveState, now: float, v: VehicleLive | None = None) -> st
 
 
 def plain_lines(state: LiveState, now: float) -> list[str]:
-    """One :func:`plain_line` per vehicle, in the order first heard (before any: one line of
-    an empty vehicle, ``vehicle=–``)."""
+    """One :func:`plain_line` per vehicle, in :meth:`LiveState.vehicle_list`'s order (before
+    any: one line of an empty vehicle, ``vehicle=–``)."""
     vehicles = state.vehicle_list() or [state.current()]
     return [plain_line(state, now, v) for v in vehicles]
 

@@ -31,7 +31,7 @@ import time
 from collections.abc import Iterator
 from typing import Any, TextIO
 
-from gateway import config
+from gateway import config, vehicles
 from gateway.app import Gateway
 from gateway.backend import Backend, Routes
 from gateway.commands import cli
@@ -253,6 +253,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     else:
         cli.setup_logging(level)
     gw = Gateway(cfg, status_out=sys.stderr)
+    state.set_order(sv.vehicle for sv in gw.context.services.get(vehicles.SERVICE, ()))
     gw.dispatcher.add(LiveFeed(state))
     srcs = ", ".join(s.name for s in gw.sources)
     state.title = f"aurora-gateway monitor · {srcs}"
