@@ -26,20 +26,39 @@ from websockets.exceptions import ConnectionClosed, InvalidStatus
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
-from backends.foxglove.backend import FoxgloveBackend, quaternion_from_euler
+from backends.foxglove.backend import (
+    MAX_VEHICLES,
+    UNNAMED,
+    FoxgloveBackend,
+    quaternion_from_euler,
+)
 from backends.foxglove.options import FoxgloveOptions
 from gateway import config, registry
 from gateway.backend import GatewayContext, Outcome
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkStats, Position, SmUpdate, Status
+from gateway.vehicles import SERVICE as VEHICLES
+from gateway.vehicles import SourceVehicle
 
 DEADLINE_S = 5.0
 # The protocol's name since foxglove-sdk 0.15-ish; the SDK's server refuses the older name
 # (test_the_legacy_protocol_name_alone_is_refused), the messages are the same.
 SUBPROTOCOL = "foxglove.sdk.v1"
 LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
-TOPICS = {"/aurora/state", "/aurora/altitude", "/aurora/attitude", "/aurora/position",
-          "/aurora/link", "/aurora/status", "/aurora/backends"}
+LEAVES = ("state", "altitude", "attitude", "position", "link", "status")
+BACKENDS = "/aurora/backends"
+
+
+def topics(vehicle: str) -> set[str]:
+    """A vehicle's topics."""
+    return {f"/aurora/{vehicle}/{leaf}" for leaf in LEAVES}
+
+
+def one_source(name: str = "sim") -> GatewayContext:
+    """The context of a gateway with one source, ``name`` (its vehicle has that name)."""
+    ctx = GatewayContext()
+    ctx.services[VEHICLES] = [SourceVehicle(name, name)]
+    return ctx
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -127,8 +146,13 @@ class FoxgloveClient:
         self.server_info: dict[str, Any] | None = None
         self.channels: dict[str, dict[str, Any]] = {}  # topic → advertised channel
         self.by_sub: dict[int, str] = {}
+        self.subscribed: set[str] = set()
+        self.wait_topics({BACKENDS})
+
+    def wait_topics(self, wanted: set[str]) -> None:
+        """Read the server's messages until ``wanted`` topics are advertised."""
         deadline = time.monotonic() + DEADLINE_S
-        while self.server_info is None or set(self.channels) < TOPICS:
+        while self.server_info is None or not set(self.channels) >= wanted:
             msg = self.ws.recv(timeout=max(0.0, deadline - time.monotonic()))
             assert isinstance(msg, str), "binary data before any subscription"
             op = json.loads(msg)
@@ -138,12 +162,17 @@ class FoxgloveClient:
                 for ch in op["channels"]:
                     self.channels[ch["topic"]] = ch
 
-    def subscribe_all(self) -> None:
+    def subscribe_all(self) -> int:
+        """Subscribe to every advertised channel not subscribed yet; the subscriptions held."""
         subs = []
-        for sub_id, (topic, ch) in enumerate(sorted(self.channels.items()), start=1):
-            self.by_sub[sub_id] = topic
-            subs.append({"id": sub_id, "channelId": ch["id"]})
+        for topic, ch in sorted(self.channels.items()):
+            if topic not in self.subscribed:
+                sub_id = len(self.by_sub) + 1
+                self.by_sub[sub_id] = topic
+                self.subscribed.add(topic)
+                subs.append({"id": sub_id, "channelId": ch["id"]})
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+        return len(self.subscribed)
 
     def read(self, want: dict[str, int]) -> dict[str, list[tuple[int, bytes]]]:
         """messageData per topic (log time ns, payload) until ``want`` counts arrived."""
@@ -217,6 +246,7 @@ def assert_same_rotation(q: dict[str, float], roll: float, pitch: float, yaw: fl
 
 def test_a_client_sees_the_channels_and_the_flight() -> None:
     backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
+    backend.attach(one_source("sim"))  # a message without a vehicle: the source's, sim
     dispatcher = Dispatcher([backend])
     assert dispatcher.start() == []
     try:
@@ -231,21 +261,35 @@ def test_a_client_sees_the_channels_and_the_flight() -> None:
     assert backend.stats()["link"] == 0
 
 
+def prime(dispatcher: Dispatcher, vehicle: str = "") -> None:
+    """One message of each kind, all logged (before any subscription: nobody gets them): a
+    vehicle's channels are created at its first message."""
+    for msg in (sm(0), Position(lat_deg=0.0, lon_deg=0.0), Status(0, 0, 0, 0), LinkStats()):
+        assert dispatcher.dispatch(msg._replace(vehicle=vehicle)) == Outcome.ACCEPTED
+    for backend in dispatcher.backends():
+        assert isinstance(backend, FoxgloveBackend) and backend.wait_idle(DEADLINE_S)
+
+
 def check_a_flight(backend: FoxgloveBackend, dispatcher: Dispatcher,
-                   client: FoxgloveClient) -> None:
+                   client: FoxgloveClient, vehicle: str = "sim") -> None:
     assert client.server_info is not None
+    assert set(client.channels) == {BACKENDS}  # no vehicle heard yet: no vehicle channel
+    prime(dispatcher)
+    client.wait_topics(topics(vehicle))
+    assert set(client.channels) == {BACKENDS} | topics(vehicle)
     chans = client.channels
-    for topic in ("/aurora/state", "/aurora/altitude", "/aurora/link", "/aurora/status"):
-        assert chans[topic]["encoding"] == "json"
-        assert chans[topic]["schemaEncoding"] == "jsonschema"
-        assert json.loads(chans[topic]["schema"])["type"] == "object"
-    assert chans["/aurora/attitude"]["schemaName"] == "foxglove.FrameTransform"
-    assert chans["/aurora/position"]["schemaName"] == "foxglove.LocationFix"
-    for topic in ("/aurora/attitude", "/aurora/position"):
-        assert chans[topic]["encoding"] == "protobuf"
-    client.subscribe_all()
-    assert backend.wait_subscriptions(len(TOPICS), DEADLINE_S)
+    t = {leaf: f"/aurora/{vehicle}/{leaf}" for leaf in LEAVES}
+    for leaf in ("state", "altitude", "link", "status"):
+        assert chans[t[leaf]]["encoding"] == "json"
+        assert chans[t[leaf]]["schemaEncoding"] == "jsonschema"
+        assert json.loads(chans[t[leaf]]["schema"])["type"] == "object"
+    assert chans[t["attitude"]]["schemaName"] == "foxglove.FrameTransform"
+    assert chans[t["position"]]["schemaName"] == "foxglove.LocationFix"
+    for leaf in ("attitude", "position"):
+        assert chans[t[leaf]]["encoding"] == "protobuf"
+    assert backend.wait_subscriptions(client.subscribe_all(), DEADLINE_S)
     assert backend.stats()["clients"] == 1
+    primed = 3 + 3
 
     updates = [sm(i) for i in range(5)]
     pos = Position(lat_deg=46.5191, lon_deg=6.5668, alt_amsl_m=412.5)
@@ -255,46 +299,104 @@ def check_a_flight(backend: FoxgloveBackend, dispatcher: Dispatcher,
     before = time.time_ns()
     for msg in (*updates, pos, status, link):
         assert dispatcher.dispatch(msg) == Outcome.ACCEPTED
-    got = client.read({"/aurora/state": 5, "/aurora/altitude": 5, "/aurora/attitude": 5,
-                       "/aurora/position": 1, "/aurora/status": 1, "/aurora/link": 1})
+    got = client.read({t["state"]: 5, t["altitude"]: 5, t["attitude"]: 5,
+                       t["position"]: 1, t["status"]: 1, t["link"]: 1})
+    got = {leaf: got[t[leaf]] for leaf in LEAVES}
     after = time.time_ns()
 
-    for u, (t, data) in zip(updates, got["/aurora/state"], strict=True):
-        assert before <= t <= after  # log time: when the update reached the gateway
+    for u, (log_time, data) in zip(updates, got["state"], strict=True):
+        assert before <= log_time <= after  # log time: when the update reached the gateway
         assert json.loads(data) == {"timestamp_ms": u.timestamp_ms, "state": u.state,
                                     "state_name": u.state_name, "armed": u.armed,
                                     "sm_type": u.sm_type}
-    for u, (_, data) in zip(updates, got["/aurora/altitude"], strict=True):
+    for u, (_, data) in zip(updates, got["altitude"], strict=True):
         d = json.loads(data)
         assert (d["altitude_m"], d["velocity_mps"], d["acceleration_mps2"],
                 d["accel_vert_mps2"]) == (u.altitude_m, u.velocity_mps, u.acceleration_mps2,
                                           u.accel_vert_mps2)
 
-    fds = base64.b64decode(chans["/aurora/attitude"]["schema"])
+    fds = base64.b64decode(chans[t["attitude"]]["schema"])
     msgs = descriptor_messages(fds)
-    for u, (_, data) in zip(updates, got["/aurora/attitude"], strict=True):
+    for u, (_, data) in zip(updates, got["attitude"], strict=True):
         tf = decode_proto(data, "foxglove.FrameTransform", msgs)
-        assert (tf["parent_frame_id"], tf["child_frame_id"]) == ("world", "rocket")
+        assert (tf["parent_frame_id"], tf["child_frame_id"]) == ("world", vehicle)
         assert tf.get("translation", {}).get("z", 0.0) == u.altitude_m
         assert_same_rotation(tf["rotation"], u.roll_rad, u.pitch_rad, u.yaw_rad)
 
-    msgs = descriptor_messages(base64.b64decode(chans["/aurora/position"]["schema"]))
-    fix = decode_proto(got["/aurora/position"][0][1], "foxglove.LocationFix", msgs)
+    msgs = descriptor_messages(base64.b64decode(chans[t["position"]]["schema"]))
+    fix = decode_proto(got["position"][0][1], "foxglove.LocationFix", msgs)
+    assert fix["frame_id"] == vehicle
     assert (fix["latitude"], fix["longitude"], fix["altitude"]) == (46.5191, 6.5668, 412.5)
 
-    st_ = json.loads(got["/aurora/status"][0][1])
+    st_ = json.loads(got["status"][0][1])
     assert st_["flags"] == status.flags and st_["state"] == 3
     assert (st_["armed"], st_["imu_ok"], st_["baro_ok"], st_["calibrated"],
             st_["log_ready"]) == (True, False, True, False, True)
-    lk = json.loads(got["/aurora/link"][0][1])
+    lk = json.loads(got["link"][0][1])
     assert (lk["rssi_dbm"], lk["link_quality_pct"], lk["snr_db"]) == (-71.0, 98, 7.5)
     assert lk["tx_power_mw"] is None
 
     # the worker counts a message once logged: the client may see it a moment before
-    assert wait_for(lambda: backend.stats()["sent"] == 5 * 3 + 3)
+    assert wait_for(lambda: backend.stats()["sent"] == primed + 5 * 3 + 3)
     s = backend.stats()
     assert s["dropped"] == 0 and s["errors"] == 0
     assert s["link"] == 1
+
+
+def test_each_vehicle_has_its_topics_frame_and_own_values() -> None:
+    """Two rockets, alpha near 100 m and beta near 500 m: each vehicle's channels carry its
+    own rocket's values only, each transform its own frame (world → the vehicle)."""
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
+    backend.attach(one_source("alpha"))
+    dispatcher = Dispatcher([backend])
+    assert dispatcher.start() == []
+    base = {"alpha": 100.0, "beta": 500.0}
+    try:
+        with foxglove_client(backend.port) as client:
+            for name in base:
+                prime(dispatcher, name)
+            client.wait_topics(topics("alpha") | topics("beta"))
+            assert set(client.channels) == {BACKENDS} | topics("alpha") | topics("beta")
+            assert backend.wait_subscriptions(client.subscribe_all(), DEADLINE_S)
+            for i in range(10):
+                for name, alt in base.items():
+                    msg = sm(i)._replace(altitude_m=alt + i, vehicle=name)
+                    assert dispatcher.dispatch(msg) == Outcome.ACCEPTED
+            got = client.read({f"/aurora/{name}/{leaf}": 10 for name in base
+                               for leaf in ("altitude", "attitude")})
+            msgs = descriptor_messages(base64.b64decode(
+                client.channels["/aurora/alpha/attitude"]["schema"]))
+            for name, alt in base.items():
+                alts = [json.loads(data)["altitude_m"]
+                        for _, data in got[f"/aurora/{name}/altitude"]]
+                assert alts == [alt + i for i in range(10)]
+                for i, (_, data) in enumerate(got[f"/aurora/{name}/attitude"]):
+                    tf = decode_proto(data, "foxglove.FrameTransform", msgs)
+                    assert (tf["parent_frame_id"], tf["child_frame_id"]) == ("world", name)
+                    assert tf["translation"]["z"] == alt + i
+        assert backend.stats()["vehicles"] == 2
+    finally:
+        dispatcher.close()
+
+
+def test_vehicles_past_the_cap_get_no_channels_and_are_counted() -> None:
+    """A peer inventing vehicle names cannot grow the server: past MAX_VEHICLES vehicles,
+    their messages are counted and dropped; the vehicles kept still get theirs."""
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0,
+                                              queue_depth=MAX_VEHICLES + 100))
+    dispatcher = Dispatcher([backend])
+    assert dispatcher.start() == []
+    try:
+        for i in range(MAX_VEHICLES + 30):
+            assert dispatcher.dispatch(sm(i)._replace(vehicle=f"v{i}")) == Outcome.ACCEPTED
+        assert dispatcher.dispatch(sm(1)._replace(vehicle="v0")) == Outcome.ACCEPTED
+        assert backend.wait_idle(DEADLINE_S * 4)
+        s = backend.stats()
+        assert (s["vehicles"], s["vehicles_refused"]) == (MAX_VEHICLES, 30)
+        assert s["sent"] == 3 * (MAX_VEHICLES + 1) and s["errors"] == 0
+        assert f"v{MAX_VEHICLES}" not in backend.vehicles and "v0" in backend.vehicles
+    finally:
+        dispatcher.close()
 
 
 def test_the_gateways_counters_every_second() -> None:
@@ -307,9 +409,8 @@ def test_the_gateways_counters_every_second() -> None:
     try:
         with foxglove_client(backend.port) as client:
             chans = client.channels
-            assert chans["/aurora/backends"]["schemaName"] == "aurora.GatewayCounters"
-            client.subscribe_all()
-            assert backend.wait_subscriptions(len(TOPICS), DEADLINE_S)
+            assert chans[BACKENDS]["schemaName"] == "aurora.GatewayCounters"
+            assert backend.wait_subscriptions(client.subscribe_all(), DEADLINE_S)
             got = client.read({"/aurora/backends": 2})  # one a second, without any update
             assert [json.loads(data) for _, data in got["/aurora/backends"]] == [counters] * 2
     finally:
@@ -349,8 +450,9 @@ def test_close_is_quick_safe_twice_and_frees_the_port() -> None:
     assert d.start() == []
     port = b.port
     with foxglove_client(port) as client:
-        client.subscribe_all()
-        assert b.wait_subscriptions(len(TOPICS), DEADLINE_S)
+        prime(d)
+        client.wait_topics(topics(UNNAMED))
+        assert b.wait_subscriptions(client.subscribe_all(), DEADLINE_S)
         for i in range(200):
             d.dispatch(sm(i))
         t0 = time.monotonic()
@@ -443,9 +545,11 @@ def test_config_errors_name_the_key(table: dict[str, Any], key: str) -> None:
 def test_the_shipped_layout_names_the_channels() -> None:
     layout = json.loads((ROOT / "docs" / "foxglove-layout.json").read_text())
     text = json.dumps(layout["configById"])
-    for path in ("/aurora/altitude.altitude_m", "/aurora/altitude.velocity_mps",
-                 "/aurora/state", "/aurora/position"):
+    # the default run's vehicle (`run --source sim`: sim) and its frame
+    for path in ("/aurora/sim/altitude.altitude_m", "/aurora/sim/altitude.velocity_mps",
+                 "/aurora/sim/state", "/aurora/sim/position", "/aurora/sim/attitude"):
         assert path in text
+    assert '"followTf": "sim"' in text and "/aurora/altitude" not in text
     assert "layout" in layout  # the panel tree refers to panels that are configured
     ids = set(layout["configById"])
 

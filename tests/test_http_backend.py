@@ -23,15 +23,20 @@ from gateway.backend import Backend, BackendError, GatewayContext, Routes
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
 from gateway.model import LinkEvent, SmUpdate, Status
+from gateway.vehicles import SERVICE as VEHICLES
+from gateway.vehicles import SourceVehicle
 
 SIMPLE = 0  # sm_type of the SIMPLE state machine
 STATES = {"IDLE": 0, "ARMED": 1, "BOOST": 2}  # dialects/states.py: the SIMPLE enum
 
 
-def sm(t_ms: int, altitude: float, state: int = 2, armed: bool = True) -> SmUpdate:
+def sm(t_ms: int, altitude: float, state: int = 2, armed: bool = True,
+       vehicle: str = "") -> SmUpdate:
+    """An update from the source ``sim`` (without a vehicle: the gateway's one source's)."""
     return SmUpdate(timestamp_ms=t_ms, state=state, armed=armed, sm_type=SIMPLE,
                     altitude_m=altitude, acceleration_mps2=0.0, accel_vert_mps2=0.0,
-                    velocity_mps=12.5, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0)
+                    velocity_mps=12.5, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0,
+                    origin="sim", vehicle=vehicle)
 
 
 class Probe(Backend):
@@ -60,6 +65,7 @@ def gw() -> Iterator[tuple[Dispatcher, HttpBackend, Probe]]:
     probe = Probe()
     ctx = GatewayContext(emit=d.dispatch)
     ctx.services["gateway.stats"] = lambda: {"backends": d.stats(), "sources": {}}
+    ctx.services[VEHICLES] = [SourceVehicle("sim", "sim")]  # one source, as `run --source sim`
     for x in (b, probe):
         x.attach(ctx)
         d.add(x)
@@ -136,17 +142,19 @@ def test_metrics_parse_with_prometheus_client_and_hold_the_values(gw: Any) -> No
     d.dispatch(LinkEvent(source="sim", up=True))
     climb(d, ALTITUDES)
     m = metrics(b)
-    assert m["aurora_altitude_meters"][()] == ALTITUDES[-1]
-    assert m["aurora_max_altitude_meters"][()] == max(ALTITUDES)
-    assert m["aurora_armed"][()] == 1.0
-    assert m["aurora_link_up"][()] == 1.0
-    assert m["aurora_state"] == {(("state", "BOOST"),): float(STATES["BOOST"])}
+    sim = (("vehicle", "sim"),)  # the per-vehicle series: labelled with the vehicle
+    assert m["aurora_altitude_meters"] == {sim: ALTITUDES[-1]}
+    assert m["aurora_max_altitude_meters"] == {sim: max(ALTITUDES)}
+    assert m["aurora_armed"] == {sim: 1.0}
+    assert m["aurora_link_up"] == {sim: 1.0}
+    assert m["aurora_state"] == {(("state", "BOOST"), *sim): float(STATES["BOOST"])}
     assert m["aurora_backend_sent_total"][(("backend", "probe"),)] == len(ALTITUDES)
     assert m["aurora_backend_dropped_total"][(("backend", "probe"),)] == 3
     assert m["aurora_backend_errors_total"][(("backend", "probe"),)] == 1
     assert m["aurora_backend_link"][(("backend", "http"),)] == 1
-    assert m["aurora_messages_in_total"] == {(("kind", "link"),): 1.0,
-                                             (("kind", "sm_update"),): len(ALTITUDES)}
+    assert m["aurora_messages_in_total"] == {(("kind", "sm_update"), *sim): len(ALTITUDES)}
+    assert m["aurora_link_events_total"] == {(): 1.0}
+    assert m["aurora_vehicles"] == {(): 1.0} and m["aurora_vehicles_refused_total"] == {(): 0}
     # the first scrape was a response the http backend sent (counted once written): the
     # next scrape shows it
     assert wait_for(lambda: b.stats()["sent"] >= 1)
@@ -226,7 +234,7 @@ def test_page_is_served_and_wires_the_event_stream(gw: Any) -> None:
     assert code == 200 and headers["Content-Type"].startswith("text/html")
     page = body.decode()
     assert 'new EventSource("events")' in page
-    for element in ("state", "armed", "altitude", "max_altitude", "link", "backends"):
+    for element in ("vehicles", "backends"):  # the vehicles' cards are made by the script
         assert f'id="{element}"' in page
     code, _, body = request(b, "HEAD", "/")
     assert code == 200 and body == b""
@@ -242,11 +250,16 @@ def test_other_paths_are_404(gw: Any, path: str) -> None:
 def test_nothing_changes_state(gw: Any, method: str) -> None:
     d, b, _ = gw
     climb(d, [100.0])
-    before = json.loads(request(b, "GET", "/status.json")[2])["vehicle"]
+    def vehicle() -> dict[str, Any]:
+        v = dict(json.loads(request(b, "GET", "/status.json")[2])["vehicle"])
+        del v["age_s"]  # time passes
+        return v
+
+    before = vehicle()
     for path in ("/", "/status.json", "/metrics", "/events"):
         code, headers, _ = request(b, method, path)
         assert code == 405 and headers["Allow"] == "GET, HEAD"
-    assert json.loads(request(b, "GET", "/status.json")[2])["vehicle"] == before
+    assert vehicle() == before
 
 
 def test_close_ends_open_streams_within_a_second_and_is_safe_twice() -> None:
@@ -311,3 +324,61 @@ def test_run_flags_loopback_by_default_and_off_by_default() -> None:
 def test_bad_config_names_the_key(key: str, value: Any) -> None:
     with pytest.raises(ConfigError, match=rf"backends\.http\.{key}"):
         config.parse({"backends": {"http": {key: value}}})
+
+
+def test_status_json_and_metrics_keep_each_vehicle_apart(gw: Any) -> None:
+    """Two rockets through one gateway: alpha near 100 m, beta near 500 m; every entry and
+    every series holds its own rocket's values only."""
+    d, b, _ = gw
+    d.dispatch(LinkEvent(source="a-src", up=True))
+    d.dispatch(LinkEvent(source="b-src", up=False, silence_s=3.0))
+    for i in range(20):
+        d.dispatch(sm(1000 + 10 * i, 100.0 + i % 3, vehicle="alpha")._replace(origin="a-src"))
+        d.dispatch(sm(1000 + 10 * i, 500.0 + i % 5, state=1, armed=False,
+                      vehicle="beta")._replace(origin="b-src"))
+    s = json.loads(request(b, "GET", "/status.json")[2])
+    assert list(s["vehicles"]) == ["alpha", "beta"]
+    alpha, beta = s["vehicles"]["alpha"], s["vehicles"]["beta"]
+    assert alpha["name"] == "alpha" and alpha["source"] == "a-src"
+    assert alpha["altitude_m"] == 100.0 + 19 % 3 and alpha["max_altitude_m"] == 102.0
+    assert beta["altitude_m"] == 500.0 + 19 % 5 and beta["max_altitude_m"] == 504.0
+    assert (alpha["state"], alpha["armed"], beta["state"], beta["armed"]) == (
+        "BOOST", True, "ARMED", False)
+    assert alpha["link"] is True and beta["link"] is False
+    assert alpha["messages_in"] == beta["messages_in"] == {"sm_update": 20}
+    assert 0 <= alpha["age_s"] < 60 and alpha["position"] is None
+    # the single-vehicle view is the first vehicle heard (no message of "sim" yet)
+    assert s["vehicle"] == alpha
+    assert s["messages_in"] == {"link": 2, "sm_update": 40}
+    m = metrics(b)
+    assert m["aurora_altitude_meters"] == {(("vehicle", "alpha"),): 101.0,
+                                           (("vehicle", "beta"),): 504.0}
+    assert m["aurora_max_altitude_meters"] == {(("vehicle", "alpha"),): 102.0,
+                                               (("vehicle", "beta"),): 504.0}
+    assert m["aurora_link_up"] == {(("vehicle", "alpha"),): 1.0, (("vehicle", "beta"),): 0.0}
+    assert m["aurora_state"] == {(("state", "BOOST"), ("vehicle", "alpha")): 2.0,
+                                 (("state", "ARMED"), ("vehicle", "beta")): 1.0}
+    # the configured source's vehicle, once heard, is the single-vehicle view
+    d.dispatch(sm(5000, 42.0))
+    s = json.loads(request(b, "GET", "/status.json")[2])
+    assert list(s["vehicles"]) == ["sim", "alpha", "beta"]  # the configured one first
+    assert s["vehicle"]["name"] == "sim" and s["vehicle"]["altitude_m"] == 42.0
+
+
+def test_vehicles_past_the_cap_are_counted_not_kept(gw: Any) -> None:
+    """A peer inventing vehicle names cannot grow the table: past MAX_VEHICLES their
+    messages are counted (vehicles_refused), the vehicles kept still update."""
+    from backends.http.backend import MAX_VEHICLES
+
+    d, b, _ = gw
+    for i in range(MAX_VEHICLES + 40):
+        d.dispatch(sm(1000, float(i), vehicle=f"v{i}"))
+    d.dispatch(sm(2000, 999.0, vehicle="v0"))
+    s = json.loads(request(b, "GET", "/status.json")[2])
+    assert len(s["vehicles"]) == MAX_VEHICLES and "v255" in s["vehicles"]
+    assert f"v{MAX_VEHICLES}" not in s["vehicles"]
+    assert s["vehicles_refused"] == 40 and b.stats()["vehicles_refused"] == 40
+    assert s["vehicles"]["v0"]["altitude_m"] == 999.0
+    m = metrics(b)
+    assert len(m["aurora_altitude_meters"]) == MAX_VEHICLES
+    assert m["aurora_vehicles_refused_total"] == {(): 40.0}

@@ -1,7 +1,8 @@
 """The status page in a real browser: Debian's headless Chromium loads the page of an HTTP
-backend fed a simulated climb, and the altitude it shows changes (the EventSource updates
-the DOM).  Chromium is driven over its DevTools protocol (the ``websockets`` client); skips,
-saying why, where no Chromium is installed (``.ci/run`` installs it)."""
+backend fed two simulated climbs (vehicles alpha and beta), and the altitude each vehicle's
+card shows changes (the EventSource updates the DOM).  Chromium is driven over its DevTools
+protocol (the ``websockets`` client); skips, saying why, where no Chromium is installed
+(``.ci/run`` installs it)."""
 
 from __future__ import annotations
 
@@ -34,13 +35,21 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-ne
          "--window-size=1000,700", "--remote-debugging-port=0"]
 
 
+#: the two vehicles and the altitude each climbs from
+START_M = {"alpha": 0.0, "beta": 500.0}
+
+
 def climbing(d: Dispatcher, stop: threading.Event) -> None:
-    """A rocket climbing at 150 m/s, an update every 50 ms, until ``stop``."""
-    d.dispatch(LinkEvent(source="sim", up=True))
+    """Two rockets climbing at 150 m/s, an update each every 50 ms, until ``stop``."""
+    for name in START_M:
+        d.dispatch(LinkEvent(source=f"{name}-src", up=True))
     for i in itertools.count():
-        d.dispatch(SmUpdate(timestamp_ms=50 * i, state=2, armed=True, sm_type=0,
-                            altitude_m=7.5 * i, acceleration_mps2=30.0, accel_vert_mps2=30.0,
-                            velocity_mps=150.0, roll_rad=0.0, pitch_rad=0.0, yaw_rad=0.0))
+        for name, start in START_M.items():
+            d.dispatch(SmUpdate(timestamp_ms=50 * i, state=2, armed=True, sm_type=0,
+                                altitude_m=start + 7.5 * i, acceleration_mps2=30.0,
+                                accel_vert_mps2=30.0, velocity_mps=150.0, roll_rad=0.0,
+                                pitch_rad=0.0, yaw_rad=0.0, origin=f"{name}-src",
+                                vehicle=name))
         if stop.wait(0.05):  # pacing the simulated flight, not synchronising the test
             return
 
@@ -83,9 +92,17 @@ class DevTools:
                 return dict(reply["result"])
 
     def text(self, element_id: str) -> str:
+        return self.selected(f"#{element_id}")
+
+    def selected(self, selector: str) -> str:
+        """The text of the first element ``selector`` selects ("None" when none does)."""
         r = self.call("Runtime.evaluate", returnByValue=True,
-                      expression=f"document.getElementById({element_id!r}).textContent")
+                      expression=f"document.querySelector({selector!r})?.textContent")
         return str(r["result"].get("value"))
+
+    def field(self, vehicle: str, name: str) -> str:
+        """A field of a vehicle's card."""
+        return self.selected(f'[data-vehicle="{vehicle}"] [data-field="{name}"]')
 
 
 @pytest.fixture
@@ -116,27 +133,36 @@ def browser(page_url: str, tmp_path: Path) -> Iterator[DevTools]:
             proc.wait(5)
 
 
-def shown_altitude(tools: DevTools) -> float | None:
+def shown_altitude(tools: DevTools, vehicle: str) -> float | None:
     try:
-        return float(tools.text("altitude"))
-    except ValueError:  # "—" until the first event
+        return float(tools.field(vehicle, "altitude"))
+    except ValueError:  # "—" until the first event, "None" until the card exists
         return None
 
 
-def test_the_page_shows_the_altitude_changing_live(browser: DevTools) -> None:
-    seen: list[float] = []
+def test_each_vehicle_card_shows_its_altitude_changing_live(browser: DevTools) -> None:
+    seen: dict[str, list[float]] = {name: [] for name in START_M}
 
-    def new_value() -> bool:
-        alt = shown_altitude(browser)
-        if alt is not None and (not seen or alt != seen[-1]):
-            seen.append(alt)
-        return len(seen) >= 2
+    def new_values() -> bool:
+        for name, values in seen.items():
+            alt = shown_altitude(browser, name)
+            if alt is not None and (not values or alt != values[-1]):
+                values.append(alt)
+        return all(len(values) >= 2 for values in seen.values())
 
-    assert wait_for(new_value, timeout=20, poll_s=0.05), f"altitude shown: {seen}"
-    assert seen[1] > seen[0], "the climb's altitude went down on the page"
+    assert wait_for(new_values, timeout=20, poll_s=0.05), f"altitudes shown: {seen}"
+    for name, values in seen.items():
+        assert values[1] > values[0], f"{name}'s climb went down on the page"
+    # each card its own rocket: beta climbs from 500 m, alpha from 0 (7.5 m per update)
+    assert min(seen["beta"]) >= START_M["beta"] > max(seen["alpha"])
     assert browser.text("conn") == "live"
-    assert browser.text("state") == "BOOST" and browser.text("armed") == "ARMED"
-    assert browser.text("link") == "up"
+    for name in START_M:
+        assert browser.field(name, "state") == "BOOST"
+        assert browser.field(name, "armed") == "ARMED"
+        assert browser.field(name, "link") == "up"
+    cards = browser.call("Runtime.evaluate", returnByValue=True, expression=(
+        "[...document.querySelectorAll('#vehicles .vehicle')].map(c => c.dataset.vehicle)"))
+    assert cards["result"]["value"] == list(START_M)
     rows = browser.call("Runtime.evaluate", returnByValue=True, expression=(
         "[...document.querySelectorAll('#backends tr')].map(r => r.cells[0].textContent)"))
     assert rows["result"]["value"] == ["http"]

@@ -35,8 +35,10 @@ from gateway.commands.live import (
     Speaker,
     endpoint_row,
     plain_line,
+    plain_lines,
     render,
 )
+from gateway.commands.monitor import read_keys
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Battery, LinkEvent, Position, SmUpdate, Status
 from gateway.sources.sim import flight_messages
@@ -212,6 +214,76 @@ def test_speaker_survives_a_program_that_cannot_start(tmp_path: Path) -> None:
     assert sp.say("boost") is False and sp.failed == 1
 
 
+def two_rockets(state: LiveState) -> None:
+    """alpha near 100 m and beta near 500 m, from sources a-src and b-src (beta's link down)."""
+    state.feed(LinkEvent("a-src", True), 0.0)
+    state.feed(LinkEvent("b-src", False, 3.0), 0.0)
+    for i in range(10):
+        for name, alt, st in (("alpha", 100.0, SimpleState.BOOST),
+                              ("beta", 500.0, SimpleState.APOGEE)):
+            state.feed(SmUpdate(timestamp_ms=100 * i, state=st, armed=True, sm_type=0,
+                                altitude_m=alt + i, acceleration_mps2=0.0,
+                                accel_vert_mps2=0.0, velocity_mps=float(i), roll_rad=0.0,
+                                pitch_rad=0.0, yaw_rad=0.0, origin=name[0] + "-src",
+                                vehicle=name), 0.1 * i)
+    state.feed(Battery(7.9, vehicle="beta"), 1.0)
+
+
+def test_a_row_per_vehicle_and_the_detail_of_the_selected_one() -> None:
+    state = LiveState()
+    two_rockets(state)
+    text = screen(state, 1.0)
+    assert re.search(r"▶\s+alpha\s+BOOST\s+yes\s+109\.0\s+109\.0\s+9\.0\s+up\s+0\.1", text)
+    assert re.search(r"│\s+beta\s+APOGEE\s+yes\s+509\.0\s+509\.0\s+9\.0\s+DOWN\s+0\.1", text)
+    # the detail: the first vehicle heard until another is selected
+    assert "vehicle alpha" in text and "vehicle beta" not in text
+    assert re.search(r"altitude\s+109\.0 m", text) and "7.90 V" not in text
+    assert state.select(1) == "beta"
+    text = screen(state, 1.0)
+    assert "vehicle beta" in text and re.search(r"altitude\s+509\.0 m", text)
+    assert "7.90 V" in text and re.search(r"▶\s+beta", text)
+    assert state.select(1) == "alpha" and state.select(-1) == "beta"  # wrapping
+    state.set_order(["beta", "alpha"])  # the configured sources' order comes first
+    assert [v.name for v in state.vehicle_list()] == ["beta", "alpha"]
+    assert re.search(r"▶\s+beta\s+APOGEE.*\n.*alpha\s+BOOST", screen(state, 1.0))
+
+
+def test_plain_lines_one_per_vehicle_with_its_own_values() -> None:
+    state = LiveState()
+    two_rockets(state)
+    lines = plain_lines(state, 1.0)
+    fields = [dict(tok.split("=", 1) for tok in line.split(" ")) for line in lines]
+    assert [f["vehicle"] for f in fields] == ["alpha", "beta"]
+    assert [f["alt_m"] for f in fields] == ["109.0", "509.0"]
+    assert [f["link"] for f in fields] == ["up", "DOWN"]
+    assert "batt_v" not in fields[0] and fields[1]["batt_v"] == "7.90"
+    assert plain_lines(LiveState(), 0.0)[0].startswith("vehicle=– state=–")  # nothing yet
+
+
+def test_announcements_name_the_vehicle_when_there_are_several() -> None:
+    said: list[str] = []
+    state = LiveState(on_announce=said.append)
+    two_rockets(state)
+    state.feed(SmUpdate(2000, SimpleState.APOGEE, True, 0, 110.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                        vehicle="alpha"), 2.0)
+    assert said == ["alpha apogee, 110 meters"]
+
+
+def test_vehicles_past_the_cap_are_counted_not_kept() -> None:
+    from gateway.commands.live import MAX_VEHICLES
+
+    state = LiveState()
+    for i in range(MAX_VEHICLES + 5):
+        state.feed(Battery(7.0, vehicle=f"v{i}"), 0.0)
+    assert len(state.vehicles) == MAX_VEHICLES and state.vehicles_refused == 5
+    assert "5 messages of more refused" in screen(state, 0.0)
+
+
+def test_keys_select_and_quit() -> None:
+    assert read_keys(b"\x1b[B\x1b[Aj\tk\x1b[Zxq") == [1, -1, 1, 1, -1, -1, None]
+    assert read_keys(b"\x1bOB") == [1] and read_keys(b"zz") == []
+
+
 # -- the console script -----------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
@@ -279,8 +351,8 @@ def test_ctrl_c_stops_the_status_lines_cleanly() -> None:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None
-        first = proc.stdout.readline()  # running: its first status line
-        assert first.startswith("state=")
+        first = proc.stdout.readline()  # running: its first status line (of its vehicle)
+        assert first.startswith("vehicle=sim state=")
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=5) == 0
     finally:
@@ -332,6 +404,48 @@ def test_full_screen_on_a_terminal_and_q_quits() -> None:
             proc.kill()
             proc.wait()
         os.close(master)
+
+
+def test_two_sources_two_rows_and_down_selects_the_second() -> None:
+    """``monitor --source alpha=sim --source beta=sim`` on a terminal: a row per vehicle;
+    the down arrow shows beta in detail."""
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 40, 110, 0, 0))
+    env = {**os.environ, "TERM": "xterm-256color"}
+    env.pop("COLUMNS", None)
+    env.pop("LINES", None)
+    proc = subprocess.Popen([str(CONSOLE), "monitor", "--source", "alpha=sim", "--source",
+                             "beta=sim", "--sim-speed", "5"],
+                            stdin=slave, stdout=slave, stderr=slave, env=env,
+                            start_new_session=True)
+    os.close(slave)
+    try:
+        shown = read_until(master, b"vehicle alpha", time.monotonic() + 10)
+        shown += read_until(master, b"beta", time.monotonic() + 10)
+        os.write(master, b"\x1b[B")  # down
+        read_until(master, b"vehicle beta", time.monotonic() + 10)
+        os.write(master, b"q")
+        assert proc.wait(timeout=5) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+
+
+def test_plain_lines_of_two_sources() -> None:
+    proc = subprocess.run([str(CONSOLE), "monitor", "--source", "alpha=sim", "--source",
+                           "beta=sim", "--sim-speed", "20", "--refresh", "0.2",
+                           "--duration", "1.5"],
+                          capture_output=True, text=True, timeout=30, check=False)
+    assert proc.returncode == 0, proc.stderr
+    fields = [dict(tok.split("=", 1) for tok in line.split(" "))
+              for line in proc.stdout.splitlines()]
+    assert len(fields) >= 4
+    assert {f["vehicle"] for f in fields} == {"alpha", "beta"}
+    for name in ("alpha", "beta"):
+        mine = [f for f in fields if f["vehicle"] == name]
+        assert mine and all(f["link"] == "up" for f in mine[-1:])
 
 
 def test_following_a_gateway_shows_its_backends_counters() -> None:

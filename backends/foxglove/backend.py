@@ -2,16 +2,24 @@
 (``foxglove.websocket.v1``) with ``foxglove-sdk``'s own server, so the Foxglove app (or any
 client of that protocol) plots it live.
 
-Channels (one :class:`foxglove.Context` per backend: two gateways in one process share
-nothing):
+Channels, per vehicle (``<vehicle>``: the vehicle's name, e.g. ``sim`` or ``alpha``; one
+:class:`foxglove.Context` per backend: two gateways in one process share nothing):
 
-``/aurora/state``     JSON: state name and number, armed, sm_type, flight time
-``/aurora/altitude``  JSON: altitude, vertical velocity, accelerations (plottable)
-``/aurora/attitude``  ``foxglove.FrameTransform`` (protobuf): parent ``world``, child
-                      ``rocket``, rotation from roll/pitch/yaw (Z-Y-X), z = altitude
-``/aurora/position``  ``foxglove.LocationFix`` (protobuf), when a Position arrives
-``/aurora/link``      JSON: LinkStats fields (``null`` = not reported)
-``/aurora/status``    JSON: STATUS flags byte and the named health booleans
+``/aurora/<vehicle>/state``     JSON: state name and number, armed, sm_type, flight time
+``/aurora/<vehicle>/altitude``  JSON: altitude, vertical velocity, accelerations (plottable)
+``/aurora/<vehicle>/attitude``  ``foxglove.FrameTransform`` (protobuf): parent ``world``,
+                                child ``<vehicle>``, rotation from roll/pitch/yaw (Z-Y-X),
+                                z = altitude
+``/aurora/<vehicle>/position``  ``foxglove.LocationFix`` (protobuf, frame ``<vehicle>``),
+                                when a Position arrives
+``/aurora/<vehicle>/link``      JSON: LinkStats fields (``null`` = not reported)
+``/aurora/<vehicle>/status``    JSON: STATUS flags byte and the named health booleans
+
+and, for the whole gateway, ``/aurora/backends`` (JSON: every backend's and source's
+counters, once a second).  A vehicle's channels are created when its first message is
+handled (a message without a vehicle is the first configured source's); at most
+:data:`MAX_VEHICLES` vehicles get channels, the messages of any further one are counted
+(``vehicles_refused``) and dropped: a peer cannot grow the server by inventing names.
 
 The dispatcher hands each message over to the backend's :class:`~gateway.io.ioloop.IoLoop`
 (:class:`~gateway.handover.Handover`: bounded by ``queue_depth``, full: ``QUEUE_FULL``,
@@ -40,23 +48,34 @@ from gateway.backend import Backend, BackendError, Routes
 from gateway.handover import Handover
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import LinkStats, Position, SmUpdate, Status
+from gateway.vehicles import SERVICE as VEHICLES_SERVICE
 
 log = logging.getLogger(__name__)
 
-TOPIC_STATE = "/aurora/state"
-TOPIC_ALTITUDE = "/aurora/altitude"
-TOPIC_ATTITUDE = "/aurora/attitude"
-TOPIC_POSITION = "/aurora/position"
-TOPIC_LINK = "/aurora/link"
-TOPIC_STATUS = "/aurora/status"
+#: The last level of a vehicle's topics (``/aurora/<vehicle>/<leaf>``, see :func:`topic`).
+TOPIC_STATE = "state"
+TOPIC_ALTITUDE = "altitude"
+TOPIC_ATTITUDE = "attitude"
+TOPIC_POSITION = "position"
+TOPIC_LINK = "link"
+TOPIC_STATUS = "status"
+#: The gateway's counters (one topic for the whole gateway).
 TOPIC_BACKENDS = "/aurora/backends"
+#: Vehicles given channels at most; the messages of any further vehicle are counted, dropped.
+MAX_VEHICLES = 256
+#: The vehicle of a message without one when no source is configured (tests, tools).
+UNNAMED = "vehicle"
 #: Seconds between two logs of the gateway's counters on ``/aurora/backends``.
 COUNTERS_INTERVAL_S = 1.0
 CLOSE_TIMEOUT_S = 0.5
 
-#: Frames of the attitude transform (the 3D panel's display frame is ``world``).
+#: The parent frame of every vehicle's attitude transform (its child: the vehicle's name).
 PARENT_FRAME = "world"
-CHILD_FRAME = "rocket"
+
+
+def topic(vehicle: str, leaf: str) -> str:
+    """A vehicle's topic: ``/aurora/<vehicle>/<leaf>``."""
+    return f"/aurora/{vehicle}/{leaf}"
 
 
 def _object(title: str, props: dict[str, Any]) -> dict[str, Any]:
@@ -67,7 +86,8 @@ _NUM = {"type": "number"}
 _OPT_NUM = {"type": ["number", "null"]}
 _OPT_INT = {"type": ["integer", "null"]}
 
-#: The JSON channels' schemas (JSON Schema; the title is the schema name clients see).
+#: The JSON channels' schemas (JSON Schema; the title is the schema name clients see), by
+#: topic leaf (a vehicle's) or topic (the gateway's).
 JSON_SCHEMAS: dict[str, dict[str, Any]] = {
     TOPIC_STATE: _object("aurora.State", {
         "timestamp_ms": {"type": "integer", "description": "flight computer time since boot"},
@@ -92,6 +112,35 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                      "dropped, errors, link, its own counters"},
         "sources": {"type": "object", "description": "each source's stats()"}}),
 }
+_SCHEMA_DATA = {key: orjson.dumps(schema) for key, schema in JSON_SCHEMAS.items()}
+
+
+class VehicleChannels:
+    """One vehicle's channels (created on the backend's loop when its first message comes)."""
+
+    __slots__ = ("altitude", "attitude", "frame", "link", "name", "position", "state", "status")
+
+    def __init__(self, name: str, context: Any) -> None:
+        self.name = name
+        self.frame = name  # the vehicle's frame: child of ``world`` in its transforms
+
+        def json_channel(leaf: str) -> Any:
+            return foxglove.Channel(
+                topic(name, leaf), message_encoding="json", context=context,
+                schema=foxglove.Schema(name=JSON_SCHEMAS[leaf]["title"], encoding="jsonschema",
+                                       data=_SCHEMA_DATA[leaf]))
+
+        self.state = json_channel(TOPIC_STATE)
+        self.altitude = json_channel(TOPIC_ALTITUDE)
+        self.link = json_channel(TOPIC_LINK)
+        self.status = json_channel(TOPIC_STATUS)
+        self.attitude = FrameTransformChannel(topic(name, TOPIC_ATTITUDE), context=context)
+        self.position = LocationFixChannel(topic(name, TOPIC_POSITION), context=context)
+
+    def close(self) -> None:
+        for ch in (self.state, self.altitude, self.link, self.status, self.attitude,
+                   self.position):
+            ch.close()
 
 
 def quaternion_from_euler(roll: float, pitch: float, yaw: float) -> tuple[float, float, float,
@@ -143,7 +192,7 @@ class _Listener(ServerListener):
 
 
 class FoxgloveBackend(Backend):
-    """Serves the rocket's channels to Foxglove (see the module docstring)."""
+    """Serves each vehicle's channels to Foxglove (see the module docstring)."""
 
     NAME = "foxglove"
     OPTIONS = FoxgloveOptions
@@ -160,7 +209,11 @@ class FoxgloveBackend(Backend):
         self._counters: Timer | None = None
         self._server: Any = None
         self._context: Any = None
-        self._channels: dict[str, Any] = {}
+        self._counters_channel: Any = None
+        #: name → its channels (written on the backend's loop only)
+        self.vehicles: dict[str, VehicleChannels] = {}
+        self.vehicles_refused = 0
+        self._unnamed = UNNAMED
         self._listener = _Listener()
         self.sent = 0
         self.errors = 0
@@ -168,15 +221,15 @@ class FoxgloveBackend(Backend):
     # --- life cycle -------------------------------------------------------------------------
 
     def init(self) -> None:
+        configured = self.context.services.get(VEHICLES_SERVICE) or ()
+        if configured:
+            self._unnamed = configured[0].vehicle or UNNAMED
         self._context = foxglove.Context()
         ctx = self._context
-        for topic, schema in JSON_SCHEMAS.items():
-            self._channels[topic] = foxglove.Channel(
-                topic, message_encoding="json", context=ctx,
-                schema=foxglove.Schema(name=schema["title"], encoding="jsonschema",
-                                       data=orjson.dumps(schema)))
-        self._channels[TOPIC_ATTITUDE] = FrameTransformChannel(TOPIC_ATTITUDE, context=ctx)
-        self._channels[TOPIC_POSITION] = LocationFixChannel(TOPIC_POSITION, context=ctx)
+        self._counters_channel = foxglove.Channel(
+            TOPIC_BACKENDS, message_encoding="json", context=ctx,
+            schema=foxglove.Schema(name=JSON_SCHEMAS[TOPIC_BACKENDS]["title"],
+                                   encoding="jsonschema", data=_SCHEMA_DATA[TOPIC_BACKENDS]))
         try:
             self._server = foxglove.start_server(
                 name=f"aurora-gateway {self.name}", host=self.host, port=self.port,
@@ -210,10 +263,28 @@ class FoxgloveBackend(Backend):
         self._close_channels()
 
     def _close_channels(self) -> None:
-        for ch in self._channels.values():
-            ch.close()
-        self._channels.clear()
+        for vehicle in self.vehicles.values():
+            vehicle.close()
+        self.vehicles.clear()
+        if self._counters_channel is not None:
+            self._counters_channel.close()
+            self._counters_channel = None
         self._context = None
+
+    def _vehicle(self, msg: Any) -> VehicleChannels | None:
+        """The channels of ``msg``'s vehicle, created at its first message (None: past the
+        cap, counted)."""
+        name = msg.vehicle or self._unnamed
+        channels = self.vehicles.get(name)
+        if channels is None:
+            if len(self.vehicles) >= MAX_VEHICLES or self._context is None:
+                self.vehicles_refused += 1
+                if self.vehicles_refused == 1:
+                    log.warning("%s: more than %d vehicles: the messages of the others are "
+                                "dropped (vehicles_refused)", self.name, MAX_VEHICLES)
+                return None
+            channels = self.vehicles[name] = VehicleChannels(name, self._context)
+        return channels
 
     # --- the handlers (on the backend's loop, handed over by the dispatcher) -------------------
 
@@ -223,38 +294,49 @@ class FoxgloveBackend(Backend):
                 .on(LinkStats, self.send_link_stats))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
+        v = self._vehicle(msg)
+        if v is None:
+            return
         log_time = time.time_ns()
-        self._json(TOPIC_STATE, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
-                                 "state_name": msg.state_name, "armed": msg.armed,
-                                 "sm_type": msg.sm_type}, log_time)
-        self._json(TOPIC_ALTITUDE, {"timestamp_ms": msg.timestamp_ms,
-                                    "altitude_m": msg.altitude_m,
-                                    "velocity_mps": msg.velocity_mps,
-                                    "acceleration_mps2": msg.acceleration_mps2,
-                                    "accel_vert_mps2": msg.accel_vert_mps2}, log_time)
+        _json(v.state, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
+                        "state_name": msg.state_name, "armed": msg.armed,
+                        "sm_type": msg.sm_type}, log_time)
+        _json(v.altitude, {"timestamp_ms": msg.timestamp_ms, "altitude_m": msg.altitude_m,
+                           "velocity_mps": msg.velocity_mps,
+                           "acceleration_mps2": msg.acceleration_mps2,
+                           "accel_vert_mps2": msg.accel_vert_mps2}, log_time)
         x, y, z, w = quaternion_from_euler(msg.roll_rad, msg.pitch_rad, msg.yaw_rad)
-        self._channels[TOPIC_ATTITUDE].log(FrameTransform(
+        v.attitude.log(FrameTransform(
             timestamp=_stamp(log_time), parent_frame_id=PARENT_FRAME,
-            child_frame_id=CHILD_FRAME, translation=Vector3(x=0.0, y=0.0, z=msg.altitude_m),
+            child_frame_id=v.frame, translation=Vector3(x=0.0, y=0.0, z=msg.altitude_m),
             rotation=Quaternion(x=x, y=y, z=z, w=w)), log_time=log_time)
         self.sent += 3
 
     def send_status(self, msg: Status) -> None:
-        self._json(TOPIC_STATUS, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
-                                  "state_name": msg.state_name, "sm_type": msg.sm_type,
-                                  "flags": msg.flags, **msg.health()}, time.time_ns())
+        v = self._vehicle(msg)
+        if v is None:
+            return
+        _json(v.status, {"timestamp_ms": msg.timestamp_ms, "state": msg.state,
+                         "state_name": msg.state_name, "sm_type": msg.sm_type,
+                         "flags": msg.flags, **msg.health()}, time.time_ns())
         self.sent += 1
 
     def send_position(self, msg: Position) -> None:
+        v = self._vehicle(msg)
+        if v is None:
+            return
         log_time = time.time_ns()
         alt = msg.alt_amsl_m if msg.alt_amsl_m is not None else 0.0
-        self._channels[TOPIC_POSITION].log(LocationFix(
-            timestamp=_stamp(log_time), frame_id=CHILD_FRAME, latitude=msg.lat_deg,
+        v.position.log(LocationFix(
+            timestamp=_stamp(log_time), frame_id=v.frame, latitude=msg.lat_deg,
             longitude=msg.lon_deg, altitude=alt), log_time=log_time)
         self.sent += 1
 
     def send_link_stats(self, msg: LinkStats) -> None:
-        self._json(TOPIC_LINK, {**msg.fields(), "origin": msg.origin}, time.time_ns())
+        v = self._vehicle(msg)
+        if v is None:
+            return
+        _json(v.link, {**msg.fields(), "origin": msg.origin}, time.time_ns())
         self.sent += 1
 
     def _log_counters(self) -> None:
@@ -264,14 +346,11 @@ class FoxgloveBackend(Backend):
             return
         try:
             data = orjson.dumps(counters(), default=str, option=orjson.OPT_NON_STR_KEYS)
-            self._channels[TOPIC_BACKENDS].log(data, log_time=time.time_ns())
+            self._counters_channel.log(data, log_time=time.time_ns())
             self.sent += 1
         except Exception:
             self.errors += 1
             log.exception("%s: cannot log the gateway's counters", self.name)
-
-    def _json(self, topic: str, data: dict[str, Any], log_time: int) -> None:
-        self._channels[topic].log(orjson.dumps(data), log_time=log_time)
 
     def wait_idle(self, timeout: float) -> bool:
         """Wait until every update handed over so far is logged (for tools and benchmarks)."""
@@ -288,4 +367,9 @@ class FoxgloveBackend(Backend):
         h = self.handover
         return {"sent": self.sent, "dropped": h.dropped,
                 "errors": self.errors + h.handler_errors, "link": int(self._server is not None),
-                "clients": self._listener.clients(), **h.stats(), "port": self.port}
+                "clients": self._listener.clients(), **h.stats(), "port": self.port,
+                "vehicles": len(self.vehicles), "vehicles_refused": self.vehicles_refused}
+
+
+def _json(channel: Any, data: dict[str, Any], log_time: int) -> None:
+    channel.log(orjson.dumps(data), log_time=log_time)

@@ -5,17 +5,28 @@ gateway's port engine (one :class:`~gateway.io.ioloop.IoLoop` thread, an h11 par
 connection: :mod:`backends.http.connection`; no thread per connection):
 
 ``/``
-    a small page (no framework) with the vehicle's state, armed, altitude, max altitude,
-    link and a table of every backend's counters, kept live by an ``EventSource``;
+    a small page (no framework): one card per vehicle (state, armed, altitude, max altitude,
+    link, age of its last update) and a table of every backend's counters, kept live by an
+    ``EventSource``;
 ``/events``
     Server-Sent Events: one ``data: <JSON>`` event per ``event_interval_s`` with the latest
     values (the same JSON as ``/status.json``);
 ``/status.json``
-    that JSON once;
+    that JSON once: ``vehicles``, one entry per vehicle keyed by its name (see
+    :meth:`HttpBackend.vehicle_entry`; in the order of :meth:`HttpBackend.ordered`), the
+    gateway-wide fields beside it (uptime, links per source, messages in, every backend's
+    and source's counters) and ``vehicle``, the entry of the first vehicle
+    (:meth:`HttpBackend.primary`: a single-vehicle view, as before);
 ``/metrics``
     Prometheus text format, written by ``prometheus-client`` from a collector of our own:
-    gauges for altitude, max altitude, state, armed and link, counters per backend
-    (sent / dropped / errors, label ``backend``) and messages in per kind.
+    gauges for altitude, max altitude, state, armed and link and messages in per kind, each
+    with a ``vehicle`` label; counters per backend (sent / dropped / errors, label
+    ``backend``).
+
+The state is kept per vehicle (``msg.vehicle``; a message without one is the first
+configured source's vehicle), a dict lookup per message; at most :data:`MAX_VEHICLES`
+vehicles are kept, the messages of any further one are counted (``vehicles_refused``), not
+kept: a peer cannot grow the table by inventing names.
 
 Only ``GET`` and ``HEAD``; any other method is 405, any other path 404.  Nothing changes
 the gateway's state.
@@ -35,7 +46,8 @@ Counters: ``sent`` (responses and events written), ``dropped`` (clients refused 
 events a full queue dropped), ``errors`` (failed requests), ``link`` (1 while serving),
 ``clients`` (connections now), ``streams`` (event streams now), ``clients_refused``,
 ``clients_cut_stalled``, ``clients_cut_partial``, ``accept_errors``, ``events_dropped``,
-``bad_requests``, ``streams_renewed`` (streams ended for the viewer to reconnect).
+``bad_requests``, ``streams_renewed`` (streams ended for the viewer to reconnect),
+``vehicles`` (vehicles kept), ``vehicles_refused`` (messages of vehicles past the cap).
 """
 
 from __future__ import annotations
@@ -69,6 +81,7 @@ from gateway.model import (
     own_fields,
 )
 from gateway.outcome import Outcome
+from gateway.vehicles import SERVICE as VEHICLES_SERVICE
 
 from .connection import TEXT, HttpClient, has_request, refusal
 
@@ -80,6 +93,28 @@ EVENTS_QUEUED = 4
 #: The send buffer of a connection: small, so that a viewer that stops reading is seen
 #: (and cut) within seconds rather than after megabytes of events.
 SEND_BUFFER = 8192
+#: Vehicles kept at most; the messages of any further vehicle are counted, not kept.
+MAX_VEHICLES = 256
+#: The vehicle of a message without one when no source is configured (tests, tools).
+UNNAMED = "vehicle"
+#: The kinds kept as a vehicle's latest values (besides its updates).
+_EXTRA_KINDS = ("position", "battery", "link_stats")
+
+
+class VehicleView:
+    """What the backend keeps of one vehicle: its latest message of each kind, the highest
+    altitude seen, messages per kind, the source it is heard from, when it was last heard.
+    Written by the dispatcher's thread only."""
+
+    __slots__ = ("heard_at", "latest", "max_altitude", "messages_in", "name", "origin")
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.latest: dict[str, Any] = {}
+        self.max_altitude: float | None = None
+        self.messages_in: Counter[str] = Counter()
+        self.origin = ""
+        self.heard_at: float | None = None
 
 
 class HttpBackend(Backend):
@@ -98,9 +133,13 @@ class HttpBackend(Backend):
         self.max_clients = options.max_clients
         self.event_interval_s = options.event_interval_s
         self.client_timeout_s = options.client_timeout_s
-        self._latest: dict[str, Any] = {}  # kind → latest message (written by one thread)
+        #: name → its view, in the order first heard (written by the dispatcher's thread)
+        self.vehicles: dict[str, VehicleView] = {}
+        self.vehicles_refused = 0
+        self._unnamed = UNNAMED  # the vehicle of a message without one (see init)
+        self._first = ""  # the first configured source's vehicle (see primary)
+        self._rank: dict[str, int] = {}  # configured vehicle → its place (see ordered)
         self._links: dict[str, bool] = {}  # source → up, from LinkEvents
-        self._max_altitude: float | None = None
         self.messages_in: Counter[str] = Counter()
         self.limits = ClientLimits.of(options, EVENTS_QUEUED)
         self.sent = 0  # these counters are written on the loop's thread only
@@ -127,37 +166,75 @@ class HttpBackend(Backend):
                 .on(Position, self._store).on(Battery, self._store)
                 .on(VehicleState, self.on_vehicle_state))
 
+    def _new_view(self, name: str) -> VehicleView | None:
+        """A view for a vehicle first heard (None past the cap: counted, logged once)."""
+        if len(self.vehicles) >= MAX_VEHICLES:
+            self.vehicles_refused += 1
+            if self.vehicles_refused == 1:
+                log.warning("%s: more than %d vehicles: the messages of the others are "
+                            "counted (vehicles_refused), not shown", self.name, MAX_VEHICLES)
+            return None
+        view = self.vehicles[name] = VehicleView(name)
+        return view
+
     def _store(self, msg: Any) -> None:
+        self._keep(msg)
+
+    def _keep(self, msg: Any) -> VehicleView | None:
+        """Keep ``msg`` as its vehicle's latest of its kind, count it; its vehicle's view."""
         k = kind(msg)
-        self._latest[k] = msg
         self.messages_in[k] += 1
+        name = msg.vehicle or self._unnamed
+        view = self.vehicles.get(name) or self._new_view(name)
+        if view is not None:
+            view.origin = msg.origin
+            view.heard_at = _monotonic()
+            view.latest[k] = msg
+            view.messages_in[k] += 1
+        return view
 
     def on_sm_update(self, msg: SmUpdate) -> None:
+        view = self._keep(msg)
         alt = msg.altitude_m
-        if alt == alt and (self._max_altitude is None or alt > self._max_altitude):
-            self._max_altitude = alt  # alt == alt: NaN never becomes the maximum
-        self._store(msg)
+        if view is not None and alt == alt and (view.max_altitude is None
+                                                or alt > view.max_altitude):
+            view.max_altitude = alt  # alt == alt: NaN never becomes the maximum
 
     def on_vehicle_state(self, msg: VehicleState) -> None:
+        view = self._keep(msg)
         alt = msg.altitude_m
-        if alt is not None and alt == alt and (self._max_altitude is None
-                                               or alt > self._max_altitude):
-            self._max_altitude = alt
-        self._store(msg)
+        if view is not None and alt is not None and alt == alt and (
+                view.max_altitude is None or alt > view.max_altitude):
+            view.max_altitude = alt
 
     def on_link_event(self, msg: LinkEvent) -> None:
+        """A source's link (per source: a vehicle's link is its source's)."""
         self._links[msg.source] = msg.up
-        self._store(msg)
+        self.messages_in[kind(msg)] += 1
 
     # -- what the server answers ------------------------------------------------------------------
 
-    def vehicle(self) -> dict[str, Any]:
-        """The vehicle as the latest messages show it (``None`` = not heard yet)."""
-        sm: SmUpdate | None = self._latest.get("sm_update")
-        vs: VehicleState | None = self._latest.get("vehicle_state")
-        st: Status | None = self._latest.get("status")
+    def primary(self) -> VehicleView:
+        """The vehicle of the single-vehicle view (``vehicle`` in ``/status.json``): the
+        first configured source's vehicle once heard, else the first vehicle heard (an
+        empty view before any)."""
+        vehicles = self.vehicles
+        view = vehicles.get(self._first) or vehicles.get(self._unnamed)
+        if view is None:
+            view = next(iter(vehicles.copy().values()), None)
+        return view if view is not None else VehicleView(self._first or self._unnamed)
+
+    def vehicle(self, view: VehicleView | None = None) -> dict[str, Any]:
+        """A vehicle (default: :meth:`primary`) as its latest messages show it
+        (``None`` = not heard yet)."""
+        if view is None:
+            view = self.primary()
+        latest = view.latest
+        sm: SmUpdate | None = latest.get("sm_update")
+        vs: VehicleState | None = latest.get("vehicle_state")
+        st: Status | None = latest.get("status")
         out: dict[str, Any] = {"state": None, "state_id": None, "armed": None,
-                               "altitude_m": None, "max_altitude_m": self._max_altitude,
+                               "altitude_m": None, "max_altitude_m": view.max_altitude,
                                "velocity_mps": None, "timestamp_ms": None, "health": None}
         if sm is not None:
             out.update(state=sm.state_name, state_id=sm.state, armed=bool(sm.armed),
@@ -171,6 +248,32 @@ class HttpBackend(Backend):
             if out["armed"] is None:
                 out["armed"] = st.armed
         return out
+
+    def ordered(self) -> list[VehicleView]:
+        """Every vehicle: the configured sources' in their order, then the others in the
+        order first heard (the page's cards keep their places from one run to the next)."""
+        rank, last = self._rank, len(self._rank)
+        return sorted(self.vehicles.copy().values(), key=lambda v: rank.get(v.name, last))
+
+    def vehicle_link(self, view: VehicleView) -> bool | None:
+        """The link of the source ``view`` is heard from (None: no link event of it yet)."""
+        return self._links.get(view.origin)
+
+    def vehicle_entry(self, view: VehicleView, now: float) -> dict[str, Any]:
+        """One vehicle's entry in ``/status.json``: :meth:`vehicle`'s fields, ``name``,
+        ``source`` (the source it is heard from), ``link`` (that source's link: true, false
+        or null), ``age_s`` (seconds since its last message), its latest ``position``,
+        ``battery`` and ``link_stats`` (null until heard) and ``messages_in`` per kind."""
+        out = self.vehicle(view)
+        latest = view.latest
+        out.update(name=view.name, source=view.origin or None,
+                   link=self.vehicle_link(view),
+                   age_s=None if view.heard_at is None else round(now - view.heard_at, 3))
+        for k in _EXTRA_KINDS:
+            msg = latest.get(k)
+            out[k] = own_fields(msg) if msg is not None else None
+        out["messages_in"] = dict(view.messages_in)
+        return _jsonable(out)
 
     def link_up(self) -> bool:
         """True when a source's link is up (by its LinkEvents)."""
@@ -190,20 +293,20 @@ class HttpBackend(Backend):
             return {"backends": {}, "sources": {}}
 
     def status(self) -> dict[str, Any]:
-        """What ``/status.json`` and every event carry."""
+        """What ``/status.json`` and every event carry (see the module doc)."""
         stats = self.gateway_stats()
         backends = {name: _counters(st) for name, st in stats.get("backends", {}).items()}
         sources = {name: _counters(st) for name, st in stats.get("sources", {}).items()}
-        extra: dict[str, Any] = {}
-        for k in ("position", "battery", "link_stats"):
-            msg = self._latest.get(k)
-            extra[k] = _jsonable(own_fields(msg)) if msg is not None else None
+        now = time.monotonic()
+        vehicles = {view.name: self.vehicle_entry(view, now) for view in self.ordered()}
+        primary = self.primary()
         return {
             "time": time.time(),
-            "uptime_s": round(time.monotonic() - self._started, 3),
-            "vehicle": _jsonable(self.vehicle()),
+            "uptime_s": round(now - self._started, 3),
+            "vehicles": vehicles,
+            "vehicle": vehicles.get(primary.name) or self.vehicle_entry(primary, now),
+            "vehicles_refused": self.vehicles_refused,
             "link": {"up": self.link_up(), "sources": dict(self._links)},
-            **extra,
             "messages_in": dict(self.messages_in),
             "backends": backends,
             "sources": sources,
@@ -220,6 +323,10 @@ class HttpBackend(Backend):
     # -- life cycle ------------------------------------------------------------------------------
 
     def init(self) -> None:
+        configured = self.context.services.get(VEHICLES_SERVICE) or ()
+        if configured:
+            self._first = self._unnamed = configured[0].vehicle or UNNAMED
+        self._rank = {sv.vehicle: i for i, sv in enumerate(configured)}
         try:
             from prometheus_client import CollectorRegistry
         except ImportError as exc:
@@ -291,7 +398,8 @@ class HttpBackend(Backend):
                 "clients": served.client_count if self.serving and served else 0,
                 "streams": len(self.streams), "requests": self.requests, **listener,
                 "events_dropped": self.events_dropped, "bad_requests": self.bad_requests,
-                "streams_renewed": self.streams_renewed}
+                "streams_renewed": self.streams_renewed, "vehicles": len(self.vehicles),
+                "vehicles_refused": self.vehicles_refused}
 
     # -- the loop's thread -------------------------------------------------------------------------
 
@@ -362,6 +470,7 @@ class HttpBackend(Backend):
 
 
 _ACCEPTED = Outcome.ACCEPTED
+_monotonic = time.monotonic
 #: An event stream lasts ``client_timeout_s``; then it ends and the viewer's EventSource
 #: reconnects after this many milliseconds.  A viewer that stopped reading is so let go
 #: within that time: a server cannot see it otherwise, as the viewer's kernel keeps taking
@@ -410,20 +519,37 @@ class _Collector:
         from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
         b = self.backend
-        v = b.vehicle()
-        for name, doc, value in (
-            ("aurora_altitude_meters", "altitude of the vehicle", v["altitude_m"]),
-            ("aurora_max_altitude_meters", "highest altitude seen", v["max_altitude_m"]),
-            ("aurora_armed", "1 when the vehicle is armed", v["armed"]),
-            ("aurora_link_up", "1 while a source's link is up", b.link_up()),
-        ):
-            if value is not None:
-                yield GaugeMetricFamily(name, doc, value=float(value))
-        if v["state_id"] is not None:
-            g = GaugeMetricFamily("aurora_state", "the vehicle's state (its number; label: "
-                                  "its name)", labels=["state"])
-            g.add_metric([str(v["state"])], float(v["state_id"]))
-            yield g
+        views = b.ordered()
+        gauges = {name: GaugeMetricFamily(name, doc, labels=["vehicle"]) for name, doc in (
+            ("aurora_altitude_meters", "altitude of the vehicle"),
+            ("aurora_max_altitude_meters", "highest altitude seen"),
+            ("aurora_armed", "1 when the vehicle is armed"),
+            ("aurora_link_up", "1 while the link of the vehicle's source is up"))}
+        state = GaugeMetricFamily("aurora_state", "the vehicle's state (its number; label: "
+                                  "its name)", labels=["vehicle", "state"])
+        messages = CounterMetricFamily("aurora_messages_in", "messages this backend took, "
+                                       "per vehicle and kind", labels=["vehicle", "kind"])
+        for view in views:
+            v = b.vehicle(view)
+            label = [view.name]
+            for name, value in (("aurora_altitude_meters", v["altitude_m"]),
+                                ("aurora_max_altitude_meters", v["max_altitude_m"]),
+                                ("aurora_armed", v["armed"]),
+                                ("aurora_link_up", b.vehicle_link(view))):
+                if value is not None and value == value:
+                    gauges[name].add_metric(label, float(value))
+            if v["state_id"] is not None:
+                state.add_metric([view.name, str(v["state"])], float(v["state_id"]))
+            for k, n in sorted(view.messages_in.copy().items()):
+                messages.add_metric([view.name, k], float(n))
+        yield from gauges.values()
+        yield state
+        yield messages
+        yield CounterMetricFamily("aurora_link_events", "link up/down events of the sources",
+                                  value=float(b.messages_in.get("link", 0)))
+        yield GaugeMetricFamily("aurora_vehicles", "vehicles shown", value=float(len(views)))
+        yield CounterMetricFamily("aurora_vehicles_refused", "messages of vehicles past the "
+                                  "cap (not shown)", value=float(b.vehicles_refused))
         stats = b.gateway_stats().get("backends", {})
         for key in ("sent", "dropped", "errors"):
             c = CounterMetricFamily(f"aurora_backend_{key}", f"{key} per backend",
@@ -440,11 +566,6 @@ class _Collector:
             if isinstance(n, int | float) and not isinstance(n, bool):
                 links.add_metric([name], float(n))
         yield links
-        m = CounterMetricFamily("aurora_messages_in", "messages this backend took, per kind",
-                                labels=["kind"])
-        for k, n in sorted(b.messages_in.items()):
-            m.add_metric([k], float(n))
-        yield m
 
 
 PAGE = """<!doctype html>
@@ -454,47 +575,79 @@ PAGE = """<!doctype html>
 <style>
 body{font-family:system-ui,sans-serif;margin:1.5em;background:#10141a;color:#e6e6e6}
 h1{font-size:1.3em;margin:0 0 .8em}
-.cards{display:flex;flex-wrap:wrap;gap:.8em;margin-bottom:1.2em}
-.card{background:#1c232d;border-radius:8px;padding:.7em 1em;min-width:9em}
+h2{font-size:1.05em;margin:0 0 .5em}
+.vehicles{display:flex;flex-wrap:wrap;gap:1em;margin-bottom:1.2em}
+.vehicle{background:#161c24;border-radius:10px;padding:.8em 1em}
+.cards{display:flex;flex-wrap:wrap;gap:.8em}
+.card{background:#1c232d;border-radius:8px;padding:.7em 1em;min-width:8em}
 .card .k{font-size:.8em;color:#9aa7b5}.card .v{font-size:1.6em;font-variant-numeric:tabular-nums}
 .up{color:#5fd35f}.down{color:#ff6b6b}
 table{border-collapse:collapse;font-variant-numeric:tabular-nums}
 th,td{padding:.3em .9em;text-align:right;border-bottom:1px solid #2a3440}
 th:first-child,td:first-child{text-align:left}
-#conn{font-size:.8em;color:#9aa7b5}
+#conn,.age{font-size:.8em;color:#9aa7b5}
 </style></head><body>
 <h1>Aurora Gateway <span id="conn">connecting…</span></h1>
-<div class="cards">
-<div class="card"><div class="k">state</div><div class="v" id="state">—</div></div>
-<div class="card"><div class="k">armed</div><div class="v" id="armed">—</div></div>
-<div class="card"><div class="k">altitude (m)</div><div class="v" id="altitude">—</div></div>
-<div class="card"><div class="k">max altitude (m)</div>
-<div class="v" id="max_altitude">—</div></div>
-<div class="card"><div class="k">link</div><div class="v" id="link">—</div></div>
-</div>
+<div class="vehicles" id="vehicles"></div>
 <table><thead><tr><th>backend</th><th>sent</th><th>dropped</th><th>errors</th><th>link</th>
 <th>clients</th></tr></thead><tbody id="backends"></tbody></table>
 <script>
 "use strict";
+const FIELDS = [["state", "state"], ["armed", "armed"], ["altitude", "altitude (m)"],
+                ["max_altitude", "max altitude (m)"], ["link", "link"]];
 function num(v, d) { return v === null || v === undefined ? "—" : Number(v).toFixed(d); }
 function text(id, v) { document.getElementById(id).textContent = v; }
+function el(tag, cls, content) {
+  const e = document.createElement(tag);
+  if (cls) e.className = cls;
+  if (content !== undefined) e.textContent = content;
+  return e;
+}
+const cards = new Map();  // vehicle name → {field: its value element}
+function card(name) {
+  let c = cards.get(name);
+  if (c) return c;
+  c = {};
+  const box = el("div", "vehicle");
+  box.dataset.vehicle = name;
+  const title = el("h2", "", name + " ");
+  c.age = el("span", "age", "");
+  title.appendChild(c.age);
+  box.appendChild(title);
+  const row = el("div", "cards");
+  for (const [key, label] of FIELDS) {
+    const f = el("div", "card");
+    f.appendChild(el("div", "k", label));
+    c[key] = el("div", "v", "—");
+    c[key].dataset.field = key;
+    f.appendChild(c[key]);
+    row.appendChild(f);
+  }
+  box.appendChild(row);
+  document.getElementById("vehicles").appendChild(box);
+  cards.set(name, c);
+  return c;
+}
 function show(s) {
-  const v = s.vehicle;
-  text("state", v.state === null ? "—" : v.state);
-  text("armed", v.armed === null ? "—" : (v.armed ? "ARMED" : "safe"));
-  text("altitude", num(v.altitude_m, 1));
-  text("max_altitude", num(v.max_altitude_m, 1));
-  const link = document.getElementById("link");
-  link.textContent = s.link.up ? "up" : "down";
-  link.className = "v " + (s.link.up ? "up" : "down");
+  const names = Object.keys(s.vehicles);
+  if (names.length === 0) card(s.vehicle.name);  // nothing heard yet: the empty card
+  for (const name of names) {
+    const v = s.vehicles[name], c = card(name);
+    c.state.textContent = v.state === null ? "—" : v.state;
+    c.armed.textContent = v.armed === null ? "—" : (v.armed ? "ARMED" : "safe");
+    c.altitude.textContent = num(v.altitude_m, 1);
+    c.max_altitude.textContent = num(v.max_altitude_m, 1);
+    const up = v.link === null ? s.link.up : v.link;
+    c.link.textContent = up ? "up" : "down";
+    c.link.className = "v " + (up ? "up" : "down");
+    c.age.textContent = v.age_s === null ? "" : num(v.age_s, 1) + " s ago";
+  }
   const body = document.getElementById("backends");
   body.replaceChildren();
   for (const [name, c] of Object.entries(s.backends)) {
     const tr = document.createElement("tr");
     for (const cell of [name, c.sent, c.dropped, c.errors, c.link, c.clients]) {
-      const td = document.createElement("td");
-      td.textContent = cell === undefined ? "" : String(cell);
-      tr.appendChild(td);
+      tr.appendChild(el("td", "", cell === undefined ? "" : String(cell)));
     }
     body.appendChild(tr);
   }

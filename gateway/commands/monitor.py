@@ -1,4 +1,4 @@
-"""``aurora-gateway monitor``: a live terminal view of the vehicle, its links and counters.
+"""``aurora-gateway monitor``: a live terminal view of the vehicles, their links and counters.
 
 With ``--source`` (the forms ``run`` takes) the sources run in this process, in a gateway
 with no backends, and the wire decoders' counters (frames, CRC errors) are shown.  Without
@@ -9,9 +9,12 @@ of its backends on Zenoh, so the table then shows the Zenoh source's own (receiv
 dropped).
 
 On a terminal: a full-screen view (``rich``), refreshed every ``--refresh`` seconds (default
-0.25), q or Ctrl-C quits.  Otherwise (a pipe, a file): one ``key=value`` line every
-``--refresh`` seconds (default 1), no escape codes.  ``--speak`` says state changes and the
-apogee altitude through ``espeak-ng`` (see :class:`gateway.commands.live.Speaker`).
+0.25): a row per vehicle, the detail of the selected one (↑/↓, k/j or tab/shift-tab select
+another), q or Ctrl-C quits.  Otherwise (a pipe, a file): one ``key=value`` line per vehicle
+every ``--refresh`` seconds (default 1), each starting ``vehicle=NAME``, no escape codes.
+``--speak`` says state changes and the apogee altitude through ``espeak-ng`` (see
+:class:`gateway.commands.live.Speaker`; with several vehicles, prefixed by the vehicle's
+name).
 """
 
 from __future__ import annotations
@@ -28,11 +31,18 @@ import time
 from collections.abc import Iterator
 from typing import Any, TextIO
 
-from gateway import config
+from gateway import config, vehicles
 from gateway.app import Gateway
 from gateway.backend import Backend, Routes
 from gateway.commands import cli
-from gateway.commands.live import EndpointRow, LiveState, Speaker, endpoint_row, plain_line, render
+from gateway.commands.live import (
+    EndpointRow,
+    LiveState,
+    Speaker,
+    endpoint_row,
+    plain_lines,
+    render,
+)
 from gateway.config import ConfigError
 from gateway.model import MESSAGE_TYPES, GatewayStats
 
@@ -79,13 +89,17 @@ class _NoteHandler(logging.Handler):
 def add_command(subparsers: Any) -> argparse.ArgumentParser:
     """Add ``monitor`` to the ``aurora-gateway`` subcommands."""
     p = subparsers.add_parser(
-        "monitor", help="live view of the vehicle, links and counters (full screen on a "
+        "monitor", help="live view of the vehicles, links and counters (full screen on a "
                         "terminal, status lines otherwise)",
-        description="A live view of the vehicle (state, altitude, max altitude, speeds, "
-                    "attitude, position, battery), its links and counters. With --source the "
-                    "sources run here; without, it follows the gateway running on this "
-                    "machine over Zenoh (tcp/127.0.0.1:7450). On a terminal: full screen, q "
-                    "or Ctrl-C quits; else one key=value line per --refresh seconds.")
+        description="A live view of the vehicles (a row each: state, altitude, max altitude, "
+                    "vertical speed, link, age; the selected one in detail: attitude, "
+                    "position, battery, health), the links and counters. With --source the "
+                    "sources run here (one vehicle each: --source NAME=URL); without, it "
+                    "follows the gateway running on this machine over Zenoh "
+                    "(tcp/127.0.0.1:7450). On a terminal: full screen; up/down (or k/j, "
+                    "tab/shift-tab) select the vehicle shown in detail, q or Ctrl-C quits. "
+                    "Else one key=value line per vehicle per --refresh seconds, starting "
+                    "vehicle=NAME.")
     cli.add_source_options(p)
     p.add_argument("--speak", action="store_true",
                    help=f"say state changes and the apogee altitude ({SPEECH_PROGRAM})")
@@ -168,15 +182,47 @@ def _keys(stream: TextIO) -> Iterator[int | None]:
         termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
 
-def _quit_pressed(fd: int | None, timeout: float) -> bool:
-    """Wait up to ``timeout`` for a key; True when it is q."""
-    if fd is None:
-        return False
+#: Keys read on a terminal (cbreak mode) → what they do: q quits (None), the others move the
+#: selection by that many rows.  Arrow keys arrive as escape sequences.
+KEYS: dict[bytes, int | None] = {
+    b"q": None, b"Q": None,
+    b"\x1b[A": -1, b"\x1bOA": -1, b"k": -1, b"\x1b[Z": -1,  # up, shift-tab
+    b"\x1b[B": 1, b"\x1bOB": 1, b"j": 1, b"\t": 1,  # down, tab
+}
+
+
+def read_keys(data: bytes) -> list[int | None]:
+    """The actions of the keys in ``data`` (see :data:`KEYS`; others are ignored)."""
+    out: list[int | None] = []
+    i = 0
+    while i < len(data):
+        for size in (3, 1):
+            key = data[i:i + size]
+            if key in KEYS:
+                out.append(KEYS[key])
+                i += size
+                break
+        else:
+            i += 1
+    return out
+
+
+def _handle_keys(fd: int, state: LiveState, timeout: float) -> str:
+    """Wait up to ``timeout`` for keys and act on them: ``"quit"`` when q was pressed (or
+    the terminal closed), ``"moved"`` when the selection moved, else ``""``."""
     ready, _, _ = select.select([fd], [], [], timeout)
     if not ready:
-        return False
+        return ""
     data = os.read(fd, 64)
-    return b"q" in data.lower() or not data
+    if not data:
+        return "quit"
+    moved = ""
+    for action in read_keys(data):
+        if action is None:
+            return "quit"
+        state.select(action)
+        moved = "moved"
+    return moved
 
 
 def run_monitor(args: argparse.Namespace) -> int:
@@ -207,6 +253,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     else:
         cli.setup_logging(level)
     gw = Gateway(cfg, status_out=sys.stderr)
+    state.set_order(sv.vehicle for sv in gw.context.services.get(vehicles.SERVICE, ()))
     gw.dispatcher.add(LiveFeed(state))
     srcs = ", ".join(s.name for s in gw.sources)
     state.title = f"aurora-gateway monitor · {srcs}"
@@ -239,7 +286,7 @@ def _run_plain(gw: Gateway, state: LiveState, stop: threading.Event, refresh: fl
         _sample(gw, state, now)
         if now >= next_line:
             try:
-                out.write(plain_line(state, now) + "\n")
+                out.write("".join(line + "\n" for line in plain_lines(state, now)))
                 out.flush()
             except BrokenPipeError:
                 return
@@ -274,7 +321,10 @@ def _run_tty(gw: Gateway, state: LiveState, stop: threading.Event, refresh: floa
                 live.update(render(state, now), refresh=True)
                 next_draw = max(next_draw + refresh, now)
             if fd is not None:
-                if _quit_pressed(fd, CHECK_S):
+                keys = _handle_keys(fd, state, CHECK_S)
+                if keys == "quit":
                     break
+                if keys == "moved":  # show the newly selected vehicle at once
+                    next_draw = time.monotonic()
             else:
                 stop.wait(CHECK_S)
