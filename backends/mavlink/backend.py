@@ -140,7 +140,7 @@ class MavlinkBackend(Backend):
         service = self.context.services.get(vehicles.SERVICE) if self.context else None
         if service is None:  # a backend on its own (a test, a tool): one vehicle, as before
             return [("*", "", self.sysid)]  # (named by the first message that names one)
-        wanted = [sv for sv in service if sv.vehicle not in hub.stems]
+        wanted = [sv for sv in service if not sv.systems and sv.vehicle not in hub.stems]
         fixed = {sv.mavlink_sysid for sv in wanted if sv.mavlink_sysid}
         taken = set(fixed)
         out: list[tuple[str, str, int]] = []

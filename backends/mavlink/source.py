@@ -341,6 +341,7 @@ class MavlinkSource(Source):
     NAME = "mavlink"
     OPTIONS = MavlinkSourceOptions
     NAME_FORMAT = "mavlink:{url}"
+    YIELDS_SYSTEMS = True  # one vehicle per system heard, <vehicle>-<system id>
 
     def __init__(self, options: MavlinkSourceOptions, name: str | None = None) -> None:
         super().__init__(name)
