@@ -169,8 +169,16 @@ def main(argv: list[str] | None = None) -> int:
         if not vals or min(vals) < alt * 0.9 or max(vals) > alt * 1.1:
             ok = False
             print(f"!! aurora/{name}/sm_update: expected values near {alt:g} m")
-    print("\n== /status.json ==")
-    print(json.dumps(status, indent=1)[:4000])
+    print("\n== /status.json: its vehicles ==")
+    entries = (status or {}).get("vehicles") or {}
+    for name, v in entries.items():
+        print(f"{name}: " + json.dumps({k: v.get(k) for k in (
+            "altitude_m", "max_altitude_m", "state", "armed", "link", "source")}))
+    for name, alt in ROCKETS.items():
+        got = (entries.get(name) or {}).get("altitude_m")
+        if not isinstance(got, int | float) or not alt * 0.9 <= got <= alt * 1.1:
+            ok = False
+            print(f"!! /status.json vehicles.{name}.altitude_m: expected near {alt:g} m")
     print("\n== stop report ==")
     print("\n".join(ln for ln in report.splitlines() if "INFO" not in ln))
     print("\nresult:", "each view kept the two rockets apart" if ok else "MIXED OR MISSING")
