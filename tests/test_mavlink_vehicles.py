@@ -132,6 +132,10 @@ def test_two_rockets_are_two_systems_each_with_its_own_values(
             assert gcs.wait_for("HEARTBEAT", lambda m, s=sysid: m.get_srcSystem() == s,
                                 count=2, timeout=WAIT)
         assert proc.poll() is None
+    assert proc.returncode == 0
+    report = (tmp_path / "log").read_text()
+    assert "systems: mavlink alpha 1, beta 2" in report, report  # the stop report's
+    assert "identity:" not in report  # nobody claimed their ids
     assert not any(f.error for f in feeds.values()), [f.error for f in feeds.values()]
     seen = summary(gcs)
     print("\nper system, as the pymavlink listener saw it:")
@@ -367,3 +371,29 @@ def test_a_silent_system_is_forgotten() -> None:
         assert wait_for(lambda: 9 not in router.seen_at, WAIT)
         assert b.stats()["router"]["systems_forgotten"] >= 1
         assert not router.in_use(9)
+
+
+def test_the_stop_report_counts_what_claimed_a_rockets_id(tmp_path: Path) -> None:
+    """From the command line, with signing required: unsigned HEARTBEATs carrying the
+    rocket's id leave it system 1, and the stop report's identity line counts them."""
+    key = tmp_path / "key"
+    key.write_text(hashlib.sha256(PASS.encode()).hexdigest())
+    log = tmp_path / "log"
+    with MavPeer(255, 190) as gcs, gateway(
+            log, "--source", "alpha=sim", "--mavlink", f"udpout:127.0.0.1:{gcs.port}",
+            "--mavlink-signing-key", str(key), *ROUTER_ONLY) as proc:
+        assert gcs.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=WAIT)
+        for _ in range(20):
+            gcs.send_raw(heartbeat_from(1, ROCKET))
+        assert wait_for(lambda: "not correctly signed" in log.read_text(), WAIT), log.read_text()
+        gcs.clear()
+        assert gcs.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() == 1, timeout=WAIT)
+        assert proc.poll() is None
+    assert proc.returncode == 0
+    report = log.read_text()
+    assert "systems: mavlink alpha 1" in report, report
+    line = next(ln for ln in report.splitlines() if ln.startswith("identity: "))
+    counts = dict(kv.split("=") for kv in line.removeprefix("identity: mavlink ").split())
+    assert 1 <= int(counts["impostor_frames"]) <= 20, line
+    assert int(counts["rejected_signing"]) == int(counts["impostor_frames"]), line
+    assert "id_changes" not in counts and "sysid_conflicts" not in counts, line

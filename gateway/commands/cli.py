@@ -473,6 +473,10 @@ def say(text: str, level: int = logging.INFO) -> None:
     logjson.say(text, level=level)
 
 
+#: a backend's counters of frames claiming one of its vehicles' identities (MAVLink)
+IDENTITY_KEYS = ("impostor_frames", "rejected_signing", "sysid_conflicts", "id_changes")
+
+
 def _report(summary: dict[str, Any]) -> None:
     drops = []
     rec = summary.get("recorder") or {}
@@ -515,6 +519,17 @@ def _report(summary: dict[str, Any]) -> None:
                 if any(isinstance(st.get(k), int) and st.get(k) for k in SERVER_KEYS)]
     if refusals:  # a listener refused or cut clients (gateway.io.server)
         say("clients: " + "; ".join(refusals))
+    systems = [f"{name} " + ", ".join(f"{v} {s['sysid']}" for v, s in st["systems"].items())
+               for name, st in summary["backends"].items()
+               if isinstance(st.get("systems"), dict) and st["systems"]
+               and all(isinstance(s, dict) and "sysid" in s for s in st["systems"].values())]
+    if systems:  # each vehicle's MAVLink system id
+        say("systems: " + "; ".join(systems))
+    identity = [f"{name} " + " ".join(f"{k}={st[k]}" for k in IDENTITY_KEYS if st.get(k))
+                for name, st in summary["backends"].items()
+                if any(isinstance(st.get(k), int) and st.get(k) for k in IDENTITY_KEYS)]
+    if identity:  # frames that claimed a vehicle's id and what came of it (MAVLink)
+        say("identity: " + "; ".join(identity))
 
 
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
