@@ -1,29 +1,54 @@
-"""The recording format: every received frame, untouched, with its receive time.
+"""The recording format: every received frame, untouched, with its receive time, its vehicle
+and its source.
 
-File layout (all integers little-endian)::
+File layout, version 2 (all integers little-endian)::
 
     header  8 bytes   89 41 55 52 0D 0A 1A 0A   ("\\x89AUR\\r\\n\\x1a\\n": binary, and mangled
                                                  visibly by any text-mode transfer)
-            2 bytes   format version (1)
+            2 bytes   format version (2)
             2 bytes   reserved (0)
-    record  8 bytes   receive time, f64 seconds since the Unix epoch
-            2 bytes   N, frame length
-            N bytes   the wire frame exactly as received (A5 5A … CRC)
-            4 bytes   CRC-32 (ISO-HDLC, zlib's) over the 10 + N bytes before it
+    record  1 byte    record type (below)
+            8 bytes   time, f64 seconds since the Unix epoch
+            2 bytes   N, body length (at most 4096)
+            N bytes   body
+            4 bytes   CRC-32 (ISO-HDLC, zlib's) over the 11 + N bytes before it
 
-Each record is written with one unbuffered ``write`` call, so a ``kill -9`` leaves at most the
-last record torn.  The reader checks every record's CRC and skips what fails: a torn tail
-ends the replay cleanly, and corruption mid-file is passed by rescanning one byte at a time
-(the same resync rule as the wire decoder).  Opening an existing recording for append cuts a
-torn tail off first, so new records never follow garbage.
+    type 1, frame   2 bytes   vehicle: index into the file's name table (FFFF: none)
+                    2 bytes   source: index into the name table (FFFF: none)
+                    M bytes   the wire frame exactly as received (A5 5A … CRC), M ≤ 261;
+                              the time is its receive time
+    type 2, name    2 bytes   index (0 … FFFE)
+                    K bytes   the name, UTF-8, 1 ≤ K ≤ 255; binds the index to it for the
+                              rest of the file; the time is when it was written
+
+A name (a vehicle's or a source's: one table for both) is bound before the first frame that
+uses it, in the same ``write``; an index is bound to one name per file (appending continues
+the file's table), and the writer binds its names again every :data:`NAME_REPEAT` frames,
+so a damaged name record costs at most that many frames their names (read as "").  A
+reader skips records of a type it does not know (counted): new kinds of record extend the
+format without a new version.  Per frame the overhead is 19 bytes.
+
+Version 1 (still read; no longer written; appending to one is refused) had no record type
+and no names: ``time f64, length u16, frame, CRC-32 over the 10 + length bytes``.  Its
+frames have no vehicle: ``decode``/``export``/``plot`` name it after the file
+(:func:`file_vehicle`), a replay after the replay source.
+
+Each record (with the names it needs) is written with one unbuffered ``write`` call, so a
+``kill -9`` leaves at most the last record torn.  The reader checks every record's CRC and
+skips what fails: a torn tail ends the replay cleanly, and corruption mid-file is passed by
+rescanning one byte at a time (the same resync rule as the wire decoder).  Opening an
+existing recording for append cuts a torn tail off first, so new records never follow
+garbage.
 
 The gateway records off its hot path: :meth:`Recorder.submit` only puts the message on a
 bounded queue (a full queue drops it, counted) and the recorder's writer thread writes it and
 fsyncs the file on a timer, idle or not.  What is recorded is the wire frame: the one a
 message arrived in (``raw``), else the frame :func:`gateway.wire.encode` makes of it (an
-``SmUpdate``/``Status``/``RawFrame`` from a MAVLink or Zenoh-JSON source).  Messages with no
-Aurora wire form (vehicle state, position, battery from a MAVLink vehicle) cannot be
-recorded: they are counted per kind (``not_recordable``) and named once in a warning.
+``SmUpdate``/``Status``/``RawFrame`` from a MAVLink or Zenoh-JSON source), with the message's
+``vehicle`` and ``origin``.  Messages with no Aurora wire form (vehicle state, position,
+battery from a MAVLink vehicle) cannot be recorded: they are counted per kind
+(``not_recordable``) and named once in a warning.  :class:`DirectoryRecorder` (``record_dir``)
+writes one file per vehicle per flight, created and closed by its writer thread.
 """
 
 from __future__ import annotations
@@ -32,6 +57,7 @@ import contextlib
 import logging
 import os
 import queue
+import re
 import struct
 import threading
 import time
@@ -40,62 +66,117 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from gateway.counters import Counters
 from gateway.model import kind
+from gateway.vehicles import derive_name
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89AUR\r\n\x1a\n"
-VERSION = 1
+VERSION = 2
+#: the versions this gateway reads
+READ_VERSIONS = (1, 2)
 HEADER = MAGIC + struct.pack("<HH", VERSION, 0)
-_REC_HEAD = struct.Struct("<dH")
-_CRC = struct.Struct("<I")
-REC_OVERHEAD = _REC_HEAD.size + _CRC.size
+HEADER_V1 = MAGIC + struct.pack("<HH", 1, 0)
 MAX_FRAME = 261
+#: the longest body a record may have (a longer length field is corruption)
+MAX_BODY = 4096
+MAX_NAME = 255
+#: a frame record's vehicle or source index when it has none
+NO_NAME = 0xFFFF
+#: the writer binds its names again every this many frames
+NAME_REPEAT = 1000
+#: record types
+FRAME, NAME = 1, 2
+
+_REC_HEAD = struct.Struct("<BdH")
+_FRAME_HEAD = struct.Struct("<HH")
+_INDEX = struct.Struct("<H")
+_V1_HEAD = struct.Struct("<dH")
+_CRC = struct.Struct("<I")
+#: bytes a frame record adds to its frame
+REC_OVERHEAD = _REC_HEAD.size + _FRAME_HEAD.size + _CRC.size
+_V1_OVERHEAD = _V1_HEAD.size + _CRC.size
+_FILE_STAMP = re.compile(r"\d{4}-\d\d-\d\dT\d\d-\d\d-\d\d-(.+)")
 
 
 class RecordingError(ValueError):
     """The file is not a recording of a version this gateway reads."""
 
 
+class Record(NamedTuple):
+    """One frame of a recording: its receive time, the frame, its vehicle and its source
+    ("" when the record names none: every version 1 record)."""
+
+    t: float
+    frame: bytes
+    vehicle: str = ""
+    source: str = ""
+
+
 @dataclass
 class ReadStats(Counters):
-    """What reading a recording met: records returned, a torn last record, corrupt stretches
-    skipped (and their bytes)."""
+    """What reading a recording met: frame records returned, a torn last record, corrupt
+    stretches skipped (and their bytes), records of an unknown type skipped, frames whose
+    name record was lost (read with no name)."""
 
     records: int = 0
     torn_tail_bytes: int = 0
     corrupt_skips: int = 0
     bytes_skipped: int = 0
+    unknown_records: int = 0
+    unnamed: int = 0
 
 
-def encode_record(t: float, frame: bytes) -> bytes:
-    """One record's bytes.  Frames longer than a wire frame can be (:data:`MAX_FRAME`) are
-    refused: the reader treats a longer record as corruption, so it could never be read."""
+def _record(rtype: int, t: float, body: bytes) -> bytes:
+    head = _REC_HEAD.pack(rtype, t, len(body)) + body
+    return head + _CRC.pack(zlib.crc32(head))
+
+
+def encode_record(t: float, frame: bytes, vehicle: int = NO_NAME, source: int = NO_NAME) -> bytes:
+    """One frame record's bytes (``vehicle``/``source``: name-table indexes).  Frames longer
+    than a wire frame can be (:data:`MAX_FRAME`) are refused: the reader would never return
+    them."""
     if len(frame) > MAX_FRAME:
         raise ValueError(f"a {len(frame)}-byte frame is longer than a wire frame "
                          f"({MAX_FRAME} bytes)")
-    body = _REC_HEAD.pack(t, len(frame)) + frame
+    return _record(FRAME, t, _FRAME_HEAD.pack(vehicle, source) + frame)
+
+
+def encode_name(t: float, index: int, name: str) -> bytes:
+    """One name record's bytes: binds ``index`` to ``name`` (at most :data:`MAX_NAME` bytes of
+    UTF-8: longer names are cut at a character boundary)."""
+    raw = name.encode("utf-8")[:MAX_NAME].decode("utf-8", "ignore").encode("utf-8")
+    if not raw or not 0 <= index < NO_NAME:
+        raise ValueError(f"cannot bind index {index} to {name!r}")
+    return _record(NAME, t, _INDEX.pack(index) + raw)
+
+
+def encode_record_v1(t: float, frame: bytes) -> bytes:
+    """One version 1 record (for tests and tools that make old files)."""
+    body = _V1_HEAD.pack(t, len(frame)) + frame
     return body + _CRC.pack(zlib.crc32(body))
 
 
-def check_header(data: bytes, path: object) -> None:
-    """RecordingError unless ``data`` starts with a recording header of this version
-    (``path`` names the file in the message)."""
+def check_header(data: bytes, path: object) -> int:
+    """The version of the recording header ``data`` starts with; RecordingError unless it is
+    one this gateway reads (``path`` names the file in the message)."""
     if len(data) < len(HEADER) or data[: len(MAGIC)] != MAGIC:
         raise RecordingError(f"{path}: not an Aurora recording (bad magic)")
     (version,) = struct.unpack_from("<H", data, len(MAGIC))
-    if version != VERSION:
+    if version not in READ_VERSIONS:
         raise RecordingError(f"{path}: recording format version {version}; this gateway "
-                             f"reads version {VERSION}")
+                             f"reads versions {', '.join(map(str, READ_VERSIONS))}")
+    return int(version)
 
 
 def check_file(path: str | Path) -> None:
     """ValueError (a RecordingError for a bad header) unless ``path`` is a readable recording
-    of this version: the replay source's ``path`` key checks it before anything starts."""
+    of a version this gateway reads: the replay source's ``path`` key checks it before
+    anything starts."""
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"no recording at {path}")
@@ -107,49 +188,220 @@ def check_file(path: str | Path) -> None:
     check_header(head, path)
 
 
-def scan(data: bytes, stats: ReadStats | None = None,
-         start: int = len(HEADER)) -> Iterator[tuple[int, float, bytes]]:
-    """Yield (offset, time, frame) for every intact record in ``data`` from ``start``.
+def file_vehicle(path: str | Path) -> str:
+    """The vehicle a version 1 recording is about, from its file name: a ``record_dir`` name
+    loses its UTC stamp (``2026-11-23T14-02-11-rocket1.aur`` → ``rocket1``), then
+    :func:`gateway.vehicles.derive_name` (``flight.aur`` → ``flight``)."""
+    stem = Path(path).name.partition(".")[0] or "recording"
+    m = _FILE_STAMP.match(stem)
+    return derive_name(m.group(1) if m else stem, fallback="recording")
 
-    Bytes that are not an intact record are skipped one at a time until one is found; the
-    ones after the last intact record are the torn tail.
-    """
-    st = stats if stats is not None else ReadStats()
+
+def _version_of(data: bytes) -> int:
+    if data[: len(MAGIC)] == MAGIC and len(data) >= len(HEADER):
+        (version,) = struct.unpack_from("<H", data, len(MAGIC))
+        if version in READ_VERSIONS:
+            return int(version)
+    return VERSION
+
+
+def _intact(data: bytes, stats: ReadStats, start: int,
+            version: int) -> Iterator[tuple[int, int, int, float, int, int]]:
+    """(offset, end, type, time, body start, body end) of every intact record from ``start``;
+    version 1 records are type :data:`FRAME` with the frame as their body.  Bytes that are not
+    an intact record are skipped one at a time until one is found; the ones after the last
+    intact record are the torn tail."""
     n = len(data)
     pos = start
     skipping_from: int | None = None
+    v1 = version == 1
+    head = _V1_HEAD if v1 else _REC_HEAD
+    overhead = _V1_OVERHEAD if v1 else _REC_HEAD.size + _CRC.size
+    limit = MAX_FRAME if v1 else MAX_BODY
+    crc_at = _CRC.unpack_from
     while pos < n:
-        ok = False
-        if pos + REC_OVERHEAD <= n:
-            t, length = _REC_HEAD.unpack_from(data, pos)
-            end = pos + _REC_HEAD.size + length
-            if length <= MAX_FRAME and end + _CRC.size <= n:
-                ok = _CRC.unpack_from(data, end)[0] == zlib.crc32(data[pos:end])
-        if ok:
+        found = None
+        if pos + overhead <= n:
+            if v1:
+                t, length = head.unpack_from(data, pos)
+                rtype = FRAME
+            else:
+                rtype, t, length = head.unpack_from(data, pos)
+            end = pos + head.size + length
+            if length <= limit and end + _CRC.size <= n and \
+                    crc_at(data, end)[0] == zlib.crc32(data[pos:end]):
+                found = (rtype, t, pos + head.size, end)
+        if found is not None:
             if skipping_from is not None:
-                st.corrupt_skips += 1
-                st.bytes_skipped += pos - skipping_from
+                stats.corrupt_skips += 1
+                stats.bytes_skipped += pos - skipping_from
                 skipping_from = None
-            st.records += 1
-            yield pos, t, data[pos + _REC_HEAD.size:end]
+            rtype, t, body, end = found
+            yield pos, end + _CRC.size, rtype, t, body, end
             pos = end + _CRC.size
             continue
         if skipping_from is None:
             skipping_from = pos
         pos += 1
     if skipping_from is not None:
-        st.torn_tail_bytes = n - skipping_from
+        stats.torn_tail_bytes = n - skipping_from
+
+
+def _name_of(data: bytes, body: int, body_end: int) -> tuple[int, str]:
+    (index,) = _INDEX.unpack_from(data, body)
+    return index, data[body + _INDEX.size:body_end].decode("utf-8", "replace")
+
+
+def _records(data: bytes, stats: ReadStats, start: int,
+             names: dict[int, str] | None = None) -> Iterator[tuple[int, int, Record]]:
+    """(offset, end, record) of every frame record, names resolved through the file's
+    table (``names``, filled as name records pass)."""
+    version = _version_of(data)
+    table: dict[int, str] = {} if names is None else names
+    for pos, end, rtype, t, body, body_end in _intact(data, stats, start, version):
+        if version == 1:
+            stats.records += 1
+            yield pos, end, Record(t, data[body:body_end])
+            continue
+        if rtype == FRAME and body_end - body >= _FRAME_HEAD.size \
+                and body_end - body - _FRAME_HEAD.size <= MAX_FRAME:
+            vi, si = _FRAME_HEAD.unpack_from(data, body)
+            vehicle = table.get(vi, "") if vi != NO_NAME else ""
+            source = table.get(si, "") if si != NO_NAME else ""
+            if (vi != NO_NAME and vi not in table) or (si != NO_NAME and si not in table):
+                stats.unnamed += 1
+            stats.records += 1
+            yield pos, end, Record(t, data[body + _FRAME_HEAD.size:body_end], vehicle, source)
+        elif rtype == NAME and body_end - body > _INDEX.size:
+            index, name = _name_of(data, body, body_end)
+            table[index] = name
+        else:
+            stats.unknown_records += 1
+
+
+def records(data: bytes, stats: ReadStats | None = None,
+            start: int = len(HEADER)) -> Iterator[Record]:
+    """Every intact frame record in ``data`` (a whole recording, header first) from
+    ``start``, with its vehicle and source."""
+    st = stats if stats is not None else ReadStats()
+    for _, _, rec in _records(data, st, start):
+        yield rec
+
+
+def scan(data: bytes, stats: ReadStats | None = None,
+         start: int = len(HEADER)) -> Iterator[tuple[int, float, bytes]]:
+    """Yield (offset, time, frame) for every intact frame record in ``data`` (a whole
+    recording, header first; the version is the header's) from ``start``."""
+    st = stats if stats is not None else ReadStats()
+    for pos, _, rec in _records(data, st, start):
+        yield pos, rec.t, rec.frame
+
+
+def read_records(path: str | Path, stats: ReadStats | None = None) -> Iterator[Record]:
+    """Every intact frame record of the recording at ``path``."""
+    data = Path(path).read_bytes()
+    check_header(data, path)
+    yield from records(data, stats)
 
 
 def read(path: str | Path, stats: ReadStats | None = None) -> Iterator[tuple[float, bytes]]:
     """Yield (receive time, frame) for every intact record of the recording at ``path``."""
-    data = Path(path).read_bytes()
-    check_header(data, path)
-    for _, t, frame in scan(data, stats):
-        yield t, frame
+    for rec in read_records(path, stats):
+        yield rec.t, rec.frame
+
+
+def vehicles_in(recs: list[Record]) -> list[str]:
+    """The vehicles of ``recs`` in the order they first appear."""
+    return list(dict.fromkeys(r.vehicle for r in recs))
 
 
 _WAKE = object()
+Frame = bytes  # (the recorder's ``bytes`` counter hides the type in its class)
+
+
+class RecordingFile:
+    """One recording open for appending, with its name table: what the recorders write to.
+    Not thread-safe: its recorder holds a lock around it."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.records = 0
+        self.bytes = 0
+        self.dirty = False
+        self._index: dict[str, int] = {}  # the file's name table
+        self._bound: set[str] = set()  # names bound since the last repeat
+        self._since_repeat = 0
+        self._next = 0  # the next free index
+        self.fd = self._open()
+
+    def _open(self) -> int:
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+        try:
+            size = os.fstat(fd).st_size
+            if size == 0:
+                os.write(fd, HEADER)
+                return fd
+            with open(self.path, "rb") as f:
+                data = f.read()
+            if check_header(data, self.path) != VERSION:
+                raise RecordingError(f"{self.path}: a version 1 recording; this gateway "
+                                     f"appends to version {VERSION} ones only (record into a "
+                                     "new file)")
+            end = len(HEADER)
+            table: dict[int, str] = {}
+            for _, rec_end, rtype, _, body, body_end in _intact(data, ReadStats(), end,
+                                                                VERSION):
+                end = rec_end
+                if rtype == NAME and body_end - body > _INDEX.size:
+                    index, name = _name_of(data, body, body_end)
+                    table[index] = name
+            self._index = {name: i for i, name in table.items()}
+            self._next = max(table, default=-1) + 1
+            if end < size:
+                log.warning("%s: cutting %d torn bytes off the end before appending",
+                            self.path, size - end)
+                os.ftruncate(fd, end)
+        except Exception:
+            os.close(fd)
+            raise
+        return fd
+
+    def _name(self, name: str, t: float, out: list[bytes]) -> int:
+        if not name:
+            return NO_NAME
+        index = self._index.get(name)
+        if index is None:
+            if self._next >= NO_NAME:  # the table is full: no name (bounded)
+                return NO_NAME
+            index = self._index[name] = self._next
+            self._next += 1
+        if name not in self._bound:
+            out.append(encode_name(t, index, name))
+            self._bound.add(name)
+        return index
+
+    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "") -> bytes:
+        """A frame record with the name records it needs first (ValueError: too long)."""
+        if len(frame) > MAX_FRAME:
+            encode_record(t, frame)  # raises
+        self._since_repeat += 1
+        if self._since_repeat >= NAME_REPEAT:
+            self._since_repeat = 0
+            self._bound.clear()
+        out: list[bytes] = []
+        vi = self._name(vehicle, t, out)
+        si = self._name(source, t, out)
+        out.append(encode_record(t, frame, vi, si))
+        return b"".join(out) if len(out) > 1 else out[0]
+
+    def forget_bindings(self) -> None:
+        """After a failed write: bind every name again before its next use."""
+        self._bound.clear()
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
 
 
 class Recorder:
@@ -164,8 +416,6 @@ class Recorder:
     def __init__(self, path: str | Path, fsync_interval_s: float = 1.0,
                  queue_depth: int = 4096) -> None:
         self.path = Path(path)
-        self.records = 0
-        self.bytes = 0
         self.errors = 0
         self.syncs = 0
         self.dropped_queue_full = 0
@@ -174,40 +424,39 @@ class Recorder:
         self._lock = threading.Lock()
         self._drop_lock = threading.Lock()
         self._fsync_interval = fsync_interval_s
-        self._dirty = False
         self._closed = False
         self._drain_deadline = 0.0
         self._queue: queue.Queue[Any] = queue.Queue(max(1, queue_depth))
         self._closing = threading.Event()
-        #: set once the writer thread has written what it will and closed the file
+        #: set once the writer thread has written what it will and closed the file(s)
         self.finished = threading.Event()
-        self._fd = self._open()
+        #: every file written, in the order opened (the open ones included)
+        self.files: list[RecordingFile] = []
+        self._open_files()
         self._thread = threading.Thread(target=self._writer, name=f"recorder {self.path.name}",
                                         daemon=True)
         self._thread.start()
 
-    def _open(self) -> int:
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
-        try:
-            size = os.fstat(fd).st_size
-            if size == 0:
-                os.write(fd, HEADER)
-                return fd
-            with open(self.path, "rb") as f:
-                data = f.read()
-            check_header(data, self.path)
-            end = len(HEADER)
-            stats = ReadStats()
-            for pos, _, frame in scan(data, stats):
-                end = pos + REC_OVERHEAD + len(frame)
-            if end < size:
-                log.warning("%s: cutting %d torn bytes off the end before appending",
-                            self.path, size - end)
-                os.ftruncate(fd, end)
-        except Exception:
-            os.close(fd)
-            raise
-        return fd
+    def _open_files(self) -> None:
+        self._file = RecordingFile(self.path)
+        self.files.append(self._file)
+
+    def _file_for(self, vehicle: str, t: float, new_flight: bool) -> RecordingFile | None:
+        """The file a record of ``vehicle`` goes to (under the lock)."""
+        return self._file if self._file.fd >= 0 else None
+
+    @property
+    def paths(self) -> list[Path]:
+        """Every file this recorder wrote, in the order opened."""
+        return [f.path for f in self.files]
+
+    @property
+    def records(self) -> int:
+        return sum(f.records for f in self.files)
+
+    @property
+    def bytes(self) -> int:
+        return sum(f.bytes for f in self.files)
 
     # -- the hot path ----------------------------------------------------------------------
 
@@ -216,13 +465,15 @@ class Recorder:
         """Whether :meth:`close` was called (it takes nothing more)."""
         return self._closed
 
-    def submit(self, msg: Any, t: float | None = None) -> bool:
+    def submit(self, msg: Any, t: float | None = None, new_flight: bool = False) -> bool:
         """Queue a message (or a frame as bytes) received at ``t`` (default now) for the
-        writer thread; never blocks.  False if it was dropped: queue full, or closed."""
+        writer thread; never blocks.  False if it was dropped: queue full, or closed.
+        ``new_flight``: the message starts its vehicle's next flight (a
+        :class:`DirectoryRecorder` starts that vehicle's next file with it)."""
         if self._closed:
             return False
         try:
-            self._queue.put_nowait((time.time() if t is None else t, msg))
+            self._queue.put_nowait((time.time() if t is None else t, msg, new_flight))
         except queue.Full:
             with self._drop_lock:
                 self.dropped_queue_full += 1
@@ -231,27 +482,36 @@ class Recorder:
 
     # -- writing -----------------------------------------------------------------------------
 
-    def write(self, frame: bytes, t: float | None = None) -> None:
-        """Write one record now (one ``write`` call); ignored after :meth:`close`."""
-        rec = encode_record(time.time() if t is None else t, frame)
+    def write(self, frame: Frame, t: float | None = None, vehicle: str = "",
+              source: str = "") -> None:
+        """Write one record now (one ``write`` call); ignored after :meth:`close`.
+        ValueError for a frame longer than a wire frame."""
+        if len(frame) > MAX_FRAME:
+            encode_record(0.0, frame)  # raises
         with self._lock:
-            if self._fd < 0 or self._closed:
+            if self._closed:
                 return
-            self._write_locked(rec)
+            self._write_locked(time.time() if t is None else t, frame, vehicle, source, False)
 
-    def _write_locked(self, rec: bytes) -> None:
+    def _write_locked(self, t: float, frame: Frame, vehicle: str, source: str,
+                      new_flight: bool) -> None:
+        f = self._file_for(vehicle or source, t, new_flight)
+        if f is None:
+            return
+        rec = f.encode(t, frame, vehicle, source)
         try:
-            os.write(self._fd, rec)
+            os.write(f.fd, rec)
         except OSError as exc:
+            f.forget_bindings()
             self.errors += 1
             if self.errors == 1:
-                log.error("%s: write failed: %s", self.path, exc)
+                log.error("%s: write failed: %s", f.path, exc)
             return
-        self.records += 1
-        self.bytes += len(rec)
-        self._dirty = True
+        f.records += 1
+        f.bytes += len(rec)
+        f.dirty = True
 
-    def _frame_of(self, msg: Any) -> bytes | None:
+    def _frame_of(self, msg: Any) -> Frame | None:
         if isinstance(msg, bytes | bytearray):
             return bytes(msg)
         raw = getattr(msg, "raw", b"")
@@ -267,30 +527,32 @@ class Recorder:
                             self.path, name, exc)
             return None
 
-    def _record(self, t: float, msg: Any) -> None:
+    def _record(self, t: float, msg: Any, new_flight: bool) -> None:
         frame = self._frame_of(msg)
         if frame is None:
             return
-        try:
-            rec = encode_record(t, frame)
-        except ValueError:
+        if len(frame) > MAX_FRAME:
             self.not_recordable["too_long"] += 1
             return
         with self._lock:
-            if self._fd >= 0:
-                self._write_locked(rec)
+            self._write_locked(t, frame, getattr(msg, "vehicle", ""),
+                               getattr(msg, "origin", ""), new_flight)
+
+    def _sync_file(self, f: RecordingFile) -> None:
+        if f.fd < 0 or not f.dirty:
+            return
+        f.dirty = False
+        try:
+            os.fsync(f.fd)
+        except OSError as exc:  # a pipe or a device that cannot sync
+            log.debug("%s: fsync failed: %s", f.path, exc)
+            return
+        self.syncs += 1
 
     def _sync(self) -> None:
         with self._lock:
-            if self._fd < 0 or not self._dirty:
-                return
-            self._dirty = False
-            try:
-                os.fsync(self._fd)
-            except OSError as exc:  # a pipe or a device that cannot sync
-                log.debug("%s: fsync failed: %s", self.path, exc)
-                return
-            self.syncs += 1
+            for f in self.files:
+                self._sync_file(f)
 
     def _writer(self) -> None:
         q = self._queue
@@ -325,9 +587,8 @@ class Recorder:
         finally:
             self._sync()
             with self._lock:
-                if self._fd >= 0:
-                    os.close(self._fd)
-                    self._fd = -1
+                for f in self.files:
+                    f.close()
             self.finished.set()
 
     def close(self, timeout: float = 1.0) -> None:
@@ -355,3 +616,60 @@ class Recorder:
                 "syncs": self.syncs, "dropped_queue_full": self.dropped_queue_full,
                 "dropped_at_close": self.dropped_at_close,
                 "not_recordable": dict(self.not_recordable)}
+
+
+class DirectoryRecorder(Recorder):
+    """``record_dir``: one recording per vehicle per flight in ``directory``, named
+    ``<UTC time of its first record>-<vehicle>.aur``
+    (:func:`gateway.flight_summary.new_recording`).  The writer thread opens a vehicle's
+    file at its first recordable message and its next one at a message submitted with
+    ``new_flight`` (closing the previous one: a vehicle's new flight rotates only its own
+    file).  At most ``max_vehicles`` files are open at once; the messages of further
+    vehicles are dropped, counted (``dropped_vehicle_limit``) and warned about once."""
+
+    def __init__(self, directory: str | Path, fsync_interval_s: float = 1.0,
+                 queue_depth: int = 4096, max_vehicles: int = 64) -> None:
+        self.max_vehicles = max_vehicles
+        self.dropped_vehicle_limit = 0
+        self.open_errors = 0
+        self._open: dict[str, RecordingFile] = {}
+        super().__init__(directory, fsync_interval_s, queue_depth)
+
+    def _open_files(self) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)  # OSError: the caller's to report
+        if not os.access(self.path, os.W_OK | os.X_OK):
+            raise PermissionError(13, "Permission denied", str(self.path))
+
+    def _file_for(self, vehicle: str, t: float, new_flight: bool) -> RecordingFile | None:
+        from gateway.flight_summary import new_recording
+
+        name = vehicle or "gateway"
+        f = self._open.get(name)
+        if f is not None and not new_flight:
+            return f
+        if f is None and len(self._open) >= self.max_vehicles:
+            self.dropped_vehicle_limit += 1
+            if self.dropped_vehicle_limit == 1:
+                log.warning("%s: recording %d vehicles already; not recording %s (nor "
+                            "any further vehicle), counting", self.path, len(self._open),
+                            name)
+            return None
+        try:
+            new = RecordingFile(new_recording(self.path, t, name))
+        except (OSError, RecordingError) as exc:
+            self.open_errors += 1
+            if self.open_errors == 1 or f is None:
+                log.error("%s: cannot open %s's recording (%s)%s", self.path, name, exc,
+                          f"; recording on into {f.path}" if f is not None else "")
+            return f
+        if f is not None:
+            self._sync_file(f)
+            f.close()
+            log.info("new flight of %s: recording into %s", name, new.path)
+        self._open[name] = new
+        self.files.append(new)
+        return new
+
+    def stats(self) -> dict[str, Any]:
+        return {**super().stats(), "dropped_vehicle_limit": self.dropped_vehicle_limit,
+                "open_errors": self.open_errors}

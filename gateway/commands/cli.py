@@ -476,7 +476,8 @@ def say(text: str, level: int = logging.INFO) -> None:
 def _report(summary: dict[str, Any]) -> None:
     drops = []
     rec = summary.get("recorder") or {}
-    rec_drops = {k: rec.get(f"dropped_{k}", 0) for k in ("queue_full", "at_close")}
+    rec_drops = {k: rec.get(f"dropped_{k}", 0)
+                 for k in ("queue_full", "at_close", "vehicle_limit")}
     if any(rec_drops.values()):
         drops.append("recorder " + " ".join(f"dropped_{k}={v}"
                                             for k, v in rec_drops.items() if v))
