@@ -63,7 +63,7 @@ import threading
 import time
 import zlib
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -310,9 +310,29 @@ def read(path: str | Path, stats: ReadStats | None = None) -> Iterator[tuple[flo
         yield rec.t, rec.frame
 
 
-def vehicles_in(recs: list[Record]) -> list[str]:
+def vehicles_in(recs: Iterable[Record]) -> list[str]:
     """The vehicles of ``recs`` in the order they first appear."""
     return list(dict.fromkeys(r.vehicle for r in recs))
+
+
+def name_unnamed(recs: Iterable[Record], vehicle: str) -> list[Record]:
+    """``recs`` with ``vehicle`` as the vehicle of those that name none (a version 1
+    recording's: :func:`file_vehicle`)."""
+    return [r if r.vehicle else r._replace(vehicle=vehicle) for r in recs]
+
+
+def only_vehicle(recs: list[Record], vehicle: str | None, path: object = "the recording",
+                 flag: str = "--vehicle") -> list[Record]:
+    """The records of ``vehicle`` (None: all); ValueError naming ``flag`` and the vehicles
+    present when none is that vehicle's."""
+    if vehicle is None:
+        return recs
+    kept = [r for r in recs if r.vehicle == vehicle]
+    if not kept:
+        present = ", ".join(v or '""' for v in vehicles_in(recs)) or "none"
+        raise ValueError(f"{flag}: no vehicle {vehicle!r} in {path} (its vehicles: "
+                         f"{present})")
+    return kept
 
 
 _WAKE = object()

@@ -261,6 +261,8 @@ def build_parser(backend_flags: bool = True,
     dec = sub.add_parser("decode", help="print the frames of a capture or recording as JSON "
                          "lines")
     dec.add_argument("file", nargs="?", default="-", help="raw capture or recording; - = stdin")
+    dec.add_argument("--vehicle", metavar="NAME",
+                     help="a recording's frames of this vehicle only (default: every vehicle)")
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
     key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
@@ -589,15 +591,24 @@ def cmd_decode(args: argparse.Namespace) -> int:
             stats = recording.ReadStats()
             try:
                 recording.check_header(data, args.file)
-            except recording.RecordingError as exc:
+                recs = recording.name_unnamed(
+                    recording.records(data, stats),
+                    recording.file_vehicle(args.file) if args.file != "-" else "")
+                recs = recording.only_vehicle(recs, args.vehicle, args.file)
+            except ValueError as exc:  # RecordingError included
                 print(f"aurora-gateway: decode: {exc}", file=sys.stderr)
                 return EXIT_USAGE
-            for _, t, frame in recording.scan(data, stats):
+            for t, frame, vehicle, source in recs:
                 for msg in dec.feed(frame):
-                    out.write(json.dumps({"rx_time": t, **_json_safe(to_wire_dict(msg))}) + "\n")
+                    out.write(json.dumps({"rx_time": t, "vehicle": vehicle, "source": source,
+                                          **_json_safe(to_wire_dict(msg))}) + "\n")
             if stats.torn_tail_bytes or stats.corrupt_skips:
                 print(f"recording: {stats.records} records, torn tail {stats.torn_tail_bytes} "
                       f"bytes, {stats.corrupt_skips} corrupt stretches skipped", file=sys.stderr)
+        elif args.vehicle is not None:
+            print(f"aurora-gateway: decode: --vehicle: {args.file} is a raw capture, which "
+                  "names no vehicle", file=sys.stderr)
+            return EXIT_USAGE
         else:
             chunk = head
             while chunk:
