@@ -469,10 +469,11 @@ def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
-def say(text: str, level: int = logging.INFO) -> None:
+def say(text: str, level: int = logging.INFO, fields: dict[str, Any] | None = None) -> None:
     """One of the run's own lines to stderr in one write (a log line another thread writes
-    meanwhile cannot land inside it), as the log format says: plain or JSON."""
-    logjson.say(text, level=level)
+    meanwhile cannot land inside it), as the log format says: plain or JSON (with
+    ``fields`` as keys of their own)."""
+    logjson.say(text, level=level, fields=fields)
 
 
 def _report(summary: dict[str, Any]) -> None:
@@ -505,13 +506,14 @@ def _report(summary: dict[str, Any]) -> None:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
                      + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
     say(line)
-    for text in summary_lines(summary.get("flights") or {}):
-        say(text)
+    flights = summary.get("flights") or {}
+    for name, text in zip(flights, summary_lines(flights), strict=True):
+        say(text, fields={"vehicle": name, "flight": flights[name]})
     crc = summary.get("crc_errors") or {}
     say(f"crc errors: {sum(crc.values())}"
         + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""))
     for path in summary.get("recordings") or ():
-        say(f"recording: {path}")
+        say(f"recording: {path}", fields={"recording": path})
     say("dropped: " + ("; ".join(drops) if drops else "nothing"))
     refusals = [f"{name} " + " ".join(f"{k}={st[k]}" for k in SERVER_KEYS if st.get(k))
                 for name, st in summary["backends"].items()
