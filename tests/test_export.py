@@ -26,8 +26,8 @@ T0 = 1_790_000_000.25  # the recording's first receive time (Unix seconds)
 CONSOLE = Path(sys.executable).with_name("aurora-gateway")
 
 # The documented columns, in order (the export's contract, written out here on purpose).
-DOCUMENTED = ["t_s", "rx_time", "vehicle", "timestamp_ms", "state", "state_name", "armed", "sm_type",
-              "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
+DOCUMENTED = ["t_s", "rx_time", "vehicle", "timestamp_ms", "state", "state_name", "armed",
+              "sm_type", "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
               "roll_deg", "pitch_deg", "yaw_deg", "imu_ok", "baro_ok", "calibrated",
               "log_ready"]
 # STATUS flag bits (shared/specs/aurora-wire.md): armed 0x01, IMU 0x02, baro 0x04,

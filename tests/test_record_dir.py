@@ -152,8 +152,10 @@ def test_the_gateway_opens_a_new_recording_for_each_flight(tmp_path: Path) -> No
         summary = gw.stop()
     paths = [Path(p) for p in summary["recordings"]]
     assert len(paths) == 2
-    assert paths[0].name.endswith("-gateway.aur")  # no sources: the run's file
-    assert paths[1].name.endswith("-rocket1.aur")  # the vehicle that armed again
+    # one file per vehicle per flight, named after the vehicle (issue 22: no longer a file
+    # per run named after the sources, opened before any message)
+    assert paths[0].name.endswith("-rocket1.aur")
+    assert paths[1].name.endswith(("-rocket1.aur", "-rocket1-2.aur"))  # armed again
     assert sorted(p.name for p in (tmp_path / "flights").iterdir()) == sorted(
         p.name for p in paths)
     got = []
