@@ -644,8 +644,10 @@ class DirectoryRecorder(Recorder):
     (:func:`gateway.flight_summary.new_recording`).  The writer thread opens a vehicle's
     file at its first recordable message and its next one at a message submitted with
     ``new_flight`` (closing the previous one: a vehicle's new flight rotates only its own
-    file).  At most ``max_vehicles`` files are open at once; the messages of further
-    vehicles are dropped, counted (``dropped_vehicle_limit``) and warned about once."""
+    file).  The rotation rides on its message: if a full queue drops that message, the
+    vehicle's next flight goes on in its old file.  At most ``max_vehicles`` files are open
+    at once; the messages of further vehicles are dropped, counted
+    (``dropped_vehicle_limit``) and warned about once."""
 
     def __init__(self, directory: str | Path, fsync_interval_s: float = 1.0,
                  queue_depth: int = 4096, max_vehicles: int = 64) -> None:
