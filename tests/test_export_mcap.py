@@ -186,7 +186,8 @@ def test_one_message_per_update_and_status_with_the_decoded_values(
             else:
                 ns = _ns(t)
                 assert data["timestamp"] == {"sec": ns // 10**9, "nsec": ns % 10**9}
-                assert (data["parent_frame_id"], data["child_frame_id"]) == ("world", "rocket")
+                # a frame per vehicle, named after it
+                assert (data["parent_frame_id"], data["child_frame_id"]) == ("world", "flight")
                 assert data["translation"] == {"x": 0.0, "y": 0.0, "z": m.altitude_m}
                 angles = (m.roll_rad, m.pitch_rad, m.yaw_rad)
                 rot = data["rotation"]

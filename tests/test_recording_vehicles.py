@@ -274,17 +274,21 @@ def test_mcap_puts_each_vehicle_on_its_own_topics(two: Path, tmp_path: Path) -> 
     out = tmp_path / "two.mcap"
     assert main(["export", str(two), "-o", str(out)]) == 0
     alts: dict[str, list[float]] = defaultdict(list)
+    frames: dict[str, set[str]] = defaultdict(set)
     topics = set()
     with out.open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages():
             topics.add(channel.topic)
             if channel.topic.endswith("/altitude"):
                 alts[channel.topic].append(json.loads(message.data)["altitude_m"])
+            if channel.topic.endswith("/attitude"):
+                frames[channel.topic].add(json.loads(message.data)["child_frame_id"])
     assert {"/aurora/alpha/state", "/aurora/beta/state", "/aurora/alpha/status",
             "/aurora/beta/attitude", "/aurora/link_events"} <= topics
     assert not {"/aurora/state", "/aurora/altitude"} & topics
     for name in BASE:
         assert alts[f"/aurora/{name}/altitude"] == [BASE[name] + i % 10 for i in range(60)]
+        assert frames[f"/aurora/{name}/attitude"] == {name}  # a frame per vehicle
 
 
 def test_plot_draws_a_labelled_series_per_vehicle(two: Path, tmp_path: Path,

@@ -24,7 +24,7 @@ channel                 from              fields
 ``/aurora/…/state``     each SM_UPDATE    timestamp_ms, state, state_name, armed, sm_type
 ``/aurora/…/altitude``  each SM_UPDATE    timestamp_ms, altitude_m, velocity_mps,
                                           acceleration_mps2, accel_vert_mps2
-``/aurora/…/attitude``  each SM_UPDATE    foxglove.FrameTransform: ``world`` → ``rocket``,
+``/aurora/…/attitude``  each SM_UPDATE    foxglove.FrameTransform: ``world`` → the vehicle,
                                           rotation = roll/pitch/yaw as a quaternion
                                           (Z-Y-X), translation z = altitude_m
 ``/aurora/…/status``    each STATUS       timestamp_ms, state, state_name, sm_type, flags,
@@ -77,6 +77,13 @@ _STR = {"type": "string"}
 #: The frames of the attitude transform (as the live backend names them).
 PARENT_FRAME = "world"
 CHILD_FRAME = "rocket"
+
+
+def child_frame(vehicle: str) -> str:
+    """The frame of a vehicle's attitude and position: the vehicle's name (a frame per
+    vehicle, so several rockets in one 3D panel do not share one), ``rocket`` when the
+    message names none."""
+    return vehicle or CHILD_FRAME
 _TIME = {"type": "object", "properties": {"sec": _INT, "nsec": _INT},
          "required": ["sec", "nsec"]}
 
@@ -185,7 +192,7 @@ def attitude_fields(m: SmUpdate, ns: int) -> dict[str, Any]:
     ``ns``."""
     x, y, z, w = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
     return {"timestamp": _stamp(ns), "parent_frame_id": PARENT_FRAME,
-            "child_frame_id": CHILD_FRAME,
+            "child_frame_id": child_frame(m.vehicle),
             "translation": {"x": 0.0, "y": 0.0, "z": m.altitude_m},
             "rotation": {"x": x, "y": y, "z": z, "w": w}}
 
@@ -199,7 +206,7 @@ def status_fields(m: Status) -> dict[str, Any]:
 def position_fields(m: Position, ns: int) -> dict[str, Any]:
     """The ``/aurora/…/position`` message (a foxglove.LocationFix) of a fix received at ``ns``
     (an unknown altitude as 0, as the live backend sends it)."""
-    return {"timestamp": _stamp(ns), "frame_id": CHILD_FRAME, "latitude": m.lat_deg,
+    return {"timestamp": _stamp(ns), "frame_id": child_frame(m.vehicle), "latitude": m.lat_deg,
             "longitude": m.lon_deg,
             "altitude": m.alt_amsl_m if m.alt_amsl_m is not None else 0.0,
             "position_covariance": [0.0] * 9, "position_covariance_type": 0}
