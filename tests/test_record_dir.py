@@ -218,3 +218,26 @@ def test_run_record_dir_writes_a_named_readable_recording_and_reports_the_flight
     stopped = [ln for ln in lines if ln.startswith("stopped after ")]
     assert len(stopped) == 1 and f"{len(msgs)} frames recorded" in stopped[0]
     assert "dropped: nothing" in lines
+
+
+def test_run_record_dir_writes_a_file_per_vehicle_and_reports_each(tmp_path: Path) -> None:
+    d = tmp_path / "flights"
+    r = subprocess.run([str(CONSOLE_SCRIPT), "run", "--source", "alpha=sim", "--source",
+                        "beta=sim", "--sim-speed", "20", "--duration", "1", "--record-dir",
+                        str(d), "--only", "console", "--console-interval", "100",
+                        "--status-interval", "0"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    files = sorted(d.iterdir())
+    names = [NAME_RE.match(f.name) for f in files]
+    assert [m.group(2) if m else f.name for m, f in zip(names, files, strict=True)] == [
+        "alpha", "beta"]
+    lines = r.stderr.splitlines()
+    for f, vehicle in zip(files, ("alpha", "beta"), strict=True):
+        recs = list(recording.read_records(f))
+        assert recs and {(x.vehicle, x.source) for x in recs} == {(vehicle, vehicle)}
+        dec = Decoder()
+        updates = [m for x in recs for m in dec.feed(x.frame) if isinstance(m, SmUpdate)]
+        flight = [ln for ln in lines if ln.startswith(f"flight {vehicle}: ")]
+        assert len(flight) == 1 and f"{len(updates)} updates" in flight[0], r.stderr
+        assert f"recording: {f}" in lines
