@@ -280,7 +280,8 @@ def build_parser(backend_flags: bool = True,
     gateway_flag(sim, "log_level")
 
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
-                         description="Record what the sources receive, with no backends. "
+                         description="Record what the sources receive, with no backends, every "
+                         "vehicle into FILE with its vehicle and source names. "
                          "Each message is recorded as its wire frame: the one it arrived in, "
                          "else the frame it encodes to (SM_UPDATE, STATUS and relayed frames "
                          "from a MAVLink or Zenoh source). Messages with no wire form (a "
@@ -290,7 +291,10 @@ def build_parser(backend_flags: bool = True,
     add_source_options(rec)
     _add_common_options(rec)
 
-    rep = sub.add_parser("replay", help="run the gateway with a recording as its source")
+    rep = sub.add_parser("replay", help="run the gateway with a recording as its source",
+                         description="Run the gateway with a recording as its source: each "
+                         "recorded vehicle comes back under its name (the frames of a version "
+                         "1 recording, which name none, as the replay source's own vehicle).")
     rep.add_argument("file", help="recording")
     key_flag(rep, "--speed", _source_key("replay", "speed"),
               "N times real time; 0 = flat out (default 1)", metavar="N")
