@@ -219,6 +219,7 @@ def _intact(data: bytes, stats: ReadStats, start: int,
     overhead = _V1_OVERHEAD if v1 else _REC_HEAD.size + _CRC.size
     limit = MAX_FRAME if v1 else MAX_BODY
     crc_at = _CRC.unpack_from
+    view = memoryview(data)  # the CRC without copying each record
     while pos < n:
         found = None
         if pos + overhead <= n:
@@ -229,7 +230,7 @@ def _intact(data: bytes, stats: ReadStats, start: int,
                 rtype, t, length = head.unpack_from(data, pos)
             end = pos + head.size + length
             if length <= limit and end + _CRC.size <= n and \
-                    crc_at(data, end)[0] == zlib.crc32(data[pos:end]):
+                    crc_at(data, end)[0] == zlib.crc32(view[pos:end]):
                 found = (rtype, t, pos + head.size, end)
         if found is not None:
             if skipping_from is not None:
@@ -258,23 +259,25 @@ def _records(data: bytes, stats: ReadStats, start: int,
     table (``names``, filled as name records pass)."""
     version = _version_of(data)
     table: dict[int, str] = {} if names is None else names
+    lookup = {**table, NO_NAME: ""}  # the table, and "no name" for NO_NAME
+    frame_head = _FRAME_HEAD.size
+    unpack_head = _FRAME_HEAD.unpack_from
     for pos, end, rtype, t, body, body_end in _intact(data, stats, start, version):
         if version == 1:
             stats.records += 1
             yield pos, end, Record(t, data[body:body_end])
-            continue
-        if rtype == FRAME and body_end - body >= _FRAME_HEAD.size \
-                and body_end - body - _FRAME_HEAD.size <= MAX_FRAME:
-            vi, si = _FRAME_HEAD.unpack_from(data, body)
-            vehicle = table.get(vi, "") if vi != NO_NAME else ""
-            source = table.get(si, "") if si != NO_NAME else ""
-            if (vi != NO_NAME and vi not in table) or (si != NO_NAME and si not in table):
+        elif rtype == FRAME and frame_head <= body_end - body <= frame_head + MAX_FRAME:
+            vi, si = unpack_head(data, body)
+            vehicle, source = lookup.get(vi), lookup.get(si)
+            if vehicle is None or source is None:  # its name record was lost
                 stats.unnamed += 1
             stats.records += 1
-            yield pos, end, Record(t, data[body + _FRAME_HEAD.size:body_end], vehicle, source)
+            yield pos, end, Record(t, data[body + frame_head:body_end], vehicle or "",
+                                   source or "")
         elif rtype == NAME and body_end - body > _INDEX.size:
             index, name = _name_of(data, body, body_end)
-            table[index] = name
+            if index != NO_NAME:
+                table[index] = lookup[index] = name
         else:
             stats.unknown_records += 1
 
