@@ -317,6 +317,7 @@ def test_replay_gives_each_recorded_vehicle_back_under_its_name(two: Path) -> No
         name: sorted(BASE[name] + i % 10 for i in range(60)) for name in BASE}
     assert set(summary["flights"]) == {"alpha", "beta"}
     assert summary["flights"]["beta"]["max_altitude_m"] == 509.0
+    assert [st["vehicles"] for st in summary["sources"].values()] == [2]
 
 
 def test_a_version_1_recording_replays_as_the_replay_sources_vehicle(tmp_path: Path) -> None:

@@ -99,4 +99,5 @@ class ReplaySource(PacedFrameSource):
         st = self.read_stats
         return {"frames": self.sent, "records": st.records,
                 "torn_tail_bytes": st.torn_tail_bytes, "corrupt_skips": st.corrupt_skips,
+                "vehicles": len(set(self._names.values())),
                 "crc_failures": self.decoder.stats.crc_failures}
