@@ -21,6 +21,10 @@ File layout, version 2 (all integers little-endian)::
                     K bytes   the name, UTF-8, 1 ≤ K ≤ 255; binds the index to it for the
                               rest of the file; the time is when it was written
 
+Every record type that carries a message (only frames today) starts its body with those two
+indexes (:func:`encode_message`): more kinds of message (each with its vehicle and source)
+become more record types of this layout.
+
 A name (a vehicle's or a source's: one table for both) is bound before the first frame that
 uses it, in the same ``write``; an index is bound to one name per file (appending continues
 the file's table), and the writer binds its names again every :data:`NAME_REPEAT` frames,
@@ -136,6 +140,15 @@ def _record(rtype: int, t: float, body: bytes) -> bytes:
     return head + _CRC.pack(zlib.crc32(head))
 
 
+def encode_message(rtype: int, t: float, payload: bytes, vehicle: int = NO_NAME,
+                   source: int = NO_NAME) -> bytes:
+    """A record of type ``rtype`` carrying a message: the vehicle's and the source's
+    name-table indexes, then ``payload``."""
+    if len(payload) + _FRAME_HEAD.size > MAX_BODY:
+        raise ValueError(f"a {len(payload)}-byte payload is longer than a record body holds")
+    return _record(rtype, t, _FRAME_HEAD.pack(vehicle, source) + payload)
+
+
 def encode_record(t: float, frame: bytes, vehicle: int = NO_NAME, source: int = NO_NAME) -> bytes:
     """One frame record's bytes (``vehicle``/``source``: name-table indexes).  Frames longer
     than a wire frame can be (:data:`MAX_FRAME`) are refused: the reader would never return
@@ -143,7 +156,7 @@ def encode_record(t: float, frame: bytes, vehicle: int = NO_NAME, source: int = 
     if len(frame) > MAX_FRAME:
         raise ValueError(f"a {len(frame)}-byte frame is longer than a wire frame "
                          f"({MAX_FRAME} bytes)")
-    return _record(FRAME, t, _FRAME_HEAD.pack(vehicle, source) + frame)
+    return encode_message(FRAME, t, frame, vehicle, source)
 
 
 def encode_name(t: float, index: int, name: str) -> bytes:
