@@ -145,6 +145,22 @@ def test_version_1_reads_but_is_not_appended_to(tmp_path: Path) -> None:
     assert recording.file_vehicle("42.aur") == "recording"
 
 
+def test_a_version_1_recording_exports_and_decodes_under_its_files_vehicle(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "2026-04-26T10-00-00-rocket1.aur"
+    ups = [SmUpdate(i, 0, False, 0, 10.0 + i, 0, 0, 0, 0, 0, 0) for i in range(5)]
+    path.write_bytes(recording.HEADER_V1 + b"".join(doc_record_v1(T0 + i, encode(u))
+                                                    for i, u in enumerate(ups)))
+    assert main(["export", str(path)]) == 0
+    rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+    assert [(r["vehicle"], float(r["altitude_m"])) for r in rows] == [
+        ("rocket1", 10.0 + i) for i in range(5)]
+    assert main(["decode", str(path), "--vehicle", "rocket1"]) == 0
+    objs = [json.loads(ln) for ln in capsys.readouterr().out.splitlines()]
+    assert [(o["vehicle"], o["source"], o["altitude"]) for o in objs] == [
+        ("rocket1", "", 10.0 + i) for i in range(5)]
+
+
 # -- a gateway recording two rockets ------------------------------------------------------------
 
 class Rocket(Source):
