@@ -663,14 +663,23 @@ class DirectoryRecorder(Recorder):
     file).  The rotation rides on its message: if a full queue drops that message, the
     vehicle's next flight goes on in its old file.  At most ``max_vehicles`` files are open
     at once; the messages of further vehicles are dropped, counted
-    (``dropped_vehicle_limit``) and warned about once."""
+    (``dropped_vehicle_limit``) and warned about once.  A file that cannot be created (a
+    full disk) is tried again :data:`OPEN_RETRY_S` later, not at every message; meanwhile
+    the vehicle's messages go on into its old file, or are dropped and counted
+    (``dropped_open_failed``); the error is logged once per vehicle."""
+
+    #: seconds before a vehicle's file that could not be created is tried again
+    OPEN_RETRY_S = 5.0
 
     def __init__(self, directory: str | Path, fsync_interval_s: float = 1.0,
                  queue_depth: int = 4096, max_vehicles: int = 64) -> None:
         self.max_vehicles = max_vehicles
         self.dropped_vehicle_limit = 0
+        self.dropped_open_failed = 0
         self.open_errors = 0
         self._open: dict[str, RecordingFile] = {}
+        self._retry_at: dict[str, float] = {}  # vehicle -> when to try its file again
+        self._failed: set[str] = set()  # vehicles whose file failed once (logged)
         super().__init__(directory, fsync_interval_s, queue_depth)
 
     def _open_files(self) -> None:
@@ -679,12 +688,16 @@ class DirectoryRecorder(Recorder):
             raise PermissionError(13, "Permission denied", str(self.path))
 
     def _file_for(self, vehicle: str, t: float, new_flight: bool) -> RecordingFile | None:
-        from gateway.flight_summary import new_recording
-
         name = vehicle or "gateway"
         f = self._open.get(name)
-        if f is not None and not new_flight:
-            return f
+        if f is not None and not new_flight and name not in self._retry_at:
+            return f  # (the hot case: one dict lookup, one miss)
+        if name in self._retry_at:
+            if time.monotonic() < self._retry_at[name]:
+                if f is None:
+                    self.dropped_open_failed += 1
+                return f
+            del self._retry_at[name]
         if f is None and len(self._open) >= self.max_vehicles:
             self.dropped_vehicle_limit += 1
             if self.dropped_vehicle_limit == 1:
@@ -692,17 +705,34 @@ class DirectoryRecorder(Recorder):
                             "any further vehicle), counting", self.path, len(self._open),
                             name)
             return None
+        return self._next_file(name, t, f)
+
+    def _next_file(self, name: str, t: float, old: RecordingFile | None) -> RecordingFile | None:
+        """Open ``name``'s next file (closing ``old``); on failure keep ``old`` and try
+        again :data:`OPEN_RETRY_S` later."""
+        from gateway.flight_summary import new_recording
+
         try:
             new = RecordingFile(new_recording(self.path, t, name))
         except (OSError, RecordingError) as exc:
             self.open_errors += 1
-            if self.open_errors == 1 or f is None:
-                log.error("%s: cannot open %s's recording (%s)%s", self.path, name, exc,
-                          f"; recording on into {f.path}" if f is not None else "")
-            return f
-        if f is not None:
-            self._sync_file(f)
-            f.close()
+            now = time.monotonic()
+            if len(self._retry_at) >= self.max_vehicles:  # bounded: forget the expired
+                self._retry_at = {k: v for k, v in self._retry_at.items() if v > now}
+            if len(self._retry_at) < self.max_vehicles:
+                self._retry_at[name] = now + self.OPEN_RETRY_S
+            if name not in self._failed and len(self._failed) < self.max_vehicles:
+                self._failed.add(name)
+                log.error("%s: cannot open %s's recording (%s)%s; trying again every "
+                          "%.0f s", self.path, name, exc,
+                          f"; recording on into {old.path}" if old is not None else "",
+                          self.OPEN_RETRY_S)
+            if old is None:
+                self.dropped_open_failed += 1
+            return old
+        if old is not None:
+            self._sync_file(old)
+            old.close()
             log.info("new flight of %s: recording into %s", name, new.path)
         self._open[name] = new
         self.files.append(new)
@@ -710,4 +740,5 @@ class DirectoryRecorder(Recorder):
 
     def stats(self) -> dict[str, Any]:
         return {**super().stats(), "dropped_vehicle_limit": self.dropped_vehicle_limit,
+                "dropped_open_failed": self.dropped_open_failed,
                 "open_errors": self.open_errors}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import logging
 import struct
 import threading
 from collections import defaultdict
@@ -404,6 +405,30 @@ def test_record_dir_bounds_the_vehicles_it_opens_files_for(tmp_path: Path) -> No
     rec.close(5.0)
     assert len(list((tmp_path / "many").iterdir())) == 3
     assert rec.stats()["dropped_vehicle_limit"] == 2
+
+
+def test_record_dir_tries_a_file_it_cannot_create_again_later_not_per_message(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    d = tmp_path / "flights"
+    rec = recording.DirectoryRecorder(d)
+    rec.OPEN_RETRY_S = 0.2
+    d.rmdir()
+    d.write_bytes(b"")  # the directory is gone, a file in its place: no file can be made
+    msg = _update("alpha", SimpleState.IDLE, 0, 1.0)
+    try:
+        with caplog.at_level(logging.ERROR, logger="gateway.recording"):
+            for _ in range(200):
+                assert rec.submit(msg, t=T0)
+            assert wait_for(lambda: rec.dropped_open_failed == 200)
+        assert rec.open_errors == 1  # one attempt for 200 messages within the retry time
+        assert len([r for r in caplog.records if "cannot open" in r.getMessage()]) == 1
+        d.unlink()  # the disk is back
+        assert wait_for(lambda: rec.submit(msg, t=T0) and rec.records > 0)
+    finally:
+        rec.close(5.0)
+    (path,) = rec.paths
+    assert path.parent == d and path.name.endswith("-alpha.aur")
+    assert {r.vehicle for r in recording.read_records(path)} == {"alpha"}
 
 
 # -- the stop report ----------------------------------------------------------------------------
