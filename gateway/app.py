@@ -17,7 +17,8 @@ from gateway.flight_summary import FlightSummary, crc_errors
 from gateway.io.ioloop import IoLoop
 from gateway.link_monitor import LinkMonitor
 from gateway.model import kind
-from gateway.recording import DirectoryRecorder, Recorder, RecordingError
+from gateway.recorder import DirectoryRecorder, Recorder
+from gateway.recording import RecordingError
 from gateway.sources import SourceInbox
 
 log = logging.getLogger(__name__)

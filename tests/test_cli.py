@@ -31,7 +31,7 @@ from gateway.app import STOP_BUDGET_S, Gateway
 from gateway.commands import cli
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import SmUpdate
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.sources.sim import flight_frames
 from gateway.wire import decode_all, frame, to_wire_dict
 

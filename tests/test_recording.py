@@ -1,7 +1,7 @@
 """The recording format (gateway/recording.py): layout, round trip, kill -9 survival, torn
-tails, mid-file corruption, append after a crash, and the header checks; the recorder off the
-gateway's hot path (a bounded queue, a writer thread, fsync on a timer, drops counted) and
-what it does with messages that arrived without a wire frame."""
+tails, mid-file corruption, append after a crash, and the header checks; the recorder
+(gateway/recorder.py) off the gateway's hot path (a bounded queue, a writer thread, fsync on
+a timer, drops counted) and what it does with messages that arrived without a wire frame."""
 
 from __future__ import annotations
 
@@ -28,7 +28,8 @@ from gateway import config, recording
 from gateway.app import Gateway
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Position, RawFrame, SmUpdate, Status, VehicleState
-from gateway.recording import Recorder, RecordingError
+from gateway.recorder import Recorder
+from gateway.recording import RecordingError
 from gateway.sources import Source
 from gateway.sources.sim import flight_frames
 from gateway.wire import MAX_PAYLOAD, decode_all, encode, frame
@@ -187,7 +188,7 @@ def test_close_is_safe_twice_and_writes_after_close_are_ignored(tmp_path: Path) 
 
 CHILD = r"""
 import os, sys
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.wire import frame
 rec = Recorder(sys.argv[1])
 i = 0
@@ -509,7 +510,7 @@ def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
     relay = RawFrame(0x42, b"relay me")
     decoded = decode_all(encode(_sm_update(99, 1.0)))[0]  # carries its raw frame
     others = [VehicleState(True, "AUTO"), Position(47.1, 8.5), VehicleState(False, "RTL")]
-    with caplog.at_level(logging.WARNING, logger="gateway.recording"):
+    with caplog.at_level(logging.WARNING, logger="gateway.recorder"):
         rec = Recorder(path)
         for i, m in enumerate([sm, others[0], st, others[1], relay, decoded, others[2]]):
             rec.submit(m, t=10.0 + i)
@@ -524,7 +525,7 @@ def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
 
 KILLED_SUBMITTER = r"""
 import os, sys, threading
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.wire import frame
 rec = Recorder(sys.argv[1], fsync_interval_s=0.01, queue_depth=1 << 20)
 told = False

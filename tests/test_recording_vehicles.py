@@ -30,7 +30,8 @@ from gateway.backend import Backend, Routes
 from gateway.commands.cli import main
 from gateway.flight_summary import FlightSummary, summary_lines
 from gateway.model import SmUpdate, Status
-from gateway.recording import Recorder, RecordingError
+from gateway.recorder import DirectoryRecorder, Recorder
+from gateway.recording import RecordingError
 from gateway.sources import Source
 from gateway.wire import decode_all, encode
 
@@ -399,7 +400,7 @@ def test_record_dir_rotates_only_the_file_of_the_vehicle_that_flies_again(
 
 
 def test_record_dir_bounds_the_vehicles_it_opens_files_for(tmp_path: Path) -> None:
-    rec = recording.DirectoryRecorder(tmp_path / "many", max_vehicles=3)
+    rec = DirectoryRecorder(tmp_path / "many", max_vehicles=3)
     for i in range(5):
         rec.submit(_update(f"v{i}", SimpleState.IDLE, 0, 1.0), t=T0)
     rec.close(5.0)
@@ -410,13 +411,13 @@ def test_record_dir_bounds_the_vehicles_it_opens_files_for(tmp_path: Path) -> No
 def test_record_dir_tries_a_file_it_cannot_create_again_later_not_per_message(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     d = tmp_path / "flights"
-    rec = recording.DirectoryRecorder(d)
+    rec = DirectoryRecorder(d)
     rec.OPEN_RETRY_S = 0.2
     d.rmdir()
     d.write_bytes(b"")  # the directory is gone, a file in its place: no file can be made
     msg = _update("alpha", SimpleState.IDLE, 0, 1.0)
     try:
-        with caplog.at_level(logging.ERROR, logger="gateway.recording"):
+        with caplog.at_level(logging.ERROR, logger="gateway.recorder"):
             for _ in range(200):
                 assert rec.submit(msg, t=T0)
             assert wait_for(lambda: rec.dropped_open_failed == 200)
