@@ -256,8 +256,10 @@ class DirectoryRecorder(Recorder):
     ``new_flight`` (closing the previous one: a vehicle's new flight rotates only its own
     file).  The rotation rides on its message: if a full queue drops that message, the
     vehicle's next flight goes on in its old file.  At most ``max_vehicles`` files are open
-    at once; the messages of further vehicles are dropped, counted
-    (``dropped_vehicle_limit``) and warned about once.  A file that cannot be created (a
+    at once, and at most ``max_files`` are made in a run (a stream that flies and lands
+    again and again cannot make files without end: the vehicle's next flights go on in its
+    last file, warned about once); the messages of vehicles beyond these are dropped,
+    counted (``dropped_vehicle_limit``) and warned about once.  A file that cannot be created (a
     full disk) is tried again :data:`OPEN_RETRY_S` later, not at every message; meanwhile
     the vehicle's messages go on into its old file, or are dropped and counted
     (``dropped_open_failed``); the error is logged once per vehicle."""
@@ -266,8 +268,11 @@ class DirectoryRecorder(Recorder):
     OPEN_RETRY_S = 5.0
 
     def __init__(self, directory: str | Path, fsync_interval_s: float = 1.0,
-                 queue_depth: int = 4096, max_vehicles: int = 64) -> None:
+                 queue_depth: int = 4096, max_vehicles: int = 64,
+                 max_files: int = 1000) -> None:
         self.max_vehicles = max_vehicles
+        self.max_files = max_files
+        self._files_full_warned = False
         self.dropped_vehicle_limit = 0
         self.dropped_open_failed = 0
         self.open_errors = 0
@@ -292,6 +297,14 @@ class DirectoryRecorder(Recorder):
                     self.dropped_open_failed += 1
                 return f
             del self._retry_at[name]
+        if len(self.files) >= self.max_files:
+            if not self._files_full_warned:
+                self._files_full_warned = True
+                log.warning("%s: %d files made in this run; no more (new flights go on in "
+                            "their vehicle's last file)", self.path, len(self.files))
+            if f is None:
+                self.dropped_vehicle_limit += 1
+            return f
         if f is None and len(self._open) >= self.max_vehicles:
             self.dropped_vehicle_limit += 1
             if self.dropped_vehicle_limit == 1:

@@ -406,6 +406,13 @@ def test_record_dir_bounds_the_vehicles_it_opens_files_for(tmp_path: Path) -> No
     rec.close(5.0)
     assert len(list((tmp_path / "many").iterdir())) == 3
     assert rec.stats()["dropped_vehicle_limit"] == 2
+    # a vehicle flying again and again: at most max_files files, the rest in the last one
+    rec = DirectoryRecorder(tmp_path / "often", max_files=3)
+    for i in range(10):
+        rec.submit(_update("alpha", SimpleState.ARMED, i, 1.0), t=T0 + i, new_flight=True)
+    rec.close(5.0)
+    assert len(rec.paths) == 3
+    assert [len(list(recording.read_records(p))) for p in rec.paths] == [1, 1, 8]
 
 
 def test_record_dir_tries_a_file_it_cannot_create_again_later_not_per_message(
