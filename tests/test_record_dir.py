@@ -7,6 +7,7 @@ with :func:`gateway.recording.read` and the wire decoder — never from the summ
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -241,3 +242,20 @@ def test_run_record_dir_writes_a_file_per_vehicle_and_reports_each(tmp_path: Pat
         flight = [ln for ln in lines if ln.startswith(f"flight {vehicle}: ")]
         assert len(flight) == 1 and f"{len(updates)} updates" in flight[0], r.stderr
         assert f"recording: {f}" in lines
+
+
+def test_the_json_stop_report_keys_each_flight_by_its_vehicle(tmp_path: Path) -> None:
+    r = subprocess.run([str(CONSOLE_SCRIPT), "run", "--source", "alpha=sim", "--source",
+                        "beta=sim", "--sim-speed", "20", "--duration", "1", "--only", "console",
+                        "--console-interval", "100", "--status-interval", "0",
+                        "--log-format", "json"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    objs = [json.loads(ln) for ln in r.stderr.splitlines()]  # nothing but JSON
+    flights = {o["vehicle"]: o for o in objs if o["message"].startswith("flight ")}
+    assert set(flights) == {"alpha", "beta"}
+    for name, o in flights.items():
+        assert o["message"].startswith(f"flight {name}: ")
+        figures = o["flight"]
+        assert figures["updates"] > 0 and f"{figures['updates']} updates" in o["message"]
+        assert figures["states"][0] == "IDLE"
