@@ -13,11 +13,12 @@ from gateway import logjson, vehicles
 from gateway.backend import GatewayContext
 from gateway.config import ConfigError, GatewayConfig, Part
 from gateway.dispatcher import Dispatcher
-from gateway.flight_summary import FlightSummary, crc_errors, new_recording
-from gateway.io.ioloop import BlockingCall, IoLoop
+from gateway.flight_summary import FlightSummary, crc_errors
+from gateway.io.ioloop import IoLoop
 from gateway.link_monitor import LinkMonitor
 from gateway.model import kind
-from gateway.recording import Recorder, RecordingError
+from gateway.recorder import DirectoryRecorder, Recorder
+from gateway.recording import RecordingError
 from gateway.sources import SourceInbox
 
 log = logging.getLogger(__name__)
@@ -38,22 +39,6 @@ def _build(part: Part, where: str) -> Any:
     return plugin
 
 
-def _recorder_totals(recorders: list[Recorder]) -> dict[str, Any] | None:
-    """The recorders' stats added up (counters summed, ``not_recordable`` per kind)."""
-    if not recorders:
-        return None
-    out: dict[str, Any] = {}
-    for r in recorders:
-        for k, v in r.stats().items():
-            if isinstance(v, dict):
-                merged = out.setdefault(k, {})
-                for kk, vv in v.items():
-                    merged[kk] = merged.get(kk, 0) + vv
-            else:
-                out[k] = out.get(k, 0) + v
-    return out
-
-
 class Gateway:
     """Builds and runs sources and backends from a validated configuration."""
 
@@ -65,14 +50,11 @@ class Gateway:
         self.context.services["gateway.stats"] = self.counters
         self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
         self.counts: Counter[str] = Counter()
+        #: the recording (``record``: one file for every vehicle; ``record_dir``: one per
+        #: vehicle per flight, :class:`DirectoryRecorder`)
         self.recorder: Recorder | None = None
-        #: every recording this run opened, the one being written last (``record_dir``: one
-        #: per flight)
-        self.recorders: list[Recorder] = []
-        self._retired: list[BlockingCall] = []  # closing a previous flight's recording
         #: the loop the sources share (their timers, ports and callbacks)
         self.loop = IoLoop("sources")
-        self._rotate_lock = threading.Lock()
         self.flights = FlightSummary()
         self.sources = [_build(p, f"sources.{p.name}") for p in cfg.sources]
         #: a source's vehicle, stamped on a message that comes without one
@@ -102,15 +84,9 @@ class Gateway:
         new_flight = self.flights.feed(msg)
         rec = self.recorder
         if rec is not None:
-            if new_flight and self.cfg.gateway.get("record_dir"):
-                rec = self._next_recording(getattr(msg, "vehicle", "") or msg.origin) or rec
-            # never waits on disk: a bounded queue to the writer thread.  Refused by a file
-            # another thread (a source on a library's) just closed for the next flight: the
-            # current one takes it
-            if not rec.submit(msg) and rec.closed:
-                current = self.recorder
-                if current is not None and current is not rec:
-                    current.submit(msg)
+            # never waits on disk: a bounded queue to the writer thread, which also opens a
+            # vehicle's next flight's file (record_dir)
+            rec.submit(msg, new_flight=new_flight)
         if msg.origin:
             self.monitor.frame_seen(msg.origin, msg.via, getattr(msg, "vehicle", ""))
         self.counts[kind(msg)] += 1
@@ -128,17 +104,14 @@ class Gateway:
         path = self.cfg.gateway.get("record")
         directory = self.cfg.gateway.get("record_dir")
         if directory:
-            where = "gateway.record_dir"
             try:
-                path = new_recording(directory, time.time(),
-                                     "+".join(s.name for s in self.sources) or "gateway")
+                self.recorder = DirectoryRecorder(directory)
             except OSError as exc:
-                raise ConfigError(f"{where}: cannot create a recording in {directory}: "
-                                  f"{exc.strerror or exc}") from None
-        if path:
+                raise ConfigError(f"gateway.record_dir: cannot create a recording in "
+                                  f"{directory}: {exc.strerror or exc}") from None
+        elif path:
             try:
                 self.recorder = Recorder(path)
-                self.recorders.append(self.recorder)
             except RecordingError as exc:
                 raise ConfigError(f"gateway.record: {exc}") from None
             except OSError as exc:
@@ -185,37 +158,12 @@ class Gateway:
         for src in self.sources:
             src.stop(max(0.05, (deadline - time.monotonic()) / 2))
         self.dispatcher.close()
-        with self._rotate_lock:
-            rec = self.recorder
+        rec = self.recorder
         if rec is not None:
             rec.close(max(0.1, deadline - time.monotonic()))
-        for call in self._retired:
-            call.wait(max(0.05, deadline - time.monotonic()))
         if self.loop.stop(max(0.05, deadline - time.monotonic())):
             self.loop.close()
         return self.summary()
-
-    def _next_recording(self, origin: str) -> Recorder | None:
-        """Open the next flight's recording in ``record_dir`` (a vehicle armed again after a
-        flight) and close the previous one (its writer's last fsync) on the loop's blocking
-        calls, off this thread; on failure keep the old one.
-        Once per flight, on the pad: the file's creation is the only disk access here."""
-        with self._rotate_lock:
-            old = self.recorder
-            try:
-                rec = Recorder(new_recording(self.cfg.gateway["record_dir"], time.time(),
-                                             origin or "gateway"))
-            except (OSError, RecordingError) as exc:
-                log.error("record_dir: cannot open the next flight's recording (%s); "
-                          "recording on into %s", exc, old.path if old else "nothing")
-                return old
-            self.recorder = rec
-            self.recorders.append(rec)
-            log.info("new flight of %s: recording into %s", origin or "the vehicle", rec.path)
-            if old is not None:
-                self._retired.append(self.loop.run_blocking(old.close,
-                                                            name=f"close {old.path.name}"))
-            return rec
 
     # -- reporting ---------------------------------------------------------------------------
 
@@ -229,15 +177,16 @@ class Gateway:
         """What the run did (counters per source, link, backend, recording and blocking call)
         and what it saw of each vehicle (``flights``: :class:`FlightSummary`)."""
         sources = {s.name: s.stats() for s in self.sources}
+        rec = self.recorder
         return {
             "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
             "messages_in": dict(self.counts),
             "sources": sources,
             "links": self.monitor.states(),
             "backends": self.dispatcher.stats(),
-            "recorded": sum(r.records for r in self.recorders) if self.recorders else None,
-            "recorder": _recorder_totals(self.recorders),
-            "recordings": [str(r.path) for r in self.recorders],
+            "recorded": rec.records if rec is not None else None,
+            "recorder": rec.stats() if rec is not None else None,
+            "recordings": [str(p) for p in rec.paths] if rec is not None else [],
             "flights": self.flights.as_dict(),
             "crc_errors": crc_errors(sources),
             # the process's pool of blocking calls (opens, closes): bounded, counted
@@ -258,6 +207,6 @@ class Gateway:
             sent = st.get("sent", st.get("accepted", 0))
             dropped = st.get("dropped", st.get("queue-full", 0) + st.get("not-ready", 0))
             parts.append(f"{name} sent {sent} dropped {dropped}")
-        if self.recorders:
-            parts.append(f"rec {sum(r.records for r in self.recorders)}")
+        if self.recorder is not None:
+            parts.append(f"rec {self.recorder.records}")
         return " | ".join(parts)

@@ -47,14 +47,15 @@ class GatewayOptions(Options):
         3.0, "silence after which a source's link is down", minimum=0.05,
         flag=Flag("--link-timeout", "silence after which a source's link is reported down "
                   "(default 3)", metavar="S"))
-    record: str = option("", "append every received frame to this recording file",
-                         flag=Flag("--record", "append every received frame to FILE",
-                                   metavar="FILE"))
+    record: str = option("", "append every received frame, every vehicle's, to this "
+                         "recording file",
+                         flag=Flag("--record", "append every received frame (every "
+                                   "vehicle's) to FILE", metavar="FILE"))
     record_dir: str = option(
-        "", "record into a new file in this directory for each run and flight, named "
-        "<UTC start>-<source>.aur (not with record)",
-        flag=Flag("--record-dir", "record into a new file in DIR (created) per run and per "
-                  "flight, named <UTC start>-<source>.aur; not with --record", metavar="DIR"))
+        "", "record into a new file in this directory per vehicle and flight, named "
+        "<UTC start>-<vehicle>.aur (not with record)",
+        flag=Flag("--record-dir", "record into a new file in DIR (created) per vehicle and "
+                  "flight, named <UTC start>-<vehicle>.aur; not with --record", metavar="DIR"))
     log_level: str = option("info", "logging level",
                             choices=("debug", "info", "warning", "error"),
                             flag=Flag("--log-level", "logging level", metavar="LEVEL"))

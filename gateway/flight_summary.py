@@ -4,12 +4,16 @@
 sources' threads) and keeps, per vehicle (see :mod:`gateway.vehicles`): the states
 seen in order, the launches, the highest altitude and when it was reached (apogee) — on the
 flight computer's clock after liftoff and as the wall time it passed the gateway.  Only
-``SmUpdate`` counts; anything else costs one type check.  Nothing re-reads the recording.
+``SmUpdate`` counts for the figures; a vehicle heard only in other telemetry (STATUS, relayed
+frames, a MAVLink vehicle's state, position, battery) is listed with none, so the report
+names every vehicle; anything else costs one type check.  At most :data:`MAX_VEHICLES`
+vehicles are kept (the rest are counted in ``FlightSummary.others``).  Nothing re-reads the
+recording.
 
 A *flight* begins at liftoff (the first in-flight state after one that is not).  A vehicle
 that arms on the pad again after a flight (LANDED or IDLE → ARMED) starts the next flight's
-recording: :meth:`FlightSummary.feed` returns True for that update, and the gateway opens a
-new file named by :func:`recording_name` when it records into a directory.
+recording: :meth:`FlightSummary.feed` returns True for that update, and a gateway recording
+into a directory starts that vehicle's next file (named by :func:`recording_name`) with it.
 """
 
 from __future__ import annotations
@@ -23,9 +27,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from gateway.model import SmUpdate
+from gateway.model import Battery, Position, RawFrame, SmUpdate, Status, VehicleState
 
 RECORDING_SUFFIX = ".aur"
+#: the most vehicles a summary keeps (a source hearing many systems cannot grow it further)
+MAX_VEHICLES = 256
+#: telemetry that shows a vehicle is there (SmUpdate aside)
+_HEARD = frozenset({Status, RawFrame, Position, Battery, VehicleState})
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -59,17 +67,32 @@ class FlightSummary:
 
     def __init__(self, clock: Any = time.time) -> None:
         self.vehicles: dict[str, VehicleSummary] = {}
+        #: messages of vehicles beyond :data:`MAX_VEHICLES`, not summarised
+        self.others = 0
         self._clock = clock
+
+    def _new(self, name: str) -> VehicleSummary | None:
+        if len(self.vehicles) >= MAX_VEHICLES:
+            self.others += 1
+            return None
+        v = self.vehicles[name] = VehicleSummary()
+        return v
 
     def feed(self, msg: Any) -> bool:
         """Take one message; True when it is a vehicle arming on the pad after a flight (the
         start of its next flight's recording)."""
         if type(msg) is not SmUpdate:
+            if type(msg) in _HEARD:
+                name = msg.vehicle or msg.origin
+                if name and name not in self.vehicles:
+                    self._new(name)
             return False
         name = msg.vehicle or msg.origin
         v = self.vehicles.get(name)
         if v is None:
-            v = self.vehicles[name] = VehicleSummary()
+            v = self._new(name)
+            if v is None:
+                return False
         v.updates += 1
         key = (msg.sm_type, msg.state)
         new_flight = False
@@ -98,7 +121,7 @@ class FlightSummary:
         return new_flight
 
     def as_dict(self) -> dict[str, Any]:
-        """Every origin's figures."""
+        """Every vehicle's figures, keyed by its name (in the order first heard)."""
         return {name: v.as_dict() for name, v in self.vehicles.items()}
 
 

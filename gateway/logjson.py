@@ -46,6 +46,9 @@ class JsonFormatter(logging.Formatter):
             doc["exc"] = record.exc_text
         if record.stack_info:
             doc["stack"] = self.formatStack(record.stack_info)
+        fields = getattr(record, "fields", None)  # a report line's figures (say's fields)
+        if fields:
+            doc.update({k: v for k, v in fields.items() if k not in doc})
         return json.dumps(doc, ensure_ascii=True)
 
 
@@ -66,11 +69,14 @@ def write_line(stream: TextIO, line: str) -> None:
         data = data[os.write(fd, data):]
 
 
-def say(text: str, stream: TextIO | None = None, level: int = logging.INFO) -> None:
+def say(text: str, stream: TextIO | None = None, level: int = logging.INFO,
+        fields: dict[str, Any] | None = None) -> None:
     """One of a command's own lines (a start line, a status line, the stop report) to
-    ``stream`` (default stderr): plain, or one JSON object at ``level`` in JSON mode."""
+    ``stream`` (default stderr): plain, or one JSON object at ``level`` in JSON mode, with
+    ``fields`` (JSON values) as keys of their own besides the standard ones."""
     if _json_mode:
         record = logging.LogRecord(REPORT_LOGGER, level, "", 0, text, None, None)
+        record.fields = fields
         text = JsonFormatter().format(record)
     write_line(sys.stderr if stream is None else stream, text + "\n")
 

@@ -1,101 +1,182 @@
-"""The recording format: every received frame, untouched, with its receive time.
+"""The recording format: every received frame, untouched, with its receive time, its vehicle
+and its source.
 
-File layout (all integers little-endian)::
+File layout, version 2 (all integers little-endian)::
 
     header  8 bytes   89 41 55 52 0D 0A 1A 0A   ("\\x89AUR\\r\\n\\x1a\\n": binary, and mangled
                                                  visibly by any text-mode transfer)
-            2 bytes   format version (1)
+            2 bytes   format version (2)
             2 bytes   reserved (0)
-    record  8 bytes   receive time, f64 seconds since the Unix epoch
-            2 bytes   N, frame length
-            N bytes   the wire frame exactly as received (A5 5A … CRC)
-            4 bytes   CRC-32 (ISO-HDLC, zlib's) over the 10 + N bytes before it
+    record  1 byte    record type (below)
+            8 bytes   time, f64 seconds since the Unix epoch
+            2 bytes   N, body length (at most 4096)
+            N bytes   body
+            4 bytes   CRC-32 (ISO-HDLC, zlib's) over the 11 + N bytes before it
 
-Each record is written with one unbuffered ``write`` call, so a ``kill -9`` leaves at most the
-last record torn.  The reader checks every record's CRC and skips what fails: a torn tail
-ends the replay cleanly, and corruption mid-file is passed by rescanning one byte at a time
-(the same resync rule as the wire decoder).  Opening an existing recording for append cuts a
-torn tail off first, so new records never follow garbage.
+    type 1, frame   2 bytes   vehicle: index into the file's name table (FFFF: none)
+                    2 bytes   source: index into the name table (FFFF: none)
+                    M bytes   the wire frame exactly as received (A5 5A … CRC), M ≤ 261;
+                              the time is its receive time
+    type 2, name    2 bytes   index (0 … FFFE)
+                    K bytes   the name, UTF-8, 1 ≤ K ≤ 255; binds the index to it for the
+                              rest of the file; the time is when it was written
 
-The gateway records off its hot path: :meth:`Recorder.submit` only puts the message on a
-bounded queue (a full queue drops it, counted) and the recorder's writer thread writes it and
-fsyncs the file on a timer, idle or not.  What is recorded is the wire frame: the one a
-message arrived in (``raw``), else the frame :func:`gateway.wire.encode` makes of it (an
-``SmUpdate``/``Status``/``RawFrame`` from a MAVLink or Zenoh-JSON source).  Messages with no
-Aurora wire form (vehicle state, position, battery from a MAVLink vehicle) cannot be
-recorded: they are counted per kind (``not_recordable``) and named once in a warning.
+Every record type that carries a message (only frames today) starts its body with those two
+indexes (:func:`encode_message`): more kinds of message (each with its vehicle and source)
+become more record types of this layout.
+
+A name (a vehicle's or a source's: one table for both) is bound before the first frame that
+uses it, in the same ``write``; an index is bound to one name per file (appending continues
+the file's table), and the writer binds its names again every :data:`NAME_REPEAT` frames,
+so a damaged name record costs at most that many frames their names (read as "").  A
+reader skips records of a type it does not know (counted): new kinds of record extend the
+format without a new version.  Per frame the overhead is 19 bytes.
+
+Version 1 (still read; no longer written; appending to one is refused) had no record type
+and no names: ``time f64, length u16, frame, CRC-32 over the 10 + length bytes``.  Its
+frames have no vehicle: ``decode``/``export``/``plot`` name it after the file
+(:func:`file_vehicle`), a replay after the replay source.
+
+Each record (with the names it needs) is written with one unbuffered ``write`` call, so a
+``kill -9`` leaves at most the last record torn.  The reader checks every record's CRC and
+skips what fails: a torn tail ends the replay cleanly, and corruption mid-file is passed by
+rescanning one byte at a time (the same resync rule as the wire decoder).  Opening an
+existing recording for append cuts a torn tail off first, so new records never follow
+garbage.
+
+The writers, :class:`gateway.recorder.Recorder` (one file) and
+:class:`gateway.recorder.DirectoryRecorder` (``record_dir``: a file per vehicle per flight),
+append through :class:`RecordingFile`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import queue
+import re
 import struct
-import threading
-import time
 import zlib
-from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import NamedTuple
 
 from gateway.counters import Counters
-from gateway.model import kind
-from gateway.wire import encode
+from gateway.vehicles import derive_name
 
 log = logging.getLogger(__name__)
 
 MAGIC = b"\x89AUR\r\n\x1a\n"
-VERSION = 1
+VERSION = 2
+#: the versions this gateway reads
+READ_VERSIONS = (1, 2)
 HEADER = MAGIC + struct.pack("<HH", VERSION, 0)
-_REC_HEAD = struct.Struct("<dH")
-_CRC = struct.Struct("<I")
-REC_OVERHEAD = _REC_HEAD.size + _CRC.size
+HEADER_V1 = MAGIC + struct.pack("<HH", 1, 0)
 MAX_FRAME = 261
+#: the longest body a record may have (a longer length field is corruption)
+MAX_BODY = 4096
+MAX_NAME = 255
+#: a frame record's vehicle or source index when it has none
+NO_NAME = 0xFFFF
+#: the writer binds its names again every this many frames
+NAME_REPEAT = 1000
+#: record types
+FRAME, NAME = 1, 2
+
+_REC_HEAD = struct.Struct("<BdH")
+_FRAME_HEAD = struct.Struct("<HH")
+_INDEX = struct.Struct("<H")
+_V1_HEAD = struct.Struct("<dH")
+_CRC = struct.Struct("<I")
+#: bytes a frame record adds to its frame
+REC_OVERHEAD = _REC_HEAD.size + _FRAME_HEAD.size + _CRC.size
+_V1_OVERHEAD = _V1_HEAD.size + _CRC.size
+_FILE_STAMP = re.compile(r"\d{4}-\d\d-\d\dT\d\d-\d\d-\d\d-(.+)")
 
 
 class RecordingError(ValueError):
     """The file is not a recording of a version this gateway reads."""
 
 
+class Record(NamedTuple):
+    """One frame of a recording: its receive time, the frame, its vehicle and its source
+    ("" when the record names none: every version 1 record)."""
+
+    t: float
+    frame: bytes
+    vehicle: str = ""
+    source: str = ""
+
+
 @dataclass
 class ReadStats(Counters):
-    """What reading a recording met: records returned, a torn last record, corrupt stretches
-    skipped (and their bytes)."""
+    """What reading a recording met: frame records returned, a torn last record, corrupt
+    stretches skipped (and their bytes), records of an unknown type skipped, frames whose
+    name record was lost (read with no name)."""
 
     records: int = 0
     torn_tail_bytes: int = 0
     corrupt_skips: int = 0
     bytes_skipped: int = 0
+    unknown_records: int = 0
+    unnamed: int = 0
 
 
-def encode_record(t: float, frame: bytes) -> bytes:
-    """One record's bytes.  Frames longer than a wire frame can be (:data:`MAX_FRAME`) are
-    refused: the reader treats a longer record as corruption, so it could never be read."""
+def _record(rtype: int, t: float, body: bytes) -> bytes:
+    head = _REC_HEAD.pack(rtype, t, len(body)) + body
+    return head + _CRC.pack(zlib.crc32(head))
+
+
+def encode_message(rtype: int, t: float, payload: bytes, vehicle: int = NO_NAME,
+                   source: int = NO_NAME) -> bytes:
+    """A record of type ``rtype`` carrying a message: the vehicle's and the source's
+    name-table indexes, then ``payload``."""
+    if len(payload) + _FRAME_HEAD.size > MAX_BODY:
+        raise ValueError(f"a {len(payload)}-byte payload is longer than a record body holds")
+    return _record(rtype, t, _FRAME_HEAD.pack(vehicle, source) + payload)
+
+
+def encode_record(t: float, frame: bytes, vehicle: int = NO_NAME, source: int = NO_NAME) -> bytes:
+    """One frame record's bytes (``vehicle``/``source``: name-table indexes).  Frames longer
+    than a wire frame can be (:data:`MAX_FRAME`) are refused: the reader would never return
+    them."""
     if len(frame) > MAX_FRAME:
         raise ValueError(f"a {len(frame)}-byte frame is longer than a wire frame "
                          f"({MAX_FRAME} bytes)")
-    body = _REC_HEAD.pack(t, len(frame)) + frame
+    return encode_message(FRAME, t, frame, vehicle, source)
+
+
+def encode_name(t: float, index: int, name: str) -> bytes:
+    """One name record's bytes: binds ``index`` to ``name`` (at most :data:`MAX_NAME` bytes of
+    UTF-8: longer names are cut at a character boundary)."""
+    raw = name.encode("utf-8")[:MAX_NAME].decode("utf-8", "ignore").encode("utf-8")
+    if not raw or not 0 <= index < NO_NAME:
+        raise ValueError(f"cannot bind index {index} to {name!r}")
+    return _record(NAME, t, _INDEX.pack(index) + raw)
+
+
+def encode_record_v1(t: float, frame: bytes) -> bytes:
+    """One version 1 record (for tests and tools that make old files)."""
+    body = _V1_HEAD.pack(t, len(frame)) + frame
     return body + _CRC.pack(zlib.crc32(body))
 
 
-def check_header(data: bytes, path: object) -> None:
-    """RecordingError unless ``data`` starts with a recording header of this version
-    (``path`` names the file in the message)."""
+def check_header(data: bytes, path: object) -> int:
+    """The version of the recording header ``data`` starts with; RecordingError unless it is
+    one this gateway reads (``path`` names the file in the message)."""
     if len(data) < len(HEADER) or data[: len(MAGIC)] != MAGIC:
         raise RecordingError(f"{path}: not an Aurora recording (bad magic)")
     (version,) = struct.unpack_from("<H", data, len(MAGIC))
-    if version != VERSION:
+    if version not in READ_VERSIONS:
         raise RecordingError(f"{path}: recording format version {version}; this gateway "
-                             f"reads version {VERSION}")
+                             f"reads versions {', '.join(map(str, READ_VERSIONS))}")
+    return int(version)
 
 
 def check_file(path: str | Path) -> None:
     """ValueError (a RecordingError for a bad header) unless ``path`` is a readable recording
-    of this version: the replay source's ``path`` key checks it before anything starts."""
+    of a version this gateway reads: the replay source's ``path`` key checks it before
+    anything starts."""
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"no recording at {path}")
@@ -107,84 +188,170 @@ def check_file(path: str | Path) -> None:
     check_header(head, path)
 
 
-def scan(data: bytes, stats: ReadStats | None = None,
-         start: int = len(HEADER)) -> Iterator[tuple[int, float, bytes]]:
-    """Yield (offset, time, frame) for every intact record in ``data`` from ``start``.
+def file_vehicle(path: str | Path) -> str:
+    """The vehicle a version 1 recording is about, from its file name: a ``record_dir`` name
+    loses its UTC stamp (``2026-11-23T14-02-11-rocket1.aur`` → ``rocket1``), then
+    :func:`gateway.vehicles.derive_name` (``flight.aur`` → ``flight``)."""
+    stem = Path(path).name.partition(".")[0] or "recording"
+    m = _FILE_STAMP.match(stem)
+    return derive_name(m.group(1) if m else stem, fallback="recording")
 
-    Bytes that are not an intact record are skipped one at a time until one is found; the
-    ones after the last intact record are the torn tail.
-    """
-    st = stats if stats is not None else ReadStats()
+
+def _version_of(data: bytes) -> int:
+    if data[: len(MAGIC)] == MAGIC and len(data) >= len(HEADER):
+        (version,) = struct.unpack_from("<H", data, len(MAGIC))
+        if version in READ_VERSIONS:
+            return int(version)
+    return VERSION
+
+
+def _intact(data: bytes, stats: ReadStats, start: int,
+            version: int) -> Iterator[tuple[int, int, int, float, int, int]]:
+    """(offset, end, type, time, body start, body end) of every intact record from ``start``;
+    version 1 records are type :data:`FRAME` with the frame as their body.  Bytes that are not
+    an intact record are skipped one at a time until one is found; the ones after the last
+    intact record are the torn tail."""
     n = len(data)
     pos = start
     skipping_from: int | None = None
+    v1 = version == 1
+    head = _V1_HEAD if v1 else _REC_HEAD
+    overhead = _V1_OVERHEAD if v1 else _REC_HEAD.size + _CRC.size
+    limit = MAX_FRAME if v1 else MAX_BODY
+    crc_at = _CRC.unpack_from
+    view = memoryview(data)  # the CRC without copying each record
     while pos < n:
-        ok = False
-        if pos + REC_OVERHEAD <= n:
-            t, length = _REC_HEAD.unpack_from(data, pos)
-            end = pos + _REC_HEAD.size + length
-            if length <= MAX_FRAME and end + _CRC.size <= n:
-                ok = _CRC.unpack_from(data, end)[0] == zlib.crc32(data[pos:end])
-        if ok:
+        found = None
+        if pos + overhead <= n:
+            if v1:
+                t, length = head.unpack_from(data, pos)
+                rtype = FRAME
+            else:
+                rtype, t, length = head.unpack_from(data, pos)
+            end = pos + head.size + length
+            if length <= limit and end + _CRC.size <= n and \
+                    crc_at(data, end)[0] == zlib.crc32(view[pos:end]):
+                found = (rtype, t, pos + head.size, end)
+        if found is not None:
             if skipping_from is not None:
-                st.corrupt_skips += 1
-                st.bytes_skipped += pos - skipping_from
+                stats.corrupt_skips += 1
+                stats.bytes_skipped += pos - skipping_from
                 skipping_from = None
-            st.records += 1
-            yield pos, t, data[pos + _REC_HEAD.size:end]
+            rtype, t, body, end = found
+            yield pos, end + _CRC.size, rtype, t, body, end
             pos = end + _CRC.size
             continue
         if skipping_from is None:
             skipping_from = pos
         pos += 1
     if skipping_from is not None:
-        st.torn_tail_bytes = n - skipping_from
+        stats.torn_tail_bytes = n - skipping_from
+
+
+def _name_of(data: bytes, body: int, body_end: int) -> tuple[int, str]:
+    (index,) = _INDEX.unpack_from(data, body)
+    return index, data[body + _INDEX.size:body_end].decode("utf-8", "replace")
+
+
+def _records(data: bytes, stats: ReadStats, start: int,
+             names: dict[int, str] | None = None) -> Iterator[tuple[int, int, Record]]:
+    """(offset, end, record) of every frame record, names resolved through the file's
+    table (``names``, filled as name records pass)."""
+    version = _version_of(data)
+    table: dict[int, str] = {} if names is None else names
+    lookup = {**table, NO_NAME: ""}  # the table, and "no name" for NO_NAME
+    frame_head = _FRAME_HEAD.size
+    unpack_head = _FRAME_HEAD.unpack_from
+    for pos, end, rtype, t, body, body_end in _intact(data, stats, start, version):
+        if version == 1:
+            stats.records += 1
+            yield pos, end, Record(t, data[body:body_end])
+        elif rtype == FRAME and frame_head <= body_end - body <= frame_head + MAX_FRAME:
+            vi, si = unpack_head(data, body)
+            vehicle, source = lookup.get(vi), lookup.get(si)
+            if vehicle is None or source is None:  # its name record was lost
+                stats.unnamed += 1
+            stats.records += 1
+            yield pos, end, Record(t, data[body + frame_head:body_end], vehicle or "",
+                                   source or "")
+        elif rtype == NAME and body_end - body > _INDEX.size:
+            index, name = _name_of(data, body, body_end)
+            if index != NO_NAME:
+                table[index] = lookup[index] = name
+        else:
+            stats.unknown_records += 1
+
+
+def records(data: bytes, stats: ReadStats | None = None,
+            start: int = len(HEADER)) -> Iterator[Record]:
+    """Every intact frame record in ``data`` (a whole recording, header first) from
+    ``start``, with its vehicle and source."""
+    st = stats if stats is not None else ReadStats()
+    for _, _, rec in _records(data, st, start):
+        yield rec
+
+
+def scan(data: bytes, stats: ReadStats | None = None,
+         start: int = len(HEADER)) -> Iterator[tuple[int, float, bytes]]:
+    """Yield (offset, time, frame) for every intact frame record in ``data`` (a whole
+    recording, header first; the version is the header's) from ``start``."""
+    st = stats if stats is not None else ReadStats()
+    for pos, _, rec in _records(data, st, start):
+        yield pos, rec.t, rec.frame
+
+
+def read_records(path: str | Path, stats: ReadStats | None = None) -> Iterator[Record]:
+    """Every intact frame record of the recording at ``path``."""
+    data = Path(path).read_bytes()
+    check_header(data, path)
+    yield from records(data, stats)
 
 
 def read(path: str | Path, stats: ReadStats | None = None) -> Iterator[tuple[float, bytes]]:
     """Yield (receive time, frame) for every intact record of the recording at ``path``."""
-    data = Path(path).read_bytes()
-    check_header(data, path)
-    for _, t, frame in scan(data, stats):
-        yield t, frame
+    for rec in read_records(path, stats):
+        yield rec.t, rec.frame
 
 
-_WAKE = object()
+def vehicles_in(recs: Iterable[Record]) -> list[str]:
+    """The vehicles of ``recs`` in the order they first appear."""
+    return list(dict.fromkeys(r.vehicle for r in recs))
 
 
-class Recorder:
-    """Appends frames to a recording; thread-safe; every record reaches the OS in one write.
+def name_unnamed(recs: Iterable[Record], vehicle: str) -> list[Record]:
+    """``recs`` with ``vehicle`` as the vehicle of those that name none (a version 1
+    recording's: :func:`file_vehicle`)."""
+    return [r if r.vehicle else r._replace(vehicle=vehicle) for r in recs]
 
-    :meth:`write` writes at once, in the caller's thread; :meth:`submit` (the gateway's hot
-    path) never waits: it queues the message for the writer thread, or drops and counts it
-    when ``queue_depth`` messages are already waiting.  The writer thread fsyncs every
-    ``fsync_interval_s`` while there is something unsynced (0 = only on close).
-    """
 
-    def __init__(self, path: str | Path, fsync_interval_s: float = 1.0,
-                 queue_depth: int = 4096) -> None:
+def only_vehicle(recs: list[Record], vehicle: str | None, path: object = "the recording",
+                 flag: str = "--vehicle") -> list[Record]:
+    """The records of ``vehicle`` (None: all); ValueError naming ``flag`` and the vehicles
+    present when none is that vehicle's."""
+    if vehicle is None:
+        return recs
+    kept = [r for r in recs if r.vehicle == vehicle]
+    if not kept:
+        present = ", ".join(v or '""' for v in vehicles_in(recs)) or "none"
+        raise ValueError(f"{flag}: no vehicle {vehicle!r} in {path} (its vehicles: "
+                         f"{present})")
+    return kept
+
+
+class RecordingFile:
+    """One recording open for appending, with its name table: what the recorders write to.
+    Not thread-safe: its recorder holds a lock around it."""
+
+    def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.records = 0
         self.bytes = 0
-        self.errors = 0
-        self.syncs = 0
-        self.dropped_queue_full = 0
-        self.dropped_at_close = 0
-        self.not_recordable: Counter[str] = Counter()
-        self._lock = threading.Lock()
-        self._drop_lock = threading.Lock()
-        self._fsync_interval = fsync_interval_s
-        self._dirty = False
-        self._closed = False
-        self._drain_deadline = 0.0
-        self._queue: queue.Queue[Any] = queue.Queue(max(1, queue_depth))
-        self._closing = threading.Event()
-        #: set once the writer thread has written what it will and closed the file
-        self.finished = threading.Event()
-        self._fd = self._open()
-        self._thread = threading.Thread(target=self._writer, name=f"recorder {self.path.name}",
-                                        daemon=True)
-        self._thread.start()
+        self.dirty = False
+        self._index: dict[str, int] = {}  # the file's name table
+        self._bound: set[str] = set()  # names bound since the last repeat
+        self._since_repeat = 0
+        self._next = 0  # the next free index
+        self.fd = self._open()
 
     def _open(self) -> int:
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
@@ -195,11 +362,20 @@ class Recorder:
                 return fd
             with open(self.path, "rb") as f:
                 data = f.read()
-            check_header(data, self.path)
+            if check_header(data, self.path) != VERSION:
+                raise RecordingError(f"{self.path}: a version 1 recording; this gateway "
+                                     f"appends to version {VERSION} ones only (record into a "
+                                     "new file)")
             end = len(HEADER)
-            stats = ReadStats()
-            for pos, _, frame in scan(data, stats):
-                end = pos + REC_OVERHEAD + len(frame)
+            table: dict[int, str] = {}
+            for _, rec_end, rtype, _, body, body_end in _intact(data, ReadStats(), end,
+                                                                VERSION):
+                end = rec_end
+                if rtype == NAME and body_end - body > _INDEX.size:
+                    index, name = _name_of(data, body, body_end)
+                    table[index] = name
+            self._index = {name: i for i, name in table.items()}
+            self._next = max(table, default=-1) + 1
             if end < size:
                 log.warning("%s: cutting %d torn bytes off the end before appending",
                             self.path, size - end)
@@ -209,149 +385,39 @@ class Recorder:
             raise
         return fd
 
-    # -- the hot path ----------------------------------------------------------------------
+    def _name(self, name: str, t: float, out: list[bytes]) -> int:
+        if not name:
+            return NO_NAME
+        index = self._index.get(name)
+        if index is None:
+            if self._next >= NO_NAME:  # the table is full: no name (bounded)
+                return NO_NAME
+            index = self._index[name] = self._next
+            self._next += 1
+        if name not in self._bound:
+            out.append(encode_name(t, index, name))
+            self._bound.add(name)
+        return index
 
-    @property
-    def closed(self) -> bool:
-        """Whether :meth:`close` was called (it takes nothing more)."""
-        return self._closed
+    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "") -> bytes:
+        """A frame record with the name records it needs first (ValueError: too long)."""
+        if len(frame) > MAX_FRAME:
+            encode_record(t, frame)  # raises
+        self._since_repeat += 1
+        if self._since_repeat >= NAME_REPEAT:
+            self._since_repeat = 0
+            self._bound.clear()
+        out: list[bytes] = []
+        vi = self._name(vehicle, t, out)
+        si = self._name(source, t, out)
+        out.append(encode_record(t, frame, vi, si))
+        return b"".join(out) if len(out) > 1 else out[0]
 
-    def submit(self, msg: Any, t: float | None = None) -> bool:
-        """Queue a message (or a frame as bytes) received at ``t`` (default now) for the
-        writer thread; never blocks.  False if it was dropped: queue full, or closed."""
-        if self._closed:
-            return False
-        try:
-            self._queue.put_nowait((time.time() if t is None else t, msg))
-        except queue.Full:
-            with self._drop_lock:
-                self.dropped_queue_full += 1
-            return False
-        return True
+    def forget_bindings(self) -> None:
+        """After a failed write: bind every name again before its next use."""
+        self._bound.clear()
 
-    # -- writing -----------------------------------------------------------------------------
-
-    def write(self, frame: bytes, t: float | None = None) -> None:
-        """Write one record now (one ``write`` call); ignored after :meth:`close`."""
-        rec = encode_record(time.time() if t is None else t, frame)
-        with self._lock:
-            if self._fd < 0 or self._closed:
-                return
-            self._write_locked(rec)
-
-    def _write_locked(self, rec: bytes) -> None:
-        try:
-            os.write(self._fd, rec)
-        except OSError as exc:
-            self.errors += 1
-            if self.errors == 1:
-                log.error("%s: write failed: %s", self.path, exc)
-            return
-        self.records += 1
-        self.bytes += len(rec)
-        self._dirty = True
-
-    def _frame_of(self, msg: Any) -> bytes | None:
-        if isinstance(msg, bytes | bytearray):
-            return bytes(msg)
-        raw = getattr(msg, "raw", b"")
-        if raw:
-            return bytes(raw)
-        try:
-            return encode(msg)
-        except (TypeError, ValueError) as exc:
-            name = kind(msg)
-            self.not_recordable[name] += 1
-            if self.not_recordable[name] == 1:
-                log.warning("%s: %s messages are not recorded (%s); counting them",
-                            self.path, name, exc)
-            return None
-
-    def _record(self, t: float, msg: Any) -> None:
-        frame = self._frame_of(msg)
-        if frame is None:
-            return
-        try:
-            rec = encode_record(t, frame)
-        except ValueError:
-            self.not_recordable["too_long"] += 1
-            return
-        with self._lock:
-            if self._fd >= 0:
-                self._write_locked(rec)
-
-    def _sync(self) -> None:
-        with self._lock:
-            if self._fd < 0 or not self._dirty:
-                return
-            self._dirty = False
-            try:
-                os.fsync(self._fd)
-            except OSError as exc:  # a pipe or a device that cannot sync
-                log.debug("%s: fsync failed: %s", self.path, exc)
-                return
-            self.syncs += 1
-
-    def _writer(self) -> None:
-        q = self._queue
-        interval = self._fsync_interval
-        next_sync = time.monotonic() + interval if interval > 0 else None
-        try:
-            while not self._closing.is_set():
-                timeout = None if next_sync is None else max(0.0, next_sync - time.monotonic())
-                try:
-                    item = q.get(timeout=timeout)
-                except queue.Empty:
-                    item = None
-                if item is not None and item is not _WAKE:
-                    self._record(*item)
-                if next_sync is not None and time.monotonic() >= next_sync:
-                    self._sync()
-                    next_sync = time.monotonic() + interval
-            # Closing: write what is queued until the drain deadline; count the rest.
-            while True:
-                try:
-                    item = q.get_nowait()
-                except queue.Empty:
-                    break
-                if item is _WAKE:
-                    continue
-                if time.monotonic() < self._drain_deadline:
-                    self._record(*item)
-                else:
-                    self.dropped_at_close += 1
-        except Exception:
-            log.exception("%s: recorder failed", self.path)
-        finally:
-            self._sync()
-            with self._lock:
-                if self._fd >= 0:
-                    os.close(self._fd)
-                    self._fd = -1
-            self.finished.set()
-
-    def close(self, timeout: float = 1.0) -> None:
-        """Write what is queued (for up to ``timeout``), fsync and close; safe twice.  A
-        writer stuck in a write that never returns (a stalled disk) is left to finish on its
-        own; the call still returns within about ``timeout``."""
-        first = not self._closed
-        if first:
-            self._closed = True
-            self._drain_deadline = time.monotonic() + 0.8 * timeout
-            self._closing.set()
-            with contextlib.suppress(queue.Full):
-                self._queue.put_nowait(_WAKE)
-        self.finished.wait(timeout)
-        if not first:
-            return
-        if not self.finished.is_set():
-            log.warning("%s: the recorder is still writing after %.1f s", self.path, timeout)
-        elif self.dropped_at_close:
-            log.warning("%s: %d queued messages not written at close", self.path,
-                        self.dropped_at_close)
-
-    def stats(self) -> dict[str, Any]:
-        return {"records": self.records, "bytes": self.bytes, "write_errors": self.errors,
-                "syncs": self.syncs, "dropped_queue_full": self.dropped_queue_full,
-                "dropped_at_close": self.dropped_at_close,
-                "not_recordable": dict(self.not_recordable)}
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1

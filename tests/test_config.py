@@ -21,7 +21,7 @@ from gateway.config import (
     load,
     parse,
 )
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.sources.serial_source import SerialSource
 from gateway.sources.sim import SimSource
 

@@ -36,7 +36,7 @@ from pathlib import Path
 import pytest
 from helpers import Running
 
-from gateway import recording
+from gateway import recording, vehicles
 from gateway.flight import FlightModel, FlightProfile
 from gateway.sources.sim import flight_frames
 from gateway.wire import decode_all, to_wire_dict
@@ -180,7 +180,10 @@ def test_simulate_into_run_records_exactly_the_frames_sent(
                        text=True, timeout=TIMEOUT_S)
     assert r.returncode == 0, r.stderr
     got = [json.loads(ln) for ln in r.stdout.splitlines()]
-    want = [{"rx_time": t, **json.loads(json.dumps(to_wire_dict(m)))}
+    # each frame with its source (the URL names it) and that source's vehicle
+    vehicle = vehicles.derive_name(url)
+    want = [{"rx_time": t, "vehicle": vehicle, "source": url,
+             **json.loads(json.dumps(to_wire_dict(m)))}
             for t, m in zip(times, decode_all(b"".join(expected)), strict=True)]
     assert got == want
     assert [o["state_name"] for o in got if o["type"] == 1][-1] == "IDLE"

@@ -26,8 +26,8 @@ T0 = 1_790_000_000.25  # the recording's first receive time (Unix seconds)
 CONSOLE = Path(sys.executable).with_name("aurora-gateway")
 
 # The documented columns, in order (the export's contract, written out here on purpose).
-DOCUMENTED = ["t_s", "rx_time", "timestamp_ms", "state", "state_name", "armed", "sm_type",
-              "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
+DOCUMENTED = ["t_s", "rx_time", "vehicle", "timestamp_ms", "state", "state_name", "armed",
+              "sm_type", "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
               "roll_deg", "pitch_deg", "yaw_deg", "imu_ok", "baro_ok", "calibrated",
               "log_ready"]
 # STATUS flag bits (shared/specs/aurora-wire.md): armed 0x01, IMU 0x02, baro 0x04,
@@ -64,8 +64,9 @@ def _write(path: Path, msgs: list[tuple[float, Any]]) -> list[tuple[float, Any]]
     return decoded
 
 
-def _expected(decoded: list[tuple[float, Any]]) -> list[dict[str, Any]]:
-    """The rows the export should give, computed here from the decoded messages."""
+def _expected(decoded: list[tuple[float, Any]], vehicle: str) -> list[dict[str, Any]]:
+    """The rows the export should give, computed here from the decoded messages of one
+    ``vehicle``."""
     rows = []
     flags: int | None = None
     for t, msg in decoded:
@@ -74,14 +75,15 @@ def _expected(decoded: list[tuple[float, Any]]) -> list[dict[str, Any]]:
             continue
         health = {k: (None if flags is None else bool(flags & bit))
                   for k, bit in FLAG_BITS.items()}
-        rows.append({"t": t - T0, "rx": t, "msg": msg, **health})
+        rows.append({"t": t - T0, "rx": t, "vehicle": vehicle, "msg": msg, **health})
     return rows
 
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[dict[str, Any]]]:
     path = tmp_path_factory.mktemp("export") / "flight.aur"
-    return path, _expected(_write(path, _messages(64)))
+    # frames with no vehicle (as a version 1 recording's): named after the file
+    return path, _expected(_write(path, _messages(64)), "flight")
 
 
 def _check_row(got: dict[str, Any], exp: dict[str, Any], parse: Any) -> None:
@@ -89,6 +91,7 @@ def _check_row(got: dict[str, Any], exp: dict[str, Any], parse: Any) -> None:
     m: SmUpdate = exp["msg"]
     assert parse("t_s", got["t_s"]) == pytest.approx(exp["t"], abs=1e-6)
     assert parse("rx_time", got["rx_time"]) == exp["rx"]
+    assert got["vehicle"] == exp["vehicle"]
     for col in ("timestamp_ms", "state", "sm_type"):
         assert parse(col, got[col]) == getattr(m, col)
     assert got["state_name"] == m.state_name
@@ -103,6 +106,8 @@ def _check_row(got: dict[str, Any], exp: dict[str, Any], parse: Any) -> None:
 
 
 def _csv_value(col: str, cell: str) -> Any:
+    if col == "vehicle":
+        return cell
     if cell == "":
         return None
     if col in ("armed", *FLAG_BITS):
@@ -166,7 +171,7 @@ def test_the_format_follows_the_output_file_unless_given(
 def test_the_f32_revision_exports_its_own_values(tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "f32.aur"
-    expected = _expected(_write(path, _messages(36)))
+    expected = _expected(_write(path, _messages(36)), "f32")
     assert {r["msg"].payload_len for r in expected} == {36}
     assert main(["export", str(path), "-o", "-"]) == 0
     rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))

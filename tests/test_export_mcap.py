@@ -85,14 +85,26 @@ def _write_recording(path: Path, revision: int = 64) -> list[tuple[float, Any]]:
     return decoded
 
 
-def _read(path: Path) -> tuple[Any, dict[str, list[tuple[Any, dict[str, Any]]]]]:
-    """The file's summary, and per topic (message record, decoded JSON) in file order."""
+def _norm(topic: str, vehicle: str | None) -> str:
+    """A vehicle's topic ``/aurora/<vehicle>/x`` as ``/aurora/x`` (the link events are on
+    ``/aurora/link_events`` for all; any other topic is an error)."""
+    if vehicle is None or topic == "/aurora/link_events":
+        return topic
+    prefix = f"/aurora/{vehicle}/"
+    assert topic.startswith(prefix), topic
+    return "/aurora/" + topic[len(prefix):]
+
+
+def _read(path: Path, vehicle: str | None = None,
+          ) -> tuple[Any, dict[str, list[tuple[Any, dict[str, Any]]]]]:
+    """The file's summary, and per topic (message record, decoded JSON) in file order; with
+    ``vehicle``, that vehicle's topics (every one but the link events') without it."""
     by_topic: dict[str, list[tuple[Any, dict[str, Any]]]] = defaultdict(list)
     with path.open("rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
         for _schema, channel, message in reader.iter_messages(log_time_order=False):
-            by_topic[channel.topic].append((message, json.loads(message.data)))
+            by_topic[_norm(channel.topic, vehicle)].append((message, json.loads(message.data)))
     return summary, by_topic
 
 
@@ -131,8 +143,13 @@ def _rotate(q: tuple[float, float, float, float], v: list[float]) -> list[float]
 
 def test_channels_and_their_json_schemas(exported: tuple[list[Any], Path]) -> None:
     _, out = exported
-    summary, _ = _read(out)
-    channels = {c.topic: c for c in summary.channels.values()}
+    summary, _ = _read(out, "flight")
+    # a recording whose frames name no vehicle: named after the file, as the live backend
+    # names a vehicle's topics
+    assert {c.topic for c in summary.channels.values()} == {
+        "/aurora/flight/state", "/aurora/flight/altitude", "/aurora/flight/attitude",
+        "/aurora/flight/status", "/aurora/link_events"}
+    channels = {_norm(c.topic, "flight"): c for c in summary.channels.values()}
     assert set(channels) == CORE  # no position or battery in a recording of the wire frames
     for topic, ch in channels.items():
         assert ch.message_encoding == "json"
@@ -147,11 +164,11 @@ def test_channels_and_their_json_schemas(exported: tuple[list[Any], Path]) -> No
 def test_one_message_per_update_and_status_with_the_decoded_values(
         exported: tuple[list[tuple[float, Any]], Path]) -> None:
     decoded, out = exported
-    summary, got = _read(out)
+    summary, got = _read(out, "flight")
     updates = [(t, m) for t, m in decoded if isinstance(m, SmUpdate)]
     statuses = [(t, m) for t, m in decoded if isinstance(m, Status)]
     assert len(updates) > 200 and len(statuses) > 20
-    counts = {summary.channels[cid].topic: n
+    counts = {_norm(summary.channels[cid].topic, "flight"): n
               for cid, n in summary.statistics.channel_message_counts.items()}
     for topic in ("/aurora/state", "/aurora/altitude", "/aurora/attitude"):
         assert counts[topic] == len(got[topic]) == len(updates), topic
@@ -169,7 +186,8 @@ def test_one_message_per_update_and_status_with_the_decoded_values(
             else:
                 ns = _ns(t)
                 assert data["timestamp"] == {"sec": ns // 10**9, "nsec": ns % 10**9}
-                assert (data["parent_frame_id"], data["child_frame_id"]) == ("world", "rocket")
+                # a frame per vehicle, named after it
+                assert (data["parent_frame_id"], data["child_frame_id"]) == ("world", "flight")
                 assert data["translation"] == {"x": 0.0, "y": 0.0, "z": m.altitude_m}
                 angles = (m.roll_rad, m.pitch_rad, m.yaw_rad)
                 rot = data["rotation"]
@@ -193,7 +211,7 @@ def test_one_message_per_update_and_status_with_the_decoded_values(
 def test_the_link_goes_down_after_the_timeout_and_up_at_the_next_frame(
         exported: tuple[list[tuple[float, Any]], Path]) -> None:
     decoded, out = exported
-    _, got = _read(out)
+    _, got = _read(out, "flight")
     times = [t for t, _ in decoded]
     (before, after), = [(a, b) for a, b in itertools.pairwise(times)
                         if b - a >= LINK_TIMEOUT_S]
@@ -214,7 +232,7 @@ def test_the_f32_revision_and_non_finite_values(tmp_path: Path) -> None:
         f.write(recording.encode_record(T0 + 100.0, encode(bad)))
     out = tmp_path / "f32.bin"
     assert main(["export", str(tmp_path / "f32.aur"), "--format", "mcap", "-o", str(out)]) == 0
-    _, got = _read(out)
+    _, got = _read(out, "f32")
     f32 = [m for _, m in decoded if isinstance(m, SmUpdate)]
     assert f32[0].payload_len == 36
     assert [d["altitude_m"] for _, d in got["/aurora/altitude"][:-1]] == [
@@ -283,5 +301,5 @@ def test_the_console_script_writes_an_mcap(exported: tuple[list[Any], Path],
     assert f"{updates} SM updates" in done.stderr and "mcap" in done.stderr
     data = target.read_bytes()
     assert data[:8] == data[-8:] == b"\x89MCAP0\r\n"  # the spec's magic at both ends
-    _, got = _read(target)
+    _, got = _read(target, "flight")
     assert len(got["/aurora/state"]) == updates

@@ -7,6 +7,7 @@ with :func:`gateway.recording.read` and the wire decoder — never from the summ
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -152,8 +153,10 @@ def test_the_gateway_opens_a_new_recording_for_each_flight(tmp_path: Path) -> No
         summary = gw.stop()
     paths = [Path(p) for p in summary["recordings"]]
     assert len(paths) == 2
-    assert paths[0].name.endswith("-gateway.aur")  # no sources: the run's file
-    assert paths[1].name.endswith("-rocket1.aur")  # the vehicle that armed again
+    # one file per vehicle per flight, named after the vehicle (issue 22: no longer a file
+    # per run named after the sources, opened before any message)
+    assert paths[0].name.endswith("-rocket1.aur")
+    assert paths[1].name.endswith(("-rocket1.aur", "-rocket1-2.aur"))  # armed again
     assert sorted(p.name for p in (tmp_path / "flights").iterdir()) == sorted(
         p.name for p in paths)
     got = []
@@ -216,3 +219,43 @@ def test_run_record_dir_writes_a_named_readable_recording_and_reports_the_flight
     stopped = [ln for ln in lines if ln.startswith("stopped after ")]
     assert len(stopped) == 1 and f"{len(msgs)} frames recorded" in stopped[0]
     assert "dropped: nothing" in lines
+
+
+def test_run_record_dir_writes_a_file_per_vehicle_and_reports_each(tmp_path: Path) -> None:
+    d = tmp_path / "flights"
+    r = subprocess.run([str(CONSOLE_SCRIPT), "run", "--source", "alpha=sim", "--source",
+                        "beta=sim", "--sim-speed", "20", "--duration", "1", "--record-dir",
+                        str(d), "--only", "console", "--console-interval", "100",
+                        "--status-interval", "0"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    files = sorted(d.iterdir())
+    names = [NAME_RE.match(f.name) for f in files]
+    assert [m.group(2) if m else f.name for m, f in zip(names, files, strict=True)] == [
+        "alpha", "beta"]
+    lines = r.stderr.splitlines()
+    for f, vehicle in zip(files, ("alpha", "beta"), strict=True):
+        recs = list(recording.read_records(f))
+        assert recs and {(x.vehicle, x.source) for x in recs} == {(vehicle, vehicle)}
+        dec = Decoder()
+        updates = [m for x in recs for m in dec.feed(x.frame) if isinstance(m, SmUpdate)]
+        flight = [ln for ln in lines if ln.startswith(f"flight {vehicle}: ")]
+        assert len(flight) == 1 and f"{len(updates)} updates" in flight[0], r.stderr
+        assert f"recording: {f}" in lines
+
+
+def test_the_json_stop_report_keys_each_flight_by_its_vehicle(tmp_path: Path) -> None:
+    r = subprocess.run([str(CONSOLE_SCRIPT), "run", "--source", "alpha=sim", "--source",
+                        "beta=sim", "--sim-speed", "20", "--duration", "1", "--only", "console",
+                        "--console-interval", "100", "--status-interval", "0",
+                        "--log-format", "json"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    objs = [json.loads(ln) for ln in r.stderr.splitlines()]  # nothing but JSON
+    flights = {o["vehicle"]: o for o in objs if o["message"].startswith("flight ")}
+    assert set(flights) == {"alpha", "beta"}
+    for name, o in flights.items():
+        assert o["message"].startswith(f"flight {name}: ")
+        figures = o["flight"]
+        assert figures["updates"] > 0 and f"{figures['updates']} updates" in o["message"]
+        assert figures["states"][0] == "IDLE"

@@ -1,7 +1,7 @@
 """The recording format (gateway/recording.py): layout, round trip, kill -9 survival, torn
-tails, mid-file corruption, append after a crash, and the header checks; the recorder off the
-gateway's hot path (a bounded queue, a writer thread, fsync on a timer, drops counted) and
-what it does with messages that arrived without a wire frame."""
+tails, mid-file corruption, append after a crash, and the header checks; the recorder
+(gateway/recorder.py) off the gateway's hot path (a bounded queue, a writer thread, fsync on
+a timer, drops counted) and what it does with messages that arrived without a wire frame."""
 
 from __future__ import annotations
 
@@ -28,21 +28,43 @@ from gateway import config, recording
 from gateway.app import Gateway
 from gateway.flight import FlightModel, FlightProfile
 from gateway.model import Position, RawFrame, SmUpdate, Status, VehicleState
-from gateway.recording import Recorder, RecordingError
+from gateway.recorder import Recorder
+from gateway.recording import RecordingError
 from gateway.sources import Source
 from gateway.sources.sim import flight_frames
 from gateway.wire import MAX_PAYLOAD, decode_all, encode, frame
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# The header exactly as the module docstring documents it, written out independently.
-DOC_HEADER = bytes.fromhex("89 41 55 52 0D 0A 1A 0A") + b"\x01\x00" + b"\x00\x00"
+# The headers exactly as the module docstring documents them, written out independently.
+DOC_HEADER = bytes.fromhex("89 41 55 52 0D 0A 1A 0A") + b"\x02\x00" + b"\x00\x00"
+DOC_HEADER_V1 = bytes.fromhex("89 41 55 52 0D 0A 1A 0A") + b"\x01\x00" + b"\x00\x00"
 
 
-def doc_record(t: float, fr: bytes) -> bytes:
-    """A record exactly as documented: f64 time, u16 length, frame, CRC-32 over all before."""
-    body = struct.pack("<d", t) + struct.pack("<H", len(fr)) + fr
+def _crc(body: bytes) -> bytes:
     return body + struct.pack("<I", zlib.crc32(body) & 0xFFFFFFFF)
+
+
+def doc_record(t: float, fr: bytes, vehicle: int = 0xFFFF, source: int = 0xFFFF) -> bytes:
+    """A version 2 frame record exactly as documented: type 1, f64 time, u16 body length,
+    u16 vehicle index, u16 source index, frame, CRC-32 over all before."""
+    body = struct.pack("<HH", vehicle, source) + fr
+    return _crc(b"\x01" + struct.pack("<d", t) + struct.pack("<H", len(body)) + body)
+
+
+def doc_name(t: float, index: int, name: str) -> bytes:
+    """A version 2 name record as documented: type 2, time, length, u16 index, UTF-8 name."""
+    body = struct.pack("<H", index) + name.encode()
+    return _crc(b"\x02" + struct.pack("<d", t) + struct.pack("<H", len(body)) + body)
+
+
+def doc_record_v1(t: float, fr: bytes) -> bytes:
+    """A version 1 record as documented: f64 time, u16 length, frame, CRC-32 over all before."""
+    return _crc(struct.pack("<d", t) + struct.pack("<H", len(fr)) + fr)
+
+
+#: the two layouts the reader reads: (header, frame record)
+LAYOUTS = {"v1": (DOC_HEADER_V1, doc_record_v1), "v2": (DOC_HEADER, doc_record)}
 
 
 def tframe(i: int) -> bytes:
@@ -54,8 +76,9 @@ def frames(n: int) -> list[bytes]:
     return [tframe(i) for i in range(n)]
 
 
-def write_file(path: Path, items: list[tuple[float, bytes]]) -> bytes:
-    data = DOC_HEADER + b"".join(doc_record(t, f) for t, f in items)
+def write_file(path: Path, items: list[tuple[float, bytes]], layout: str = "v2") -> bytes:
+    header, record = LAYOUTS[layout]
+    data = header + b"".join(record(t, f) for t, f in items)
     path.write_bytes(data)
     return data
 
@@ -80,9 +103,10 @@ def test_file_layout_is_the_documented_one(tmp_path: Path) -> None:
     assert rec.bytes == len(doc_record(0, f1)) + len(doc_record(0, f2))
 
 
-def test_reader_reads_a_file_built_from_the_documentation(tmp_path: Path) -> None:
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_reader_reads_a_file_built_from_the_documentation(tmp_path: Path, layout: str) -> None:
     items = [(1000.0 + i / 8, f) for i, f in enumerate(frames(20))]
-    write_file(tmp_path / "doc.agrec", items)
+    write_file(tmp_path / "doc.agrec", items, layout)
     got, stats = read_all(tmp_path / "doc.agrec")
     assert got == items
     assert (stats.records, stats.torn_tail_bytes, stats.corrupt_skips) == (20, 0, 0)
@@ -164,7 +188,7 @@ def test_close_is_safe_twice_and_writes_after_close_are_ignored(tmp_path: Path) 
 
 CHILD = r"""
 import os, sys
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.wire import frame
 rec = Recorder(sys.argv[1])
 i = 0
@@ -214,11 +238,12 @@ def test_a_recorder_killed_with_sigkill_leaves_every_record_but_at_most_the_last
 
 # -- torn tails --------------------------------------------------------------------------------
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 def test_every_truncation_inside_the_last_record_is_a_torn_tail_that_is_skipped(
-        tmp_path: Path) -> None:
+        tmp_path: Path, layout: str) -> None:
     items = [(2000.0 + i, f) for i, f in enumerate(frames(12))]
-    data = write_file(tmp_path / "full.agrec", items)
-    last_len = len(doc_record(*items[-1]))
+    data = write_file(tmp_path / "full.agrec", items, layout)
+    last_len = len(LAYOUTS[layout][1](*items[-1]))
     whole = len(data) - last_len
     path = tmp_path / "torn.agrec"
     for kept in range(1, last_len):
@@ -229,12 +254,15 @@ def test_every_truncation_inside_the_last_record_is_a_torn_tail_that_is_skipped(
         assert stats.corrupt_skips == 0
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @settings(max_examples=200, deadline=None)
 @given(n=st.integers(1, 15), cut_back=st.integers(0, 400), seed=st.integers(0, 1000))
-def test_any_truncation_yields_exactly_the_whole_records_before_it(n: int, cut_back: int,
+def test_any_truncation_yields_exactly_the_whole_records_before_it(layout: str, n: int,
+                                                                    cut_back: int,
                                                                     seed: int) -> None:
+    header, doc_record = LAYOUTS[layout]
     items = [(float(seed + i), tframe(seed + i)) for i in range(n)]
-    data = DOC_HEADER + b"".join(doc_record(t, f) for t, f in items)
+    data = header + b"".join(doc_record(t, f) for t, f in items)
     cut = max(len(DOC_HEADER), len(data) - cut_back)
     stats = recording.ReadStats()
     got = [(t, f) for _, t, f in recording.scan(data[:cut], stats)]
@@ -247,22 +275,26 @@ def test_any_truncation_yields_exactly_the_whole_records_before_it(n: int, cut_b
     assert stats.torn_tail_bytes == cut - (ends[whole - 1] if whole else len(DOC_HEADER))
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=600))
-def test_arbitrary_bytes_never_raise_in_the_scanner(data: bytes) -> None:
+def test_arbitrary_bytes_never_raise_in_the_scanner(layout: str, data: bytes) -> None:
     stats = recording.ReadStats()
-    for _ in recording.scan(DOC_HEADER + data, stats):
+    for _ in recording.records(LAYOUTS[layout][0] + data, stats):
         pass
     assert stats.torn_tail_bytes <= len(data)
 
 
 # -- corruption in the middle --------------------------------------------------------------------
 
-def test_a_flipped_byte_anywhere_in_one_record_skips_that_record_only(tmp_path: Path) -> None:
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_a_flipped_byte_anywhere_in_one_record_skips_that_record_only(tmp_path: Path,
+                                                                      layout: str) -> None:
+    header, doc_record = LAYOUTS[layout]
     items = [(3000.0 + i, f) for i, f in enumerate(frames(9))]
-    data = write_file(tmp_path / "ok.agrec", items)
+    data = write_file(tmp_path / "ok.agrec", items, layout)
     k = 4
-    start = len(DOC_HEADER) + sum(len(doc_record(t, f)) for t, f in items[:k])
+    start = len(header) + sum(len(doc_record(t, f)) for t, f in items[:k])
     size = len(doc_record(*items[k]))
     path = tmp_path / "bad.agrec"
     for off in range(size):  # time, length, frame and CRC bytes alike
@@ -276,13 +308,16 @@ def test_a_flipped_byte_anywhere_in_one_record_skips_that_record_only(tmp_path: 
         assert stats.torn_tail_bytes == 0
 
 
-def test_two_damaged_records_and_inserted_garbage_are_all_passed(tmp_path: Path) -> None:
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_two_damaged_records_and_inserted_garbage_are_all_passed(tmp_path: Path,
+                                                                 layout: str) -> None:
+    header, doc_record = LAYOUTS[layout]
     items = [(4000.0 + i, f) for i, f in enumerate(frames(10))]
     recs = [doc_record(t, f) for t, f in items]
-    recs[2] = recs[2][:5] + b"\x00" + recs[2][6:]
+    recs[2] = recs[2][:5] + bytes([recs[2][5] ^ 0xFF]) + recs[2][6:]
     recs[7] = recs[7][:-1] + bytes([recs[7][-1] ^ 1])
     garbage = b"\xa5\x5a\x01\xff" + b"\x89AUR" + bytes(range(40))
-    data = DOC_HEADER + b"".join(recs[:5]) + garbage + b"".join(recs[5:])
+    data = header + b"".join(recs[:5]) + garbage + b"".join(recs[5:])
     (tmp_path / "g.agrec").write_bytes(data)
     got, stats = read_all(tmp_path / "g.agrec")
     assert got == [items[i] for i in range(10) if i not in (2, 7)]
@@ -348,7 +383,7 @@ def test_bad_magic_is_a_recording_error(tmp_path: Path, head: bytes) -> None:
         assert path.read_bytes() == head + doc_record(1.0, tframe(1))  # left untouched
 
 
-@pytest.mark.parametrize("version", [0, 2, 0xFFFF])
+@pytest.mark.parametrize("version", [0, 3, 0xFFFF])
 def test_an_unknown_version_is_a_recording_error(tmp_path: Path, version: int) -> None:
     path = tmp_path / "v.agrec"
     content = DOC_HEADER[:8] + struct.pack("<HH", version, 0) + doc_record(1.0, tframe(1))
@@ -475,7 +510,7 @@ def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
     relay = RawFrame(0x42, b"relay me")
     decoded = decode_all(encode(_sm_update(99, 1.0)))[0]  # carries its raw frame
     others = [VehicleState(True, "AUTO"), Position(47.1, 8.5), VehicleState(False, "RTL")]
-    with caplog.at_level(logging.WARNING, logger="gateway.recording"):
+    with caplog.at_level(logging.WARNING, logger="gateway.recorder"):
         rec = Recorder(path)
         for i, m in enumerate([sm, others[0], st, others[1], relay, decoded, others[2]]):
             rec.submit(m, t=10.0 + i)
@@ -490,7 +525,7 @@ def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
 
 KILLED_SUBMITTER = r"""
 import os, sys, threading
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.wire import frame
 rec = Recorder(sys.argv[1], fsync_interval_s=0.01, queue_depth=1 << 20)
 told = False

@@ -31,7 +31,7 @@ from gateway.flight import FlightModel, FlightProfile
 from gateway.io.ioloop import BLOCKING_WORKERS, BlockingCalls, IoLoop
 from gateway.model import RawFrame, RcChannels, SmUpdate, Status
 from gateway.pacing import BATCH, Pacer
-from gateway.recording import Recorder
+from gateway.recorder import Recorder
 from gateway.sources import Source
 from gateway.sources.options import ReplayOptions, SerialOptions, SimOptions
 from gateway.sources.replay import ReplaySource

@@ -261,6 +261,8 @@ def build_parser(backend_flags: bool = True,
     dec = sub.add_parser("decode", help="print the frames of a capture or recording as JSON "
                          "lines")
     dec.add_argument("file", nargs="?", default="-", help="raw capture or recording; - = stdin")
+    dec.add_argument("--vehicle", metavar="NAME",
+                     help="a recording's frames of this vehicle only (default: every vehicle)")
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
     key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
@@ -278,7 +280,8 @@ def build_parser(backend_flags: bool = True,
     gateway_flag(sim, "log_level")
 
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
-                         description="Record what the sources receive, with no backends. "
+                         description="Record what the sources receive, with no backends, every "
+                         "vehicle into FILE with its vehicle and source names. "
                          "Each message is recorded as its wire frame: the one it arrived in, "
                          "else the frame it encodes to (SM_UPDATE, STATUS and relayed frames "
                          "from a MAVLink or Zenoh source). Messages with no wire form (a "
@@ -288,7 +291,10 @@ def build_parser(backend_flags: bool = True,
     add_source_options(rec)
     _add_common_options(rec)
 
-    rep = sub.add_parser("replay", help="run the gateway with a recording as its source")
+    rep = sub.add_parser("replay", help="run the gateway with a recording as its source",
+                         description="Run the gateway with a recording as its source: each "
+                         "recorded vehicle comes back under its name (the frames of a version "
+                         "1 recording, which name none, as the replay source's own vehicle).")
     rep.add_argument("file", help="recording")
     key_flag(rep, "--speed", _source_key("replay", "speed"),
               "N times real time; 0 = flat out (default 1)", metavar="N")
@@ -467,10 +473,11 @@ def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
 
-def say(text: str, level: int = logging.INFO) -> None:
+def say(text: str, level: int = logging.INFO, fields: dict[str, Any] | None = None) -> None:
     """One of the run's own lines to stderr in one write (a log line another thread writes
-    meanwhile cannot land inside it), as the log format says: plain or JSON."""
-    logjson.say(text, level=level)
+    meanwhile cannot land inside it), as the log format says: plain or JSON (with
+    ``fields`` as keys of their own)."""
+    logjson.say(text, level=level, fields=fields)
 
 
 #: a backend's counters of frames claiming one of its vehicles' identities (MAVLink)
@@ -480,7 +487,8 @@ IDENTITY_KEYS = ("impostor_frames", "rejected_signing", "sysid_conflicts", "id_c
 def _report(summary: dict[str, Any]) -> None:
     drops = []
     rec = summary.get("recorder") or {}
-    rec_drops = {k: rec.get(f"dropped_{k}", 0) for k in ("queue_full", "at_close")}
+    rec_drops = {k: rec.get(f"dropped_{k}", 0)
+                 for k in ("queue_full", "at_close", "vehicle_limit", "open_failed")}
     if any(rec_drops.values()):
         drops.append("recorder " + " ".join(f"dropped_{k}={v}"
                                             for k, v in rec_drops.items() if v))
@@ -506,13 +514,14 @@ def _report(summary: dict[str, Any]) -> None:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
                      + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
     say(line)
-    for text in summary_lines(summary.get("flights") or {}):
-        say(text)
+    flights = summary.get("flights") or {}
+    for name, text in zip(flights, summary_lines(flights), strict=True):
+        say(text, fields={"vehicle": name, "flight": flights[name]})
     crc = summary.get("crc_errors") or {}
     say(f"crc errors: {sum(crc.values())}"
         + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""))
     for path in summary.get("recordings") or ():
-        say(f"recording: {path}")
+        say(f"recording: {path}", fields={"recording": path})
     say("dropped: " + ("; ".join(drops) if drops else "nothing"))
     refusals = [f"{name} " + " ".join(f"{k}={st[k]}" for k in SERVER_KEYS if st.get(k))
                 for name, st in summary["backends"].items()
@@ -606,15 +615,24 @@ def cmd_decode(args: argparse.Namespace) -> int:
             stats = recording.ReadStats()
             try:
                 recording.check_header(data, args.file)
-            except recording.RecordingError as exc:
+                recs = recording.name_unnamed(
+                    recording.records(data, stats),
+                    recording.file_vehicle(args.file) if args.file != "-" else "")
+                recs = recording.only_vehicle(recs, args.vehicle, args.file)
+            except ValueError as exc:  # RecordingError included
                 print(f"aurora-gateway: decode: {exc}", file=sys.stderr)
                 return EXIT_USAGE
-            for _, t, frame in recording.scan(data, stats):
+            for t, frame, vehicle, source in recs:
                 for msg in dec.feed(frame):
-                    out.write(json.dumps({"rx_time": t, **_json_safe(to_wire_dict(msg))}) + "\n")
+                    out.write(json.dumps({"rx_time": t, "vehicle": vehicle, "source": source,
+                                          **_json_safe(to_wire_dict(msg))}) + "\n")
             if stats.torn_tail_bytes or stats.corrupt_skips:
                 print(f"recording: {stats.records} records, torn tail {stats.torn_tail_bytes} "
                       f"bytes, {stats.corrupt_skips} corrupt stretches skipped", file=sys.stderr)
+        elif args.vehicle is not None:
+            print(f"aurora-gateway: decode: --vehicle: {args.file} is a raw capture, which "
+                  "names no vehicle", file=sys.stderr)
+            return EXIT_USAGE
         else:
             chunk = head
             while chunk:

@@ -6,12 +6,18 @@ One row per SM_UPDATE in the recording, in recording order, for spreadsheets and
     aurora-gateway export flight.aur > flight.csv
     aurora-gateway export flight.aur --format jsonl -o flight.jsonl
 
-Or the decoded flight on the Foxglove backend's channels (``/aurora/state``, ``/aurora/altitude``,
-``/aurora/attitude`` as a ``foxglove.FrameTransform``, ``/aurora/status``) and link up/down on
-``/aurora/link_events``, JSON with JSON schemas, stamped with the receive times, for Foxglove
-or any MCAP tool (see :mod:`gateway.commands.export_mcap`)::
+Or the decoded flight on the Foxglove backend's channels, per vehicle
+(``/aurora/<vehicle>/state``, ``…/altitude``, ``…/attitude`` as a
+``foxglove.FrameTransform``, ``…/status``) and link up/down on ``/aurora/link_events``, JSON
+with JSON schemas, stamped with the receive times, for Foxglove or any MCAP tool (see
+:mod:`gateway.commands.export_mcap`)::
 
     aurora-gateway export flight.aur -o flight.mcap
+
+A recording of several vehicles gives every vehicle's rows (the ``vehicle`` column says
+whose); ``--vehicle NAME`` keeps one (a name the recording does not have: one line naming
+the vehicles it has, exit status 2).  A version 1 recording's frames name no vehicle: their
+vehicle is named after the file (:func:`gateway.recording.file_vehicle`).
 
 The recording itself stays the lossless format (every frame as received); the MCAP is a view.
 
@@ -20,6 +26,7 @@ Columns (the same names, in this order, in both formats):
 =====================  =============================================================
 ``t_s``                receive time, seconds since the recording's first record (to 1 µs)
 ``rx_time``            receive time, seconds since the Unix epoch (what was recorded)
+``vehicle``            the vehicle the update is about
 ``timestamp_ms``       the flight computer's uptime in the update, ms
 ``state``              state number
 ``state_name``         its name under ``sm_type`` (``STATE_<n>`` when unknown)
@@ -32,13 +39,13 @@ Columns (the same names, in this order, in both formats):
 ``roll_deg``           roll, degrees (converted from the update's radians)
 ``pitch_deg``          pitch, degrees
 ``yaw_deg``            yaw, degrees
-``imu_ok``             the latest STATUS at or before the row: IMU healthy
+``imu_ok``             the vehicle's latest STATUS at or before the row: IMU healthy
 ``baro_ok``            … barometer healthy
 ``calibrated``         … sensors calibrated
 ``log_ready``          … flight log ready
 =====================  =============================================================
 
-The four health flags are empty (CSV) or ``null`` (JSONL) until the recording's first
+The four health flags are empty (CSV) or ``null`` (JSONL) until the vehicle's first
 STATUS.  Floats are written in Python's shortest round-trip form, so reading a cell back
 gives exactly the value the gateway decoded (degrees excepted: they are converted).
 
@@ -76,7 +83,7 @@ EXIT_USAGE = 2
 
 #: The export's columns, in order (see the module docstring for their meaning).
 COLUMNS: tuple[str, ...] = (
-    "t_s", "rx_time", "timestamp_ms", "state", "state_name", "armed", "sm_type",
+    "t_s", "rx_time", "vehicle", "timestamp_ms", "state", "state_name", "armed", "sm_type",
     "altitude_m", "velocity_mps", "acceleration_mps2", "accel_vert_mps2",
     "roll_deg", "pitch_deg", "yaw_deg",
     "imu_ok", "baro_ok", "calibrated", "log_ready",
@@ -88,14 +95,14 @@ _JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
 _MCAP_SUFFIXES = (".mcap",)
 
 _COLUMN_HELP = (
-    "columns: t_s (s since the first record), rx_time (Unix s), timestamp_ms, state, "
-    "state_name, armed, sm_type, altitude_m, velocity_mps, acceleration_mps2, "
-    "accel_vert_mps2, roll_deg, pitch_deg, yaw_deg, and the latest STATUS's imu_ok, baro_ok, "
-    "calibrated, log_ready (empty/null before the first STATUS). CSV: header row, booleans "
-    "1/0. JSONL: one object a line, NaN as null. MCAP (needs -o FILE): the flight on the "
-    "channels /aurora/state, /aurora/altitude, /aurora/attitude (foxglove.FrameTransform), "
-    "/aurora/status and /aurora/link_events, JSON with JSON schemas, log time = receive "
-    "time.")
+    "columns: t_s (s since the first record), rx_time (Unix s), vehicle, timestamp_ms, "
+    "state, state_name, armed, sm_type, altitude_m, velocity_mps, acceleration_mps2, "
+    "accel_vert_mps2, roll_deg, pitch_deg, yaw_deg, and the vehicle's latest STATUS's imu_ok, "
+    "baro_ok, calibrated, log_ready (empty/null before its first STATUS). CSV: header row, "
+    "booleans 1/0. JSONL: one object a line, NaN as null. MCAP (needs -o FILE): each "
+    "vehicle's flight on the channels /aurora/VEHICLE/state, …/altitude, …/attitude "
+    "(foxglove.FrameTransform), …/status, and /aurora/link_events, JSON with JSON schemas, "
+    "log time = receive time.")
 
 
 class ExportError(Exception):
@@ -111,6 +118,8 @@ class Flight:
     messages: list[tuple[float, Any]] = field(default_factory=list)
     statuses: int = 0
     other_frames: int = 0
+    #: the vehicles exported, in the order they first appear
+    vehicles: list[str] = field(default_factory=list)
     read_stats: recording.ReadStats = field(default_factory=recording.ReadStats)
 
     def notes(self) -> str:
@@ -125,10 +134,12 @@ class Flight:
 def row_of(t_s: float, rx_time: float, msg: SmUpdate,
            health: dict[str, bool] | None) -> dict[str, Any]:
     """The export row of one update received at ``rx_time`` (``t_s`` after the first
-    record), with the health flags of the latest STATUS (``health``; None before any)."""
+    record), with the health flags of its vehicle's latest STATUS (``health``; None before
+    any)."""
     return {
         "t_s": t_s,
         "rx_time": rx_time,
+        "vehicle": msg.vehicle,
         "timestamp_ms": msg.timestamp_ms,
         "state": msg.state,
         "state_name": msg.state_name,
@@ -145,28 +156,42 @@ def row_of(t_s: float, rx_time: float, msg: SmUpdate,
     }
 
 
-def load(path: str | Path) -> Flight:
-    """Read the recording at ``path`` into export rows.  :class:`ExportError` (one line) when
-    it is missing, unreadable or not a recording of this version."""
+class UnknownVehicle(ExportError):
+    """``--vehicle`` names a vehicle the recording does not have (a usage error)."""
+
+
+def load(path: str | Path, vehicle: str | None = None) -> Flight:
+    """Read the recording at ``path`` into export rows, of ``vehicle`` only if given.
+    :class:`ExportError` (one line) when it is missing, unreadable or not a recording of a
+    version this gateway reads; :class:`UnknownVehicle` when it has no such vehicle."""
     try:
         recording.check_file(path)
         flight = Flight()
-        records = list(recording.read(path, flight.read_stats))
+        records = recording.name_unnamed(recording.read_records(path, flight.read_stats),
+                                         recording.file_vehicle(path))
     except ValueError as exc:  # RecordingError included
         raise ExportError(str(exc)) from None
     except OSError as exc:
         raise ExportError(f"cannot read {path}: {exc.strerror or exc}") from None
-    decoder = Decoder(origin="export")
-    health: dict[str, bool] | None = None
-    t0 = records[0][0] if records else 0.0
-    for t, frame in records:
+    t0 = records[0].t if records else 0.0  # the first record of any vehicle
+    try:
+        records = recording.only_vehicle(records, vehicle, path)
+    except ValueError as exc:
+        raise UnknownVehicle(str(exc)) from None
+    flight.vehicles = recording.vehicles_in(records)
+    decoder = Decoder()
+    health: dict[str, dict[str, bool]] = {}  # per vehicle: its latest STATUS's flags
+    for t, frame, name, source in records:
+        decoder.vehicle = name
         for msg in decoder.feed(frame):
+            if source:
+                msg = msg._replace(origin=source)
             flight.messages.append((t, msg))
             if isinstance(msg, SmUpdate):
-                flight.rows.append(row_of(round(t - t0, 6), t, msg, health))
+                flight.rows.append(row_of(round(t - t0, 6), t, msg, health.get(name)))
             elif isinstance(msg, Status):
                 flight.statuses += 1
-                health = msg.health()
+                health[name] = msg.health()
             else:
                 flight.other_frames += 1
     return flight
@@ -221,6 +246,8 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                         "file, mcap for a .mcap one, else csv)")
     p.add_argument("-o", "--output", metavar="FILE", default="-",
                    help="file to write; - = stdout (default)")
+    p.add_argument("--vehicle", metavar="NAME",
+                   help="this vehicle's rows only (default: every vehicle's)")
     p.set_defaults(handler=run_export)
     return p
 
@@ -256,10 +283,10 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
               file=err)
         return EXIT_USAGE
     try:
-        flight = load(args.recording)
+        flight = load(args.recording, args.vehicle)
     except ExportError as exc:
         print(f"aurora-gateway export: {exc}", file=err)
-        return EXIT_FAILURE
+        return EXIT_USAGE if isinstance(exc, UnknownVehicle) else EXIT_FAILURE
     if fmt == "mcap":
         return _run_mcap(args, flight)
     to_stdout = args.output == "-"
@@ -282,9 +309,16 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
     where = "stdout" if to_stdout else args.output
     notes = flight.notes()
     print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
-          f"as {fmt} to {where}" + (f"; {notes}" if notes else ""), file=err)
+          f"of {_vehicles(flight)} as {fmt} to {where}" + (f"; {notes}" if notes else ""),
+          file=err)
     return 0
 
+
+
+def _vehicles(flight: Flight) -> str:
+    n = len(flight.vehicles)
+    return (f"vehicle {flight.vehicles[0]}" if n == 1 else
+            f"{n} vehicles ({', '.join(flight.vehicles)})" if n else "no vehicle")
 
 
 def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
@@ -300,7 +334,9 @@ def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
         with open(args.output, "wb") as f:
             written = export_mcap.write(
                 flight.messages, f, source=f"replay:{name}",
-                metadata={"recording": name, "records": str(flight.read_stats.records)})
+                metadata={"recording": name, "records": str(flight.read_stats.records),
+                          "vehicles": ",".join(flight.vehicles)},
+                vehicles=flight.vehicles)
     except OSError as exc:
         print(f"aurora-gateway export: cannot write {args.output}: {exc.strerror or exc}",
               file=sys.stderr)
@@ -308,6 +344,6 @@ def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
     topics = ", ".join(f"{t} {n}" for t, n in written.counts.items())
     notes = flight.notes()
     print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
-          f"as mcap to {args.output}: {topics or 'no messages'}"
+          f"of {_vehicles(flight)} as mcap to {args.output}: {topics or 'no messages'}"
           + (f"; {notes}" if notes else ""), file=sys.stderr)
     return 0

@@ -13,28 +13,34 @@ Every message is JSON (message encoding ``json``) with a JSON Schema (schema enc
 Map panels recognise (the live backend sends the same messages as protobuf).  Non-finite
 floats are written as ``null`` (JSON has no NaN).
 
+Each vehicle's messages are on its own channels, ``/aurora/<vehicle>/state`` and so on (as the
+live backend names them); a message that names no vehicle goes on ``/aurora/state`` …; the
+link events, a source's, are on ``/aurora/link_events`` for every vehicle.  In the table,
+``/aurora/…/state`` stands for ``/aurora/<vehicle>/state``.
+
 ======================  ================  ==============================================
 channel                 from              fields
 ======================  ================  ==============================================
-``/aurora/state``       each SM_UPDATE    timestamp_ms, state, state_name, armed, sm_type
-``/aurora/altitude``    each SM_UPDATE    timestamp_ms, altitude_m, velocity_mps,
+``/aurora/…/state``     each SM_UPDATE    timestamp_ms, state, state_name, armed, sm_type
+``/aurora/…/altitude``  each SM_UPDATE    timestamp_ms, altitude_m, velocity_mps,
                                           acceleration_mps2, accel_vert_mps2
-``/aurora/attitude``    each SM_UPDATE    foxglove.FrameTransform: ``world`` → ``rocket``,
+``/aurora/…/attitude``  each SM_UPDATE    foxglove.FrameTransform: ``world`` → the vehicle,
                                           rotation = roll/pitch/yaw as a quaternion
                                           (Z-Y-X), translation z = altitude_m
-``/aurora/status``      each STATUS       timestamp_ms, state, state_name, sm_type, flags,
+``/aurora/…/status``    each STATUS       timestamp_ms, state, state_name, sm_type, flags,
                                           armed, imu_ok, baro_ok, calibrated, log_ready
 ``/aurora/link_events`` link up/down      source, up, silence_s
-``/aurora/link``        each LinkStats    only when present: its fields and origin
-``/aurora/position``    each Position     only when present: foxglove.LocationFix
-``/aurora/battery``     each Battery      only when present: a battery's fields
+``/aurora/…/link``      each LinkStats    only when present: its fields and origin
+``/aurora/…/position``  each Position     only when present: foxglove.LocationFix
+``/aurora/…/battery``   each Battery      only when present: a battery's fields
 ======================  ================  ==============================================
 
-A recording holds the wire frames only, so today's exports have the first five channels.
-``/aurora/link_events`` replays the gateway's link rule (:class:`gateway.link_monitor.LinkMonitor`)
-on the receive times: up at the first valid frame, down ``timeout_s`` after the last one when
-the next comes later than that (``silence_s`` = the timeout), up again at the next frame.
-Each message's log time and publish time are its receive time in ns since the Unix epoch.
+A recording holds the wire frames only, so today's exports have the first five channels
+(the first four per vehicle).  ``/aurora/link_events`` replays the gateway's link rule
+(:class:`gateway.link_monitor.LinkMonitor`) per recorded source on the receive times: up at
+the first valid frame, down ``timeout_s`` after the last one when the next comes later than
+that (``silence_s`` = the timeout), up again at the next frame.  Each message's log time and
+publish time are its receive time in ns since the Unix epoch.
 """
 
 from __future__ import annotations
@@ -71,6 +77,13 @@ _STR = {"type": "string"}
 #: The frames of the attitude transform (as the live backend names them).
 PARENT_FRAME = "world"
 CHILD_FRAME = "rocket"
+
+
+def child_frame(vehicle: str) -> str:
+    """The frame of a vehicle's attitude and position: the vehicle's name (a frame per
+    vehicle, so several rockets in one 3D panel do not share one), ``rocket`` when the
+    message names none."""
+    return vehicle or CHILD_FRAME
 _TIME = {"type": "object", "properties": {"sec": _INT, "nsec": _INT},
          "required": ["sec", "nsec"]}
 
@@ -128,8 +141,18 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
          "consumed_mah": _NUM_OR_NULL, "remaining_pct": _INT_OR_NULL,
          "battery_id": _INT})),
 }
-#: The channels every export has, even with no message on them.
+#: The channels every export has, even with no message on them (all but the link events
+#: per vehicle).
 CORE_TOPICS: tuple[str, ...] = (STATE, ALTITUDE, ATTITUDE, STATUS, LINK_EVENTS)
+_PREFIX = "/aurora/"
+
+
+def vehicle_topic(topic: str, vehicle: str) -> str:
+    """``topic`` (one of the table's ``/aurora/<leaf>``) of ``vehicle``:
+    ``/aurora/<vehicle>/<leaf>`` ("" or the link events: ``topic`` itself)."""
+    if not vehicle or topic == LINK_EVENTS:
+        return topic
+    return f"{_PREFIX}{vehicle}/{topic[len(_PREFIX):]}"
 
 
 def quaternion(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
@@ -152,38 +175,38 @@ def _stamp(ns: int) -> dict[str, int]:
 
 
 def state_fields(m: SmUpdate) -> dict[str, Any]:
-    """The ``/aurora/state`` message of an update."""
+    """The ``/aurora/…/state`` message of an update."""
     return {"timestamp_ms": m.timestamp_ms, "state": m.state, "state_name": m.state_name,
             "armed": bool(m.armed), "sm_type": m.sm_type}
 
 
 def altitude_fields(m: SmUpdate) -> dict[str, Any]:
-    """The ``/aurora/altitude`` message of an update."""
+    """The ``/aurora/…/altitude`` message of an update."""
     return {"timestamp_ms": m.timestamp_ms, "altitude_m": m.altitude_m,
             "velocity_mps": m.velocity_mps, "acceleration_mps2": m.acceleration_mps2,
             "accel_vert_mps2": m.accel_vert_mps2}
 
 
 def attitude_fields(m: SmUpdate, ns: int) -> dict[str, Any]:
-    """The ``/aurora/attitude`` message (a foxglove.FrameTransform) of an update received at
+    """The ``/aurora/…/attitude`` message (a foxglove.FrameTransform) of an update received at
     ``ns``."""
     x, y, z, w = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
     return {"timestamp": _stamp(ns), "parent_frame_id": PARENT_FRAME,
-            "child_frame_id": CHILD_FRAME,
+            "child_frame_id": child_frame(m.vehicle),
             "translation": {"x": 0.0, "y": 0.0, "z": m.altitude_m},
             "rotation": {"x": x, "y": y, "z": z, "w": w}}
 
 
 def status_fields(m: Status) -> dict[str, Any]:
-    """The ``/aurora/status`` message of a STATUS."""
+    """The ``/aurora/…/status`` message of a STATUS."""
     return {"timestamp_ms": m.timestamp_ms, "state": m.state, "state_name": m.state_name,
             "sm_type": m.sm_type, "flags": m.flags, **m.health()}
 
 
 def position_fields(m: Position, ns: int) -> dict[str, Any]:
-    """The ``/aurora/position`` message (a foxglove.LocationFix) of a fix received at ``ns``
+    """The ``/aurora/…/position`` message (a foxglove.LocationFix) of a fix received at ``ns``
     (an unknown altitude as 0, as the live backend sends it)."""
-    return {"timestamp": _stamp(ns), "frame_id": CHILD_FRAME, "latitude": m.lat_deg,
+    return {"timestamp": _stamp(ns), "frame_id": child_frame(m.vehicle), "latitude": m.lat_deg,
             "longitude": m.lon_deg,
             "altitude": m.alt_amsl_m if m.alt_amsl_m is not None else 0.0,
             "position_covariance": [0.0] * 9, "position_covariance_type": 0}
@@ -194,52 +217,61 @@ class McapExport:
 
     Call :meth:`add` per message in time order (any message kind; the kinds without a
     channel are counted in ``skipped``), then :meth:`finish`.  ``source`` names the link on
-    ``/aurora/link``.  ``counts`` holds the messages written per topic.
+    ``/aurora/link_events`` of messages that name no ``origin``.  ``vehicles``: the
+    vehicles whose core channels are there even with no message (none: the unprefixed
+    ones).  ``counts`` holds the messages written per topic.
     """
 
     def __init__(self, stream: IO[bytes], source: str = "recording",
                  link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S,
-                 metadata: dict[str, str] | None = None) -> None:
+                 metadata: dict[str, str] | None = None,
+                 vehicles: Iterable[str] = ()) -> None:
         self.counts: Counter[str] = Counter()
         self.skipped: Counter[str] = Counter()
         self._writer = Writer(stream)
         self._writer.start(library=f"aurora-gateway {__version__}")
         self._channels: dict[str, int] = {}
-        for topic in CORE_TOPICS:
-            self._channel(topic)
+        self._schemas: dict[str, int] = {}
+        for vehicle in list(vehicles) or [""]:
+            for topic in CORE_TOPICS:
+                self._channel(vehicle_topic(topic, vehicle), topic)
         if metadata:
             self._writer.add_metadata("aurora.export", metadata)
         self._source = source
         self._now = 0.0
         self._link_timeout_s = link_timeout_s
         self._links = LinkMonitor(self._link_event, link_timeout_s, clock=lambda: self._now)
-        self._last_frame: float | None = None
+        self._up_last: dict[str, float] = {}  # the last frame of each source that is up
         self._routes: dict[type, Callable[[int, Any], None]] = {
             SmUpdate: self._sm_update, Status: self._status, Position: self._position,
             Battery: self._battery, LinkEvent: self._link_message, LinkStats: self._link_stats,
         }
 
-    def _channel(self, topic: str) -> int:
+    def _channel(self, topic: str, base: str) -> int:
         cid = self._channels.get(topic)
         if cid is None:
-            name, schema = SCHEMAS[topic]
-            sid = self._writer.register_schema(name, SchemaEncoding.JSONSchema,
-                                               orjson.dumps(schema))
+            sid = self._schemas.get(base)
+            if sid is None:  # one schema per kind, shared by the vehicles' channels
+                name, schema = SCHEMAS[base]
+                sid = self._schemas[base] = self._writer.register_schema(
+                    name, SchemaEncoding.JSONSchema, orjson.dumps(schema))
             cid = self._writer.register_channel(topic, MessageEncoding.JSON, sid)
             self._channels[topic] = cid
         return cid
 
-    def _write(self, topic: str, ns: int, fields: dict[str, Any]) -> None:
+    def _write(self, base: str, ns: int, fields: dict[str, Any], vehicle: str = "") -> None:
+        topic = vehicle_topic(base, vehicle)
         # orjson writes floats in their shortest round-trip form, and NaN/inf as null
-        self._writer.add_message(self._channel(topic), log_time=ns, data=orjson.dumps(fields),
-                                 publish_time=ns, sequence=self.counts[topic])
+        self._writer.add_message(self._channel(topic, base), log_time=ns,
+                                 data=orjson.dumps(fields), publish_time=ns,
+                                 sequence=self.counts[topic])
         self.counts[topic] += 1
 
     def add(self, t: float, msg: object, frame: bool = True) -> None:
         """Write ``msg``, received at ``t`` (s since the epoch).  ``frame``: it came in a
         valid wire frame from the source (which keeps the link up)."""
         if frame:
-            self._frame_seen(t)
+            self._frame_seen(t, getattr(msg, "origin", "") or self._source)
         ns = time_ns(t)
         route = self._routes.get(type(msg))
         if route is None:
@@ -247,38 +279,40 @@ class McapExport:
         else:
             route(ns, msg)
 
-    def _frame_seen(self, t: float) -> None:
-        last = self._last_frame
-        if last is not None and t - last >= self._link_timeout_s:
-            self._now = last + self._link_timeout_s  # when the gateway would call it down
+    def _frame_seen(self, t: float, source: str) -> None:
+        timeout = self._link_timeout_s
+        silent = [(last, s) for s, last in self._up_last.items() if t - last >= timeout]
+        for last, s in sorted(silent):  # each down when the gateway would have called it
+            self._now = last + timeout
             self._links.check()
+            del self._up_last[s]
         self._now = t
-        self._last_frame = t
-        self._links.frame_seen(self._source)
+        self._up_last[source] = t
+        self._links.frame_seen(source)
 
     def _link_event(self, ev: LinkEvent) -> None:
         self._link_message(time_ns(self._now), ev)
 
     def _sm_update(self, ns: int, m: SmUpdate) -> None:
-        self._write(STATE, ns, state_fields(m))
-        self._write(ALTITUDE, ns, altitude_fields(m))
-        self._write(ATTITUDE, ns, attitude_fields(m, ns))
+        self._write(STATE, ns, state_fields(m), m.vehicle)
+        self._write(ALTITUDE, ns, altitude_fields(m), m.vehicle)
+        self._write(ATTITUDE, ns, attitude_fields(m, ns), m.vehicle)
 
     def _status(self, ns: int, m: Status) -> None:
-        self._write(STATUS, ns, status_fields(m))
+        self._write(STATUS, ns, status_fields(m), m.vehicle)
 
     def _position(self, ns: int, m: Position) -> None:
-        self._write(POSITION, ns, position_fields(m, ns))
+        self._write(POSITION, ns, position_fields(m, ns), m.vehicle)
 
     def _battery(self, ns: int, m: Battery) -> None:
-        self._write(BATTERY, ns, m.fields())
+        self._write(BATTERY, ns, m.fields(), m.vehicle)
 
     def _link_message(self, ns: int, ev: LinkEvent) -> None:
         self._write(LINK_EVENTS, ns,
                     {"source": ev.source, "up": ev.up, "silence_s": ev.silence_s})
 
     def _link_stats(self, ns: int, m: LinkStats) -> None:
-        self._write(LINK, ns, {**m.fields(), "origin": m.origin})
+        self._write(LINK, ns, {**m.fields(), "origin": m.origin}, m.vehicle)
 
     def finish(self) -> None:
         """Write the summary (statistics, indexes) and the closing magic."""
@@ -287,10 +321,11 @@ class McapExport:
 
 def write(messages: Iterable[tuple[float, object]], stream: IO[bytes],
           source: str = "recording", link_timeout_s: float = DEFAULT_LINK_TIMEOUT_S,
-          metadata: dict[str, str] | None = None) -> McapExport:
+          metadata: dict[str, str] | None = None, vehicles: Iterable[str] = ()) -> McapExport:
     """Write ``(receive time, message)`` pairs, each from a valid frame, as a whole MCAP
-    file to ``stream``; returns the export (its ``counts`` per topic)."""
-    export = McapExport(stream, source, link_timeout_s, metadata)
+    file to ``stream`` (``vehicles``: whose core channels it has even if empty); returns the
+    export (its ``counts`` per topic)."""
+    export = McapExport(stream, source, link_timeout_s, metadata, vehicles)
     for t, msg in messages:
         export.add(t, msg)
     export.finish()

@@ -11,6 +11,11 @@ state (BOOST … REDUNDANT for the SIMPLE machine, per ``dialects.states``) to a
 the last, so a recording with minutes on the pad does not squash the flight into a sliver.
 ``--all`` plots the whole recording; so does a recording with no in-flight state.
 
+A recording of several vehicles draws one series per vehicle, in its own colour and named in
+a legend, each with its apogee marked (the state bands, which would overlap, are left out),
+over the union of their flights; ``--vehicle NAME`` draws that vehicle alone, as above (a
+name the recording does not have: one line naming the ones it has, exit status 2).
+
 matplotlib (the ``plot`` extra: ``pip install 'aurora-gateway[plot]'``) is imported only
 when the command runs, and draws with its Agg canvas: no display needed.  The picture is
 ``--size`` pixels (1200×900 by default) at 100 dpi, laid out by matplotlib's constrained
@@ -27,12 +32,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dialects.states import is_in_flight
-from gateway.commands.export import ExportError, load
+from gateway.commands.export import ExportError, UnknownVehicle, load
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 EXIT_FAILURE = 1
+EXIT_USAGE = 2
 DPI = 100
 DEFAULT_SIZE = (1200, 900)
 BAND_ALPHA = 0.18
@@ -40,6 +46,8 @@ BAND_ALPHA = 0.18
 BAND_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple",
                 "tab:brown", "tab:pink", "tab:gray", "tab:olive", "tab:cyan")
 APOGEE_COLOUR = "crimson"
+#: One colour per vehicle when several are drawn (matplotlib's "tab10" cycle).
+VEHICLE_COLOURS = BAND_COLOURS
 
 
 @dataclass(frozen=True)
@@ -165,6 +173,63 @@ def build_figure(rows: list[dict[str, Any]], title: str,
     return fig, apogee
 
 
+def by_vehicle(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """The rows of each vehicle, vehicles in the order they first appear."""
+    out: dict[str, list[dict[str, Any]]] = {}
+    for row in rows:
+        out.setdefault(row["vehicle"], []).append(row)
+    return out
+
+
+def build_vehicles_figure(series: dict[str, list[dict[str, Any]]], title: str,
+                          size_px: tuple[int, int] = DEFAULT_SIZE,
+                          ) -> tuple[Figure, dict[str, Apogee | None]]:
+    """The figure of several vehicles (each a non-empty list of rows, already cropped): one
+    colour per vehicle, named in a legend, each vehicle's apogee marked; and the apogees."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(size_px[0] / DPI, size_px[1] / DPI), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax_alt, ax_vel, ax_acc = fig.subplots(3, 1, sharex=True,
+                                          gridspec_kw={"height_ratios": (2, 1.3, 1.3)})
+    apogees: dict[str, Apogee | None] = {}
+    t_lo, t_hi = min(r[0]["t_s"] for r in series.values()), max(
+        r[-1]["t_s"] for r in series.values())
+    for i, (vehicle, rows) in enumerate(series.items()):
+        colour = VEHICLE_COLOURS[i % len(VEHICLE_COLOURS)]
+        t = [r["t_s"] for r in rows]
+        ax_alt.plot(t, [r["altitude_m"] for r in rows], color=colour, lw=1.4, label=vehicle)
+        ax_vel.plot(t, [r["velocity_mps"] for r in rows], color=colour, lw=1.2,
+                    label=vehicle)
+        ax_acc.plot(t, [r["acceleration_mps2"] for r in rows], color=colour, lw=1.1,
+                    label=f"{vehicle}: specific force (magnitude)")
+        ax_acc.plot(t, [r["accel_vert_mps2"] for r in rows], color=colour, lw=1.0, ls="--",
+                    label=f"{vehicle}: along the body axis")
+        apogee = apogees[vehicle] = find_apogee(rows)
+        if apogee is not None:
+            ax_alt.plot([apogee.t_s], [apogee.altitude_m], marker="v", ms=9, color=colour,
+                        ls="none")
+            ax_alt.annotate(f"{vehicle}: {apogee.altitude_m:.1f} m at t = {apogee.t_s:.2f} s",
+                            xy=(apogee.t_s, apogee.altitude_m), xytext=(8, 6 + 13 * i),
+                            textcoords="offset points", color=colour, fontweight="bold",
+                            fontsize="small")
+    ax_vel.axhline(0.0, color="0.5", lw=0.8)
+    lo, hi = ax_alt.get_ylim()
+    ax_alt.set_ylim(lo, hi + 0.15 * (hi - lo))  # headroom for the labels
+    ax_alt.set_ylabel("altitude (m)")
+    ax_vel.set_ylabel("vertical speed (m/s)")
+    ax_acc.set_ylabel("acceleration (m/s²)")
+    ax_acc.set_xlabel("time since the recording's first record (s)")
+    ax_alt.legend(loc="upper right", fontsize="small", title="vehicle")
+    ax_acc.legend(loc="upper right", fontsize="x-small", ncols=len(series))
+    ax_acc.set_xlim(t_lo, t_hi if t_hi > t_lo else t_lo + 1.0)
+    for ax in (ax_alt, ax_vel, ax_acc):
+        ax.grid(True, color="0.85", lw=0.6)
+    fig.suptitle(title)
+    return fig, apogees
+
+
 # -- the command ---------------------------------------------------------------------------------
 
 def _size(text: str) -> tuple[int, int]:
@@ -195,6 +260,8 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                    help="picture size in pixels (default 1200x900)")
     p.add_argument("--all", action="store_true",
                    help="plot the whole recording, not just the flight and a margin around it")
+    p.add_argument("--vehicle", metavar="NAME",
+                   help="draw this vehicle only (default: one series per vehicle)")
     p.set_defaults(handler=run_plot)
     return p
 
@@ -208,10 +275,10 @@ def run_plot(args: argparse.Namespace) -> int:
     """The ``plot`` handler; returns the exit status."""
     err = sys.stderr
     try:
-        flight = load(args.recording)
+        flight = load(args.recording, args.vehicle)
     except ExportError as exc:
         print(f"aurora-gateway plot: {exc}", file=err)
-        return EXIT_FAILURE
+        return EXIT_USAGE if isinstance(exc, UnknownVehicle) else EXIT_FAILURE
     rows = flight.rows
     if not rows:
         print(f"aurora-gateway plot: {args.recording}: no SM updates to plot", file=err)
@@ -224,20 +291,49 @@ def run_plot(args: argparse.Namespace) -> int:
         return EXIT_FAILURE
     title = args.title if args.title is not None else _default_title(args.recording,
                                                                       rows[0]["rx_time"])
+    series = by_vehicle(rows)
+    if len(series) > 1:
+        return _plot_vehicles(args, series, title, flight.notes())
     if not args.all:
         start, end = flight_window(rows)
         rows = [r for r in rows if start <= r["t_s"] <= end]
     fig, apogee = build_figure(rows, title, args.size)
-    try:
-        fig.savefig(args.output, dpi=DPI)
-    except (OSError, ValueError) as exc:  # ValueError: an extension matplotlib cannot write
-        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
-        print(f"aurora-gateway plot: cannot write {args.output}: {text}", file=err)
+    if not _save(fig, args):
         return EXIT_FAILURE
     where = (f"apogee {apogee.altitude_m:.1f} m at t = {apogee.t_s:.2f} s"
              if apogee is not None else "no altitude")
     notes = flight.notes()
     print(f"aurora-gateway plot: {args.output} ({args.size[0]}×{args.size[1]} px): "
-          f"{len(rows)} SM updates, t = {rows[0]['t_s']:.2f} … {rows[-1]['t_s']:.2f} s; "
-          f"{where}" + (f"; {notes}" if notes else ""), file=err)
+          f"{len(rows)} SM updates of {rows[0]['vehicle']}, t = {rows[0]['t_s']:.2f} … "
+          f"{rows[-1]['t_s']:.2f} s; {where}" + (f"; {notes}" if notes else ""), file=err)
+    return 0
+
+
+def _save(fig: Figure, args: argparse.Namespace) -> bool:
+    try:
+        fig.savefig(args.output, dpi=DPI)
+    except (OSError, ValueError) as exc:  # ValueError: an extension matplotlib cannot write
+        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        print(f"aurora-gateway plot: cannot write {args.output}: {text}", file=sys.stderr)
+        return False
+    return True
+
+
+def _plot_vehicles(args: argparse.Namespace, series: dict[str, list[dict[str, Any]]],
+                   title: str, notes: str) -> int:
+    """Several vehicles in one picture, over the union of their flights' windows."""
+    if not args.all:
+        windows = [flight_window(rows) for rows in series.values()]
+        start, end = min(w[0] for w in windows), max(w[1] for w in windows)
+        series = {v: kept for v, rows in series.items()
+                  if (kept := [r for r in rows if start <= r["t_s"] <= end])}
+    fig, apogees = build_vehicles_figure(series, title, args.size)
+    if not _save(fig, args):
+        return EXIT_FAILURE
+    n = sum(len(rows) for rows in series.values())
+    where = "; ".join(f"{v} apogee {a.altitude_m:.1f} m at t = {a.t_s:.2f} s"
+                      if a is not None else f"{v} no altitude" for v, a in apogees.items())
+    print(f"aurora-gateway plot: {args.output} ({args.size[0]}×{args.size[1]} px): "
+          f"{n} SM updates of {len(series)} vehicles ({', '.join(series)}); {where}"
+          + (f"; {notes}" if notes else ""), file=sys.stderr)
     return 0

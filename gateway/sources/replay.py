@@ -1,6 +1,11 @@
 """Replay a recording (see :mod:`gateway.recording`) at real time or N× speed: the file is
 read once on the loop's blocking calls, then paced on the source's I/O loop
-(:class:`gateway.pacing.Pacer`)."""
+(:class:`gateway.pacing.Pacer`).
+
+Each frame replays as the vehicle it was recorded from (a version 2 recording of several
+vehicles gives several vehicles again, each under its recorded name); a frame recorded
+without a vehicle (every frame of a version 1 recording), or with a name that is not a
+vehicle name, replays as the source's own vehicle."""
 
 from __future__ import annotations
 
@@ -9,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from gateway import recording
+from gateway import recording, vehicles
 from gateway.sources.options import ReplayOptions
 from gateway.sources.paced import PacedFrameSource
 
@@ -37,6 +42,7 @@ class ReplaySource(PacedFrameSource):
         self.speed = options.speed
         self.loop = options.loop
         self.read_stats = recording.ReadStats()
+        self._names: dict[str, str] = {}  # a recorded vehicle name -> the one replayed
 
     def begin(self) -> None:
         loop = self.io_loop
@@ -59,21 +65,39 @@ class ReplaySource(PacedFrameSource):
             return
         self.pace(self._passes(data), self.speed)
 
-    def _passes(self, data: bytes) -> Iterator[tuple[float, bytes]]:
+    def _passes(self, data: bytes) -> Iterator[tuple[float, recording.Record]]:
         """The recording's records, once or (``loop``) again and again; each pass is paced
         from its own first record."""
         while not self.stop_requested:
             self.read_stats = recording.ReadStats()
-            for _, t, frame in recording.scan(data, self.read_stats):
-                yield t, frame
+            for rec in recording.records(data, self.read_stats):
+                yield rec.t, rec
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
                          self.read_stats.torn_tail_bytes)
             if not self.loop:
                 return
 
+    def _replayed_vehicle(self, recorded: str) -> str:
+        name = self._names.get(recorded)
+        if name is None:
+            ok = bool(recorded) and vehicles.NAME.match(recorded) is not None \
+                and len(recorded) <= vehicles.MAX_NAME_LEN
+            name = recorded if ok else self.vehicle
+            if len(self._names) < 4096:  # bounded: a crafted file names at most 65535
+                self._names[recorded] = name
+        return name
+
+    def _deliver(self, t: float, item: Any) -> None:
+        if isinstance(item, bytes):
+            super()._deliver(t, item)
+            return
+        self.decoder.vehicle = self._replayed_vehicle(item.vehicle)
+        super()._deliver(t, item.frame)
+
     def stats(self) -> dict[str, Any]:
         st = self.read_stats
         return {"frames": self.sent, "records": st.records,
                 "torn_tail_bytes": st.torn_tail_bytes, "corrupt_skips": st.corrupt_skips,
+                "vehicles": len(set(self._names.values())),
                 "crc_failures": self.decoder.stats.crc_failures}
