@@ -141,8 +141,11 @@ def make_source(type_name: str, options: dict[str, Any], name: str | None,
         except ValueError as exc:
             raise ConfigError(f"{where}.vehicle: {exc}") from None
         part.vehicle_given = True
-    else:
-        part.vehicle = vehicles.derive_name(part.name, fallback=type_name)
+    else:  # the type's own default (a replay's: its file's), else derived from the name
+        default_vehicle = getattr(cls, "default_vehicle", None)
+        derived = default_vehicle(opts) if default_vehicle is not None and name is None \
+            else None
+        part.vehicle = derived or vehicles.derive_name(part.name, fallback=type_name)
     sysid = options.get("mavlink_sysid")
     if sysid is not None:
         if isinstance(sysid, bool) or not isinstance(sysid, int) or not 1 <= sysid <= 255:

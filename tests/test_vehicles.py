@@ -239,3 +239,14 @@ def test_a_configured_vehicle_is_served_whatever_comes_first() -> None:
     sel.attach(context_with(("a", "alpha"), ("b", "beta")))
     assert not sel.accepts(Status(0, 0, 0, 0, origin="a", vehicle="alpha"))
     assert sel.accepts(Status(0, 0, 0, 0, origin="b", vehicle="beta"))
+
+
+def test_an_unnamed_replay_is_named_after_its_file_as_decode_names_it(tmp_path: Any) -> None:
+    from gateway import recording
+
+    path = tmp_path / "2026-11-23T14-02-11-rocket7.aur"
+    path.write_bytes(recording.HEADER)  # an empty recording
+    cfg = config.parse({"sources": [{"type": "replay", "path": str(path)},
+                                    {"type": "replay", "path": str(path), "name": "again"}]})
+    assert [p.vehicle for p in cfg.sources] == ["rocket7", "again"]
+    assert recording.file_vehicle(path) == "rocket7"

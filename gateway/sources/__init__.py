@@ -7,6 +7,8 @@ The contract, all of it public (the app uses nothing else):
   once; the schema ``CONFIG`` is derived from it), ``from_config(options, name)`` (default:
   ``cls(OPTIONS.from_table(options), name=name)``) and ``default_name(options)`` (default:
   ``NAME_FORMAT`` over the options), which the configuration uses;
+* optionally ``default_vehicle(options)``: its vehicle's name when neither its table nor
+  ``--source NAME=URL`` gives one and the source is unnamed (default: derived from its name);
 * ``attach(context)``, called before ``start`` with the gateway's
   :class:`gateway.backend.GatewayContext` (kept as ``context``);
 * optionally ``use_loop(loop)``, called before ``start`` with the

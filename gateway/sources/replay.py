@@ -24,10 +24,18 @@ log = logging.getLogger(__name__)
 class ReplaySource(PacedFrameSource):
     NAME = "replay"
     OPTIONS = ReplayOptions
+    #: a version 2 recording replays each recorded vehicle under its name
+    YIELDS_SYSTEMS = True
 
     @staticmethod
     def default_name(options: dict[str, Any]) -> str:
         return f"replay:{Path(options['path']).name}"
+
+    @staticmethod
+    def default_vehicle(options: dict[str, Any]) -> str:
+        """A version 1 recording's vehicle, unnamed in the file: named after the file, as
+        ``decode`` and ``export`` name it (``…-rocket1.aur`` → ``rocket1``)."""
+        return recording.file_vehicle(options["path"])
 
     @classmethod
     def url_options(cls, rest: str | None) -> dict[str, Any]:
