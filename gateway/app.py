@@ -177,18 +177,19 @@ class Gateway:
         """What the run did (counters per source, link, backend, recording and blocking call)
         and what it saw of each vehicle (``flights``: :class:`FlightSummary`)."""
         sources = {s.name: s.stats() for s in self.sources}
+        backends = self.dispatcher.stats()
         rec = self.recorder
         return {
             "uptime_s": round(time.monotonic() - (self.started_at or time.monotonic()), 3),
             "messages_in": dict(self.counts),
             "sources": sources,
             "links": self.monitor.states(),
-            "backends": self.dispatcher.stats(),
+            "backends": backends,
             "recorded": rec.records if rec is not None else None,
             "recorder": rec.stats() if rec is not None else None,
             "recordings": [str(p) for p in rec.paths] if rec is not None else [],
             "flights": self.flights.as_dict(),
-            "crc_errors": crc_errors(sources),
+            "crc_errors": crc_errors(sources, backends),
             # the process's pool of blocking calls (opens, closes): bounded, counted
             "blocking_calls": self.loop.blocking.stats(),
         }

@@ -151,20 +151,37 @@ def summary_lines(flights: dict[str, Any]) -> list[str]:
     return lines
 
 
-def crc_errors(sources: dict[str, dict[str, Any]]) -> dict[str, int]:
-    """Per source, the sum of its counters named ``*crc*`` (``crc_failures`` of the wire
-    decoder, ``crc_errors`` of MAVLink endpoints), nested tables included."""
+#: what a counter of frames failing their check is called: ``crc_failures`` (the wire
+#: decoder), ``crc_errors`` (MAVLink endpoints), ``bad_checksum`` (XBee API frames) …
+_CHECK_WORDS = ("crc", "checksum")
 
-    def total(d: dict[str, Any]) -> int:
-        n = 0
-        for k, v in d.items():
-            if isinstance(v, dict):
-                n += total(v)
-            elif "crc" in k and isinstance(v, int) and not isinstance(v, bool):
-                n += v
-        return n
 
-    return {name: total(st) for name, st in sources.items()}
+def _check_failures(d: dict[str, Any]) -> int | None:
+    """The sum of ``d``'s counters of frames failing their CRC or checksum, nested tables
+    included; None when it has none."""
+    n: int | None = None
+    for k, v in d.items():
+        if isinstance(v, dict):
+            sub = _check_failures(v)
+            if sub is not None:
+                n = (n or 0) + sub
+        elif any(w in k for w in _CHECK_WORDS) and isinstance(v, int) \
+                and not isinstance(v, bool):
+            n = (n or 0) + v
+    return n
+
+
+def crc_errors(sources: dict[str, dict[str, Any]],
+               backends: dict[str, dict[str, Any]] | None = None) -> dict[str, int]:
+    """Per link, the frames that failed their CRC or checksum: every source (0 when it counts
+    none), then every backend that counts any (a CRSF receiver's, XBee's, MAVLink's
+    endpoints'), a backend named like a source as ``NAME (backend)``."""
+    out = {name: _check_failures(st) or 0 for name, st in sources.items()}
+    for name, st in (backends or {}).items():
+        n = _check_failures(st)
+        if n is not None:
+            out[f"{name} (backend)" if name in out else name] = n
+    return out
 
 
 def safe_name(name: str) -> str:

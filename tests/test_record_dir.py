@@ -126,6 +126,18 @@ def test_crc_errors_add_every_crc_counter_nested_or_not() -> None:
     assert crc_errors(stats) == {"serial": 3, "mav": 3, "sim": 0}
 
 
+def test_crc_errors_count_checksums_and_the_backends_that_check_frames() -> None:
+    """XBee's API-frame checksum failures count as well as CRCs, and so do the backends that
+    read frames (a CRSF receiver, MAVLink endpoints); a backend that checks none is left out,
+    and one named like a source is told apart."""
+    sources = {"xbee": {"link": {"bad_checksum": 58555}, "frames": 9},
+               "crsf": {"crc_failures": 0}}
+    backends = {"crsf": {"rx": {"crc_failures": 4}}, "mavlink": {"endpoints": {
+        "udpout:x": {"crc_errors": 2}}}, "console": {"sent": 3}, "flag": {"crc_ok": True}}
+    assert crc_errors(sources, backends) == {"xbee": 58555, "crsf": 0, "crsf (backend)": 4,
+                                             "mavlink": 2}
+
+
 # -- file names ---------------------------------------------------------------------------------
 
 def test_recording_names_are_new_files_named_by_utc_start_and_source(tmp_path: Path) -> None:
