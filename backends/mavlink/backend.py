@@ -422,6 +422,7 @@ class MavlinkBackend(Backend):
             # who tried to take a vehicle's id, and what came of it (also under "router")
             d["impostor_frames"], d["sysid_conflicts"] = rs.impostor_frames, rs.sysid_conflicts
             d["id_changes"] = rs.id_changes
+            d["unverified_systems"] = rs.unverified_systems  # signing on: unsigned newcomers
             d["router"] = rs.as_dict()
             if self.router.verifier is not None:
                 d["signing"] = self.router.verifier.stats.as_dict()

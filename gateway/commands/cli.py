@@ -481,7 +481,8 @@ def say(text: str, level: int = logging.INFO, fields: dict[str, Any] | None = No
 
 
 #: a backend's counters of frames claiming one of its vehicles' identities (MAVLink)
-IDENTITY_KEYS = ("impostor_frames", "rejected_signing", "sysid_conflicts", "id_changes")
+IDENTITY_KEYS = ("impostor_frames", "rejected_signing", "unverified_systems", "sysid_conflicts",
+                 "id_changes")
 
 
 def _report(summary: dict[str, Any]) -> None:
