@@ -186,8 +186,9 @@ def test_commands_are_answered_with_events_and_telemetry_carries_on(
         assert st["commands"] == 3 and st["commands_not_supported"] == 2
         link = next(iter(st["links"].values()))
         assert link["uplink_frames"] == 3 and link["uplink_keepalives"] == 2
-        assert link["uplink_garbage_bytes"] > 0 and link["uplink_bad_crc"] == 0
-        # one warning per opcode, naming it
+        assert link["uplink_garbage_bytes"] > 0 and link["uplink_corrupt_frames"] == 0
+        assert st["crc_failures"] == 0
+        # one warning for the burst, naming the first opcode (the second is counted)
         assert sum("0x1234" in r.getMessage() for r in caplog.records) == 1
         dispatch_paced(d, [sm(t) for t in range(20)], [g])
         assert wait_for(lambda: len(g.got()) == 23)
