@@ -129,6 +129,8 @@ def test_a_link_to_a_device_counts_a_bad_checksum_once(case: str) -> None:
         link, bad, stop = _open(case, port)
         try:
             with accept() as conn:
+                # up first: pyserial's socket:// drops what arrived before its open() ended
+                assert wait_for(lambda: link.stats()["link"] == 1, DEADLINE_S)
                 conn.sendall(bad)
                 one_crc_error(link.stats)
         finally:
