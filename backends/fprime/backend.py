@@ -212,7 +212,8 @@ class FprimeBackend(Backend):
         if answer is not None:
             opcode = self.commands.opcode(packet)
             if opcode != self.id_base + NO_OP.offset:
-                self.unsupported_log.event(f"opcode {opcode:#x}")
+                burst = self.unsupported_log  # (the opcode is named on the burst's first line)
+                burst.event("" if burst.active else f"opcode {opcode:#x}")
         return answer
 
     # -- routes ----------------------------------------------------------------------------------
