@@ -186,13 +186,43 @@ def test_commands_are_answered_with_events_and_telemetry_carries_on(
         assert st["commands"] == 3 and st["commands_not_supported"] == 2
         link = next(iter(st["links"].values()))
         assert link["uplink_frames"] == 3 and link["uplink_keepalives"] == 2
-        assert link["uplink_garbage_bytes"] > 0 and link["uplink_bad_crc"] == 0
-        # one warning per opcode, naming it
+        assert link["uplink_garbage_bytes"] > 0 and link["uplink_corrupt_frames"] == 0
+        assert st["crc_failures"] == 0
+        # one warning for the burst, naming the first opcode (the second is counted)
         assert sum("0x1234" in r.getMessage() for r in caplog.records) == 1
         dispatch_paced(d, [sm(t) for t in range(20)], [g])
         assert wait_for(lambda: len(g.got()) == 23)
     finally:
         g.close()
+
+
+@pytest.mark.parametrize("gateway", FRAMINGS, indirect=True)
+def test_a_flood_of_distinct_opcodes_costs_a_few_lines_and_counts_everything(
+        gateway: Any, caplog: pytest.LogCaptureFixture) -> None:
+    _, b = gateway
+    caplog.set_level(logging.WARNING, logger="backends.fprime.backend")
+    n = 3000
+    g = Ground(b.address(), b.framing)
+    try:
+        assert wait_for(lambda: b.stats()["connected"] == 1)
+        bad = bytearray(uplink_frame(b.framing, command_packet(7)))
+        bad[-1] ^= 0xFF  # a CRC failure, counted
+        frames = [uplink_frame(b.framing, command_packet(0x20000000 + i)) for i in range(n)]
+        g.sock.sendall(bytes(bad) + b"".join(frames))
+        assert wait_for(lambda: b.stats()["commands_not_supported"] == n)
+        st = b.stats()
+        assert st["commands"] == n and st["crc_failures"] == 1
+        # answered: every event names its opcode, all framed in a few frames
+        assert wait_for(lambda: len(g.got()) == n)
+        assert {struct.unpack_from(">I", p, 17)[0] for p in g.got()} == \
+            {0x20000000 + i for i in range(n)}
+    finally:
+        g.close()
+    lines = [r.getMessage() for r in caplog.records if "not supported" in r.getMessage()]
+    assert len(lines) == 1 and "0x20000000" in lines[0]  # the rest: one count per 10 s
+    assert b.unsupported_log.events == n
+    assert wait_for(lambda: b.stats()["clients"] == 0)
+    assert b.stats()["crc_failures"] == 1  # a peer gone: its counts stay
 
 
 @pytest.mark.parametrize("gateway", FRAMINGS, indirect=True)

@@ -437,6 +437,25 @@ def test_tcp_client_to_a_server_that_restarts_is_reopened(
     assert st.connect_failures >= 1
 
 
+def test_a_peer_that_hangs_up_at_once_again_and_again_costs_a_line_per_burst(
+        engines: Any, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO, logger="gateway.io.port")
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+        listener.settimeout(DEADLINE_S)
+        eng = engines(lambda: open_tcp_client("127.0.0.1", port, timeout=1.0),
+                      events=Events(), name="flappy")
+        eng.start()
+        for _ in range(30):  # accept, hang up: the engine reopens each time
+            listener.accept()[0].close()
+        assert wait_for(lambda: eng.stats.disconnects >= 30, DEADLINE_S)
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("flappy")]
+    # one line as each burst starts; the rest counted, in one line per 10 s
+    assert sum("reopening" in ln for ln in lines) == 1, lines
+    assert sum("port is up" in ln for ln in lines) == 1, lines
+    assert eng.stats.connects >= 30  # all counted
+
+
 class ClientEngines:
     """``PortServer``'s ``on_client``: every accepted connection becomes an echoing engine on
     the server's loop, with ``reopen=False`` (a client that leaves is gone)."""

@@ -10,6 +10,7 @@ built and checked here byte by byte (CRC-8 0x07 written out again), not with the
 
 from __future__ import annotations
 
+import logging
 import math
 import socket
 import struct
@@ -453,6 +454,49 @@ def test_a_client_that_never_reads_stalls_nobody(gateway: Any) -> None:
         sink.close()
 
 
+def _lines(caplog: Any, text: str) -> int:
+    return sum(text in r.getMessage() for r in caplog.records)
+
+
+def test_gcs_connected_is_logged_when_the_handshake_completes(gateway: Any, caplog: Any) -> None:
+    caplog.set_level(logging.INFO)
+    _, b = gateway
+    gcs = SpecGcs(b.address(), walk=())
+    try:
+        # accepted, and the flight side's FlightTelemetryStats(Disconnected) read: no handshake
+        assert wait_for(lambda: b.stats()["clients"] == 1 and link_stats(b, gcs)["sent"] > 0)
+        assert gcs.run_until(lambda: gcs.received.get(FLIGHT_STATS) is not None
+                             or gcs.state == HANDSHAKE_REQ, 1.0)
+        assert _lines(caplog, "TCP client connected") == 1
+        assert _lines(caplog, "GCS connected") == 0
+        assert gcs.run_until(lambda: gcs.state == CONNECTED)
+        assert wait_for(lambda: _lines(caplog, "GCS connected") == 1)
+        assert _lines(caplog, "GCS disconnected") == 0 and b.stats()["gcs_connects"] == 1
+    finally:
+        gcs.close()
+    assert wait_for(lambda: _lines(caplog, "GCS disconnected") == 1)
+    assert b.stats()["gcs_disconnects"] == 1 and b.stats()["clients"] == 0
+
+
+def test_gcs_handshaking_in_a_loop_costs_a_few_lines(gateway: Any, caplog: Any) -> None:
+    caplog.set_level(logging.INFO)
+    _, b = gateway
+    n = 25
+    for _ in range(n):  # connect, handshake, hang up: again and again
+        gcs = SpecGcs(b.address(), walk=())
+        try:
+            assert gcs.run_until(lambda g=gcs: g.state == CONNECTED)  # type: ignore[misc]
+            assert wait_for(lambda g=gcs: link_stats(b, g).get("state") == "connected")  # type: ignore[misc]
+        finally:
+            gcs.close()
+    assert wait_for(lambda: b.stats()["gcs_disconnects"] == n and b.stats()["clients"] == 0)
+    st = b.stats()
+    assert st["gcs_connects"] == n and st["clients_closed"] == n  # every one counted
+    # a line when a burst starts, then one with the count per 10 s: not one per handshake
+    for text in ("GCS connected", "GCS disconnected", "TCP client connected", "TCP client left"):
+        assert 1 <= _lines(caplog, text) <= 3, text
+
+
 def test_silent_gcs_is_disconnected_after_8_s_and_reconnects() -> None:
     skew = [0.0]  # the backend's clock runs ahead of the GCS's by this much
     d = Dispatcher()
@@ -514,7 +558,8 @@ def test_garbage_is_counted_and_the_link_goes_on(gateway: Any) -> None:
         gcs.walk = [FIRMWARE]
         assert gcs.run_until(lambda: gcs.walked.get(FIRMWARE) is not None)
         ls = link_stats(b, gcs)
-        assert ls["bad_crc"] == 1 and ls["rx_garbage_bytes"] > 10
+        assert ls["corrupt_packets"] == 1 and ls["rx_garbage_bytes"] > 10
+        assert b.stats()["crc_failures"] == 1
         assert b.stats()["errors"] >= 1 and ls["state"] == "connected"
         assert gcs.received[FIRMWARE] and len(gcs.received[FIRMWARE]) == 1
     finally:

@@ -426,8 +426,11 @@ def test_uavtalk_in_mavlink_out_two_gateways() -> None:
                   "--mavlink", f"udpout:127.0.0.1:{peer.port}", "--status-interval", "0",
                   "--duration", "12")
     try:
-        assert gcs.wait_line("stderr", lambda ln: "connected (handshake" in ln, 10.0), \
+        assert gcs.wait_line("stderr", lambda ln: "connected: handshake" in ln, 10.0), \
             gcs.text("stderr")
+        # the flight side says so too, once the handshake is done (not at the TCP accept)
+        assert flight.wait_line("stderr", lambda ln: "uavtalk: GCS connected:" in ln, 5.0), \
+            flight.text("stderr")
         assert len(peer.wait_for("HEARTBEAT", count=2, timeout=5.0)) >= 2
         assert peer.wait_for("ATTITUDE", timeout=8.0), "no ATTITUDE from the UAVTalk vehicle"
         assert peer.wait_for("HEARTBEAT", lambda m: m.base_mode & 128, timeout=10.0), \

@@ -295,7 +295,7 @@ def test_frames_split_anywhere_between_garbage(
     assert out == [f for _, f in items]
     assert dec.stats.frames == len(items)
     assert dec.stats.garbage_bytes == sum(len(g) for g, _ in items) + len(tail)
-    assert dec.stats.bad_checksum == dec.stats.bad_length == dec.stats.bad_escape == 0
+    assert dec.stats.crc_failures == dec.stats.bad_length == dec.stats.bad_escape == 0
     assert dec.pending == 0
 
 
@@ -336,7 +336,7 @@ def test_bad_checksum_is_counted_and_the_next_frame_found(mode: int) -> None:
     bad = good[:-1] + bytes(((good[-1] + 1) & 0xFF,))
     dec = FrameDecoder(mode)
     assert dec.feed(bad + good) == [TX]
-    assert dec.stats.bad_checksum == 1 and dec.stats.frames == 1
+    assert dec.stats.crc_failures == 1 and dec.stats.frames == 1
     assert dec.stats.garbage_bytes == len(bad)
 
 
@@ -355,7 +355,7 @@ def test_a_corrupted_length_never_skips_the_frames_it_claims() -> None:
     stream = b"\x7e\x00\x30\x10" + encode(TX) + encode(AtCommand(2, "DB")) + bytes(60)
     dec = FrameDecoder(1)
     assert dec.feed(stream) == [TX, AtCommand(2, "DB")]
-    assert dec.stats.bad_checksum == 1
+    assert dec.stats.crc_failures == 1
 
 
 def test_api2_frame_cut_short_by_a_new_start() -> None:

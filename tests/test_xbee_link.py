@@ -470,6 +470,28 @@ def test_an_ack_of_what_went_out_before_the_sticks_moved_does_not_deliver_them()
     assert g.delivered
 
 
+def test_sticks_moving_through_a_long_blackout_keep_the_ground_state_bounded() -> None:
+    """No ACK for minutes while the pilot (or a ground station's RC override) moves the sticks:
+    every new value set goes out in place under the one unacknowledged sequence, and what the
+    ground keeps about them does not grow."""
+    g = GroundLink()
+    g.set_servos({0: 0}, 0.0)
+    seq = g.seq
+    t = 1.0  # the ACK is stale from here on
+    for i in range(1, 3000):
+        t += 0.04  # a new value set per send (30 ms apart at least)
+        g.set_servos({0: i % 1024, 1: (i * 7) % 1024}, t)
+    assert g.seq == seq  # in place: still the same sequence
+    sizes = {k: len(v) for k, v in vars(g).items() if hasattr(v, "__len__")
+             and not isinstance(v, (str, bytes, tuple))}
+    assert max(sizes.values()) <= 64, sizes  # the latencies' deque is the largest
+    # that sequence went out with many value sets: its ACK delivers none, the last goes again
+    g.on_packet(encode(Ack(seq, 0)), None, t + 0.01)
+    assert g.seq == next_seq(seq) and not g.delivered
+    assert [c.servos for c, _ in sent_commands(g.tick(t + 0.05))] == [{0: 2999 % 1024,
+                                                                      1: (2999 * 7) % 1024}]
+
+
 def test_ground_power_choice_from_pings() -> None:
     g = GroundLink(rssi_threshold_dbm=-85.0)
     powers = [p for _, p in sent_commands(g.tick(0.0) + g.tick(0.2) + g.tick(0.4))]

@@ -388,7 +388,7 @@ def test_garbage_counted_and_skipped(api_mode: int, hosts: list[Host]) -> None:
         a.send_raw(xf.encode(xf.ReceivePacket(1, 2, 0, b"?"), api_mode))  # not a host's frame
         assert xf.decode_np(a.at("NP").value) == 100
         st = pair.module_a.decoder_stats()
-        assert st["bad_checksum"] == 1 and st["bad_length"] == 1
+        assert st["crc_failures"] == 1 and st["bad_length"] == 1
         assert st.get("bad_escape", 0) == (1 if api_mode == 2 else 0)
         assert pair.module_a.uart_errors() == 2 + (api_mode == 2)
         assert pair.module_a.er == 0  # UART errors are not RF errors

@@ -402,3 +402,22 @@ def test_two_gateways_in_one_process_share_no_loop_prevention_state() -> None:
     finally:
         b.stop()
         a.stop()
+
+
+def test_a_router_coming_and_going_in_a_loop_costs_a_line_per_burst(backend, endpoint,
+                                                                     caplog) -> None:
+    import logging
+
+    caplog.set_level(logging.INFO, logger="backends.zenoh.backend")
+    n = 6
+    for _ in range(n):  # a remote that says it is a router connects and leaves
+        with zenoh.open(peer_config(connect=[endpoint], mode="router")):
+            assert wait_until(lambda: backend.transports >= 1, 10)
+        assert wait_until(lambda: backend.transports == 0, 10)
+
+    def lines(text: str) -> int:
+        return sum(text in r.getMessage() for r in caplog.records)
+
+    assert wait_until(lambda: lines("lost a router") == 1, 5)
+    assert lines("connected to a router") == 1  # the others are counted, one line per 10 s
+    assert backend._transport_logs["router up"].events == n

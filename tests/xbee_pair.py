@@ -193,7 +193,7 @@ class XBeeModule:
     def uart_errors(self) -> int:
         """Bad frames seen on the UART (checksum, length, escape): counted and skipped."""
         st = self.decoder_stats()
-        return st.get("bad_checksum", 0) + st.get("bad_length", 0) + st.get("bad_escape", 0)
+        return st.get("crc_failures", 0) + st.get("bad_length", 0) + st.get("bad_escape", 0)
 
     def counters(self) -> dict[str, Any]:
         """A snapshot of the module's state and counters (for printing or asserting)."""

@@ -100,12 +100,33 @@ def fmt(value: float | str, unit: str) -> str:
     return f"{value:.{p}f}{unit and ' ' + unit}"
 
 
+#: Flight phases kept for the summary; a stream whose flight-mode text changes more often
+#: than that runs on in the last one (counted in ``RadioView.phases_merged``).
+MAX_PHASES = 1000
+
+
+@dataclass
+class Shown:
+    """What one sensor showed in a phase: its last value, and its numeric range."""
+
+    last: float | str
+    lo: float = math.inf
+    hi: float = -math.inf
+
+    def add(self, value: float | str) -> None:
+        self.last = value
+        if not isinstance(value, str):
+            self.lo = min(self.lo, value)
+            self.hi = max(self.hi, value)
+
+
 @dataclass
 class Phase:
-    """What the sensors showed while the flight mode read ``mode``."""
+    """What the sensors showed while the flight mode read ``mode`` (a range per sensor, not
+    every value: a monitor left running for hours keeps the same memory)."""
 
     mode: str
-    values: dict[str, list[float | str]] = field(default_factory=dict)
+    values: dict[str, Shown] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
     frames: int = 0
 
@@ -124,6 +145,7 @@ class RadioView:
     def __init__(self) -> None:
         self.current: dict[str, tuple[float | str, str]] = {}
         self.phases: list[Phase] = [Phase("(before the first flight mode)")]
+        self.phases_merged = 0
         self.frames = 0
 
     def update(self, rec: Record) -> str | None:
@@ -131,14 +153,20 @@ class RadioView:
         self.frames += 1
         changed = None
         if isinstance(rec, FlightMode) and rec.text != self.phases[-1].mode:
-            self.phases.append(Phase(rec.text))
+            if len(self.phases) < MAX_PHASES:
+                self.phases.append(Phase(rec.text))
+            else:
+                self.phases_merged += 1
             changed = rec.text
         phase = self.phases[-1]
         phase.frames += 1
         for name, value, unit in edgetx_sensors(rec):
             self.current[name] = (value, unit)
             if name != "FM":
-                phase.values.setdefault(name, []).append(value)
+                shown = phase.values.get(name)
+                if shown is None:
+                    shown = phase.values[name] = Shown(value)
+                shown.add(value)
                 phase.units[name] = unit
         return changed
 
@@ -151,16 +179,18 @@ class RadioView:
             if not ph.frames:
                 continue
             parts = []
-            for name, vals in sorted(ph.values.items(), key=lambda kv: _order(kv[0])):
+            for name, shown in sorted(ph.values.items(), key=lambda kv: _order(kv[0])):
                 unit = ph.units[name]
-                nums = [v for v in vals if not isinstance(v, str)]
-                if not nums:
-                    parts.append(f"{name} {vals[-1]}")
-                elif min(nums) == max(nums):
-                    parts.append(f"{name} {fmt(nums[0], unit)}")
+                if shown.lo > shown.hi:  # no number
+                    parts.append(f"{name} {shown.last}")
+                elif shown.lo == shown.hi:
+                    parts.append(f"{name} {fmt(shown.lo, unit)}")
                 else:
-                    parts.append(f"{name} {fmt(min(nums), unit)} … {fmt(max(nums), unit)}")
+                    parts.append(f"{name} {fmt(shown.lo, unit)} … {fmt(shown.hi, unit)}")
             rows.append(f"FM {ph.mode:<14} ({ph.frames:3d} frames)  " + ", ".join(parts))
+        if self.phases_merged:
+            rows.append(f"({self.phases_merged} more flight-mode changes, beyond {MAX_PHASES} "
+                        "phases, ran on in the last one)")
         return "\n".join(rows)
 
 

@@ -14,7 +14,8 @@ pyserial URL is a radio or UART (``fprime-gds --communication-selection uart``).
 Each link has its own framer, so its frame and sequence counts run on without gaps for its
 peer.  The ground writes up the same connection (keep-alives, framed commands): it is read
 and counted; the command ``Aurora.gateway.NO_OP`` is answered with an event, any other with
-the event ``CommandNotSupported`` (and a log line, once per opcode): see :mod:`.commands`.
+the event ``CommandNotSupported`` (and a log line, once per burst
+with a count: :class:`~gateway.io.burstlog.BurstLog`): see :mod:`.commands`.
 
 Framing runs on the dispatcher's thread (a few µs per message); the engines only queue and
 write, and a peer that does not read fills its own queue and loses frames (``dropped``),
@@ -35,6 +36,7 @@ import threading
 from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop
 from gateway.io.links import (
@@ -79,11 +81,14 @@ class Link:
         self.commands = 0
 
     def feed(self, data: bytes) -> tuple[()]:  # the loop's thread
+        answers = []
         for packet in self.deframer.feed(data):
             answer = self.backend.command(packet)
             if answer is not None:
-                self.commands += 1
-                self.send([answer])
+                answers.append(answer)
+        if answers:  # framed together: a flood of commands costs frames, not one each
+            self.commands += len(answers)
+            self.send(answers)
         return ()
 
     def send(self, packets: list[bytes]) -> None:
@@ -107,7 +112,9 @@ class Link:
         return {"sent": self.sent, "sent_bytes": self.sent_bytes, "dropped": self.dropped,
                 "link": int(engine is not None and engine.connected),
                 "errors": d.bad_crc + (engine.stats.errors if engine is not None else 0),
-                "uplink_frames": d.frames, "uplink_bad_crc": d.bad_crc,
+                # its CRC failures are the backend's crc_failures (one key with "crc" in the
+                # whole table: the stop report's crc errors add every such counter)
+                "uplink_frames": d.frames, "uplink_corrupt_frames": d.bad_crc,
                 "uplink_garbage_bytes": d.garbage_bytes, "uplink_keepalives": d.keepalives,
                 "commands": self.commands}
 
@@ -137,9 +144,12 @@ class FprimeBackend(Backend):
             queue_depth=options.queue_depth, on_closed=self._retire, label="ground system",
             limits=ClientLimits.of(options, options.queue_depth))
         self._closed = {"sent": 0, "sent_bytes": 0, "dropped": 0, "errors": 0, "commands": 0,
-                        "clients_closed": 0}
+                        "crc_failures": 0, "clients_closed": 0}
         self.commands = CommandHandler(options.id_base)
-        self._commands_seen: set[int] = set()
+        #: commands the gateway does not have: one line, then a count per interval
+        self.unsupported_log = BurstLog(
+            self.loop, f"{self.name}: F´ commands not supported (answered with the event "
+            "CommandNotSupported)", logger=log)
         self.messages = 0
         #: the vehicle this deployment is
         self.selector = VehicleSelector(options.vehicle)
@@ -191,18 +201,19 @@ class FprimeBackend(Backend):
         d = link.stats()
         for key in ("sent", "sent_bytes", "dropped", "errors", "commands"):
             t[key] += d[key]
+        t["crc_failures"] += link.deframer.bad_crc
         t["clients_closed"] += 1
 
     def command(self, packet: bytes) -> bytes | None:
         """The event packet answering a command packet from the ground (None: not a
-        command); an opcode the gateway does not have is also logged, once per opcode."""
+        command); an opcode the gateway does not have is also logged, once per burst (the
+        opcodes are counted, not kept: a peer can send any number of them)."""
         answer = self.commands.handle(packet, self.clock.tag())
         if answer is not None:
             opcode = self.commands.opcode(packet)
-            if opcode != self.id_base + NO_OP.offset and opcode not in self._commands_seen:
-                self._commands_seen.add(opcode)
-                log.warning("%s: F´ command opcode %#x is not supported (answered with the "
-                            "event CommandNotSupported)", self.name, opcode)
+            if opcode != self.id_base + NO_OP.offset:
+                burst = self.unsupported_log  # (the opcode is named on the burst's first line)
+                burst.event("" if burst.active else f"opcode {opcode:#x}")
         return answer
 
     # -- routes ----------------------------------------------------------------------------------
@@ -283,5 +294,6 @@ class FprimeBackend(Backend):
                 "channel_values": self.entries, "dropped_too_big": self.packer.too_big,
                 "time_resyncs": self.clock.resyncs, "clients": len(links),
                 "commands_not_supported": self.commands.not_supported,
+                "crc_failures": t["crc_failures"] + sum(k.deframer.bad_crc for k in links),
                 "connected": connected, "clients_closed": t["clients_closed"],
                 **self.linkset.server_stats(), "links": per}

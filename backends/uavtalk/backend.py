@@ -18,6 +18,12 @@ once, and a timer (``tick_s``) calls every session's ``tick(now)`` then writes i
 own queue and loses packets (``dropped``), nobody else waits.  A stream link (``tcp:``,
 serial) starts a fresh session each time its port comes up.
 
+A TCP client is logged when it connects and leaves (once per burst); the GCS is logged as
+connected when its handshake completes (GCSTelemetryStats HandshakeReq → FlightTelemetryStats
+HandshakeAck → GCSTelemetryStats Connected) and as disconnected when that ends (its own
+Disconnected, 8 s of silence, or its link gone), each once per burst with a count
+(:class:`~gateway.io.burstlog.BurstLog`): a peer looping through handshakes costs a few lines.
+
 One :class:`~.telemetry.ObjectStore` (the vehicle) serves every session; it is filled from
 the gateway's messages by :class:`~.translate.Vehicle` on the loop's thread: the routes run on
 the loop through the gateway's :class:`~gateway.handover.Handover` (bounded, ``inbox_depth``;
@@ -39,6 +45,7 @@ from typing import Any, ClassVar
 
 from gateway.backend import Backend, BackendError, GatewayContext, Outcome, Routes
 from gateway.handover import Handover
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import Endpoint
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.links import (
@@ -54,6 +61,7 @@ from .codec import Decoder, DecoderStats
 from .objects import ObjectSet
 from .options import DEFAULT_SERIAL_BAUD, UavtalkOptions
 from .telemetry import FlightSession, ObjectStore
+from .telemetry import Status as Handshake
 from .translate import Vehicle
 
 log = logging.getLogger(__name__)
@@ -77,7 +85,7 @@ class Link:
         self.backend = backend
         self.engine: PortEngine | None = None
         self.decoder = Decoder(backend.objects.data_length)
-        self.session = backend.new_session()
+        self.session = self._new_session()
         self.sent = 0
         self.dropped = 0
         self.sessions = 1
@@ -103,11 +111,31 @@ class Link:
         old.stats.bytes_skipped += old.pending
         return ()
 
+    def _new_session(self) -> FlightSession:
+        session = self.backend.new_session()
+        session.on_state = self._state_changed
+        return session
+
+    def _state_changed(self, old: Handshake, new: Handshake) -> None:
+        """The handshake with this link's GCS completed, or the connection it made ended."""
+        if new == Handshake.CONNECTED:
+            self.backend.gcs_connected_log.event(
+                f"{self.name} (handshake {self.session.stats.handshake_ms} ms)")
+        elif old == Handshake.CONNECTED:
+            self.backend.gcs_disconnected_log.event(self.name)
+
+    def ended(self, why: str) -> None:
+        """The link itself is gone: a GCS connected over it is disconnected."""
+        if self.session.state == Handshake.CONNECTED:
+            self.backend.gcs_disconnected_log.event(f"{self.name} ({why})")
+
     def on_link(self, up: bool) -> None:
         """A stream's port went up or down: the next peer starts a session of its own."""
+        if not up:
+            self.ended("link lost")
         if self.session.stats.rx_bytes:
             self.old_drops += self._session_drops()
-            self.session = self.backend.new_session()  # a new peer: a new handshake
+            self.session = self._new_session()  # a new peer: a new handshake
             self.sessions += 1
 
     def _session_drops(self) -> int:
@@ -146,7 +174,8 @@ class Link:
             "packets": self.decoder.stats.packets, "nacks": st.tx_nack,
             "sent": self.sent, "dropped": self.total_dropped, "sessions": self.sessions,
             "rx_garbage_bytes": self.decoder.stats.bytes_skipped,
-            "bad_crc": self.decoder.stats.bad_crc, "unknown_object": st.rx_unknown,
+            # its CRC failures: the backend's crc_failures is the table's one CRC counter
+            "corrupt_packets": self.decoder.stats.bad_crc, "unknown_object": st.rx_unknown,
             "retries": st.retries, "failures": st.failures, "connects": st.connects,
             "disconnects": st.disconnects,
         }
@@ -185,13 +214,19 @@ class UavtalkBackend(Backend):
         self.loop = IoLoop(self.name)
         self.linkset: LinkSet[Link] = LinkSet(
             self.name, self.specs, loop=self.loop, new_link=lambda n, spec: Link(n, self, spec),
-            queue_depth=options.queue_depth, on_closed=self._retire, label="GCS",
+            queue_depth=options.queue_depth, on_closed=self._retire, label="TCP client",
             limits=ClientLimits.of(options, options.queue_depth))
         self.handover = Handover(self.name, options.inbox_depth, after_batch=self._store_changes)
+        # a GCS that completes the handshake (Disconnected → HandshakeReq → HandshakeAck →
+        # Connected), and one that stops being connected: a peer can do either in a loop
+        self.gcs_connected_log = BurstLog(self.loop, f"{self.name}: GCS connected",
+                                          level=logging.INFO, logger=log)
+        self.gcs_disconnected_log = BurstLog(self.loop, f"{self.name}: GCS disconnected",
+                                             level=logging.INFO, logger=log)
         self._changed: dict[str, dict[str, Any]] = {}
         self._timer: Timer | None = None
         self._closed_totals = {"sent": 0, "dropped": 0, "errors": 0, "clients_closed": 0,
-                              "garbage_bytes": 0}
+                              "garbage_bytes": 0, "crc_failures": 0}
         self.messages = 0
         #: the vehicle this flight controller is
         self.selector = VehicleSelector(options.vehicle)
@@ -219,11 +254,13 @@ class UavtalkBackend(Backend):
         self._timer = self.loop.call_every(self.options.tick_s, self._tick)
 
     def _retire(self, link: Link) -> None:
+        link.ended("connection closed")
         t = self._closed_totals
         t["sent"] += link.sent
         t["dropped"] += link.total_dropped
         t["errors"] += _errors(link)
         t["garbage_bytes"] += link.decoder.stats.bytes_skipped
+        t["crc_failures"] += link.decoder.stats.bad_crc
         t["clients_closed"] += 1
 
     def close(self) -> None:
@@ -310,4 +347,8 @@ class UavtalkBackend(Backend):
                 "messages": self.messages, "other_vehicles": self.other_vehicles,
                 "clients": len(links), "connected": connected,
                 "clients_closed": t["clients_closed"], "rx_garbage_bytes": garbage,
+                "crc_failures": t["crc_failures"] + sum(d["corrupt_packets"]
+                                                         for d in per.values()),
+                "gcs_connects": self.gcs_connected_log.events,
+                "gcs_disconnects": self.gcs_disconnected_log.events,
                 **self.linkset.server_stats(), "links": per}

@@ -41,6 +41,7 @@ from collections.abc import Callable
 from typing import Any
 
 from gateway.io.backoff import Backoff
+from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import SERIAL, TCP, Endpoint, parse_endpoint
 from gateway.io.port import REOPEN_FIRST_S, PortEngine
 from gateway.io.transport import open_serial, open_tcp_client
@@ -118,6 +119,7 @@ class UavtalkSource(Source):
         self._out: list[Any] = []
         self._timer: Any = None
         self._last_state = self.session.state
+        self._logs: dict[str, BurstLog] = {}
         # what VehicleState is built from
         self.armed: bool | None = None
         self.flight_mode: int | None = None
@@ -160,7 +162,7 @@ class UavtalkSource(Source):
     def _on_link(self, up: bool) -> None:
         self.counts["link_changes"] += 1
         if up:
-            log.info("source %s: %s open, handshaking", self.name, self.url)
+            self._log("open", f"{self.url} open, handshaking").event()
             self._tick()
             return
         # A new connection starts a new handshake: a fresh session (its counters kept).
@@ -171,7 +173,7 @@ class UavtalkSource(Source):
                     setattr(self._retired, key, getattr(self._retired, key) + value)
             self._retired.handshake_ms = old.stats.handshake_ms or self._retired.handshake_ms
             if old.state == Status.CONNECTED and not self._stop.is_set():
-                log.info("source %s: link lost", self.name)
+                self._log("lost", "link lost").event()
             self.session = self._new_session()
             self._last_state = self.session.state
 
@@ -192,11 +194,22 @@ class UavtalkSource(Source):
         if state != self._last_state:
             self._last_state = state
             if state == Status.CONNECTED:
-                log.info("source %s: connected (handshake %d ms)", self.name,
-                         self.session.stats.handshake_ms)
+                self._log("connected", "connected").event(
+                    f"handshake {self.session.stats.handshake_ms} ms")
             elif state == Status.DISCONNECTED or (state == Status.HANDSHAKE_REQ
                                                   and self.session.stats.disconnects):
-                log.info("source %s: disconnected", self.name)
+                self._log("disconnected", "disconnected").event()
+
+    def _log(self, kind: str, text: str) -> BurstLog:
+        """The log of a kind of link event (on the loop's thread): a flight controller that
+        handshakes or hangs up in a loop costs a line per burst, with a count."""
+        burst = self._logs.get(kind)
+        if burst is None:
+            loop = self.io_loop
+            assert loop is not None
+            burst = self._logs[kind] = BurstLog(loop, f"source {self.name}: {text}",
+                                                level=logging.INFO, logger=log)
+        return burst
 
     # -- objects → messages -----------------------------------------------------------------------
 

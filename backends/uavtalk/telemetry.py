@@ -172,6 +172,8 @@ class _Session:
         self._pending: _Transaction | None = None
         self._last_rx: float | None = None
         self._handshake_started: float | None = None
+        #: called with (old, new) after every state change (a link logs its connections)
+        self.on_state: Callable[[Status, Status], Any] | None = None
 
     # --- queues -----------------------------------------------------------------------------
 
@@ -312,8 +314,11 @@ class _Session:
             self.stats.disconnects += 1
             self._pending = None  # the link is gone: a late reply must not block the next one
             self._retry = []
+        old = self.state
         self.state = new
         self._state_changed(now)
+        if self.on_state is not None:
+            self.on_state(old, new)
 
     def _state_changed(self, now: float) -> None:
         """Hook: ``self.state`` changed."""

@@ -474,12 +474,14 @@ class FrameDecoderStats(Counters):
     ``frames`` counts every checksum-valid frame returned (``unknown_type`` of them as
     :class:`UnknownFrame`); ``bad_length`` counts length fields out of bounds, API 2 frames cut
     short by a new 0x7E, and checksum-valid frames too short for their type (dropped);
-    ``garbage_bytes`` counts every byte outside a checksum-valid frame.
+    ``garbage_bytes`` counts every byte outside a checksum-valid frame.  ``crc_failures``
+    counts frames whose checksum (0xFF minus the byte sum) fails: not a CRC, but named like
+    every other decoder's check failures, so the stop report's "crc errors" count them.
     """
 
     bytes_in: int = 0
     frames: int = 0
-    bad_checksum: int = 0
+    crc_failures: int = 0
     bad_length: int = 0
     bad_escape: int = 0
     garbage_bytes: int = 0
@@ -523,7 +525,7 @@ class FrameDecoder(ResyncDecoder[Frame]):
             elif verdict == _BAD_ESCAPE:
                 st.bad_escape += 1
             elif verdict == _BAD_CHECKSUM:
-                st.bad_checksum += 1
+                st.crc_failures += 1
             return BAD
         try:
             frame = decode_frame_data(data)

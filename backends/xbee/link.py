@@ -441,7 +441,11 @@ class GroundLink:
         self._seq = 0
         self._pending = False  # the current sequence is to be delivered
         self._keepalive = False  # the current sequence is a keep-alive (empty mask)
-        self._sent_current: set[tuple[int, tuple[int, ...]]] = set()  # value sets sent under it
+        # what went out under the current sequence: its first value set, and whether any send
+        # carried another (two fields, not a set of every value set: in a blackout the
+        # sticks can move for minutes under one unacknowledged sequence)
+        self._sent_first: tuple[int, tuple[int, ...]] | None = None
+        self._sent_mixed = False
         self._acked: int | None = None
         self._last_ack: float = -math.inf
         self._heard: float = -math.inf
@@ -524,7 +528,7 @@ class GroundLink:
             new[i] = v
         if new != self.values:
             self.values = new
-            sent = bool(self._sent_current)
+            sent = self._sent_first is not None
             stale = now - self._last_ack > self.ack_stale
             if sent and not (self._pending and stale):
                 self._bump(now)
@@ -614,7 +618,7 @@ class GroundLink:
         if p.seq == self._seq and self._pending:
             servos = {} if self._keepalive else self.values
             now_sent = Command.from_servos(servos, self._seq, 0)
-            if self._sent_current != {(now_sent.mask, now_sent.values)}:
+            if self._sent_mixed or self._sent_first != (now_sent.mask, now_sent.values):
                 # the sequence went out with other values too (which arrived?), or only with
                 # others (the sticks moved in place since): send these again
                 self._bump(now)
@@ -623,7 +627,8 @@ class GroundLink:
 
     def _bump(self, now: float) -> None:
         self._seq = next_seq(self._seq)
-        self._sent_current = set()
+        self._sent_first = None
+        self._sent_mixed = False
         self._first_send.pop(self._seq, None)
 
     def _choose_power(self, now: float) -> int:
@@ -644,12 +649,15 @@ class GroundLink:
             self._bump(now)
             self._pending = self._keepalive = True
         keepalive = self._keepalive
-        if keepalive and not self._sent_current:
+        if keepalive and self._sent_first is None:
             self.counters.keepalives += 1
         power = self._choose_power(now)
         servos = {} if keepalive else self.values
         cmd = Command.from_servos(servos, self._seq, power)
-        self._sent_current.add((cmd.mask, cmd.values))
+        if self._sent_first is None:
+            self._sent_first = (cmd.mask, cmd.values)
+        elif self._sent_first != (cmd.mask, cmd.values):
+            self._sent_mixed = True
         self._first_send.setdefault(self._seq, now)
         for s in [s for s, t in self._first_send.items() if s != self._seq and now - t > 2.0]:
             del self._first_send[s]

@@ -64,6 +64,7 @@ from gateway.backend import Backend, GatewayContext, Routes
 from gateway.config import ConfigError
 from gateway.handover import Handover
 from gateway.io.backoff import Backoff
+from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.model import MESSAGE_TYPES, LinkEvent, RawFrame, SmUpdate, Status, kind
 from gateway.vehicles import SERVICE as VEHICLES_SERVICE
@@ -123,6 +124,7 @@ class ZenohBackend(Backend):
         self.handover = Handover(self.name, options.queue_depth, ready=self._ready.is_set,
                                  skip=self._loops)
         self._loop: IoLoop | None = None
+        self._transport_logs: dict[str, BurstLog] = {}  # (the loop's thread)
         self._timers: list[Timer] = []
         self._session: Any = None
         self._keys: dict[str, _Key] = {}
@@ -489,15 +491,34 @@ class ZenohBackend(Backend):
 
         t = event.transport
         router = t.whatami == zenoh.WhatAmI.ROUTER
-        if event.kind == zenoh.SampleKind.PUT:
+        up = event.kind == zenoh.SampleKind.PUT
+        if up:
             self.transports += 1
-            log.log(logging.INFO if router else logging.DEBUG, "zenoh %s: connected to %s %s",
-                    self.name, t.whatami, t.zid)
         else:
             self.transports = max(0, self.transports - 1)
-            log.log(logging.WARNING if router else logging.DEBUG, "zenoh %s: lost %s %s "
-                    "(reconnecting)" if router else "zenoh %s: %s %s left", self.name,
-                    t.whatami, t.zid)
+        loop = self._loop
+        if loop is None:
+            return
+        # logged on the loop, once per burst with a count: a remote that says it is a router
+        # can come and go in a loop
+        if router:
+            kind, level = (("router up", logging.INFO) if up
+                           else ("router lost", logging.WARNING))
+            text = "connected to a router" if up else "lost a router (reconnecting)"
+        else:
+            kind, level = ("peer up", logging.DEBUG) if up else ("peer left", logging.DEBUG)
+            text = "peer connected" if up else "peer left"
+        detail = f"{t.whatami} {t.zid}"
+        loop.call_soon(lambda: self._transport_log(kind, text, level).event(detail))
+
+    def _transport_log(self, kind: str, text: str, level: int) -> BurstLog:
+        burst = self._transport_logs.get(kind)
+        loop = self._loop
+        if burst is None or burst.loop is not loop:  # (a loop of a later start)
+            assert loop is not None
+            burst = self._transport_logs[kind] = BurstLog(loop, f"zenoh {self.name}: {text}",
+                                                          level=level, logger=log)
+        return burst
 
     # -- reporting ---------------------------------------------------------------------------
 

@@ -41,6 +41,8 @@ EXIT_USAGE = 2
 QUERY_TIMEOUT_S = 2.0
 COMPACT_INTERVAL_S = 0.1
 MAX_GATEWAYS = 4096  # gateway ids counted at most (a peer chooses them)
+MAX_TOKENS = 4096  # liveliness keys remembered (to print each change once; a peer chooses them)
+MAX_PENDING = 10_000  # samples waiting to be printed; more are dropped, counted
 
 
 def add_command(subparsers: Any) -> argparse.ArgumentParser:
@@ -209,7 +211,12 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
     compact = CompactView(out) if args.compact else None
     deadline = time.monotonic() + args.duration if args.duration else None
 
+    dropped = [0]  # samples that arrived while MAX_PENDING waited to be printed
+
     def on_sample(sample: Any) -> None:
+        if samples.qsize() >= MAX_PENDING:  # the output is slower than the publishers
+            dropped[0] += 1
+            return
         att = sample.attachment
         samples.put((False, str(sample.key_expr), sample.payload.to_bytes(),
                      str(sample.encoding), att.to_bytes() if att is not None else None))
@@ -270,6 +277,8 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
             if from_query is None:  # liveliness
                 if alive_tokens.get(k) == payload:
                     continue  # the subscriber and the query both saw it
+                if k not in alive_tokens and len(alive_tokens) >= MAX_TOKENS:
+                    del alive_tokens[next(iter(alive_tokens))]  # the oldest is forgotten
                 alive_tokens[k] = payload
                 line = {"gateway_token": k, "alive": payload}
                 if compact is None:
@@ -306,7 +315,8 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
             compact.render(stats_text())
             out.write("\n")
     print(f"aurora-gateway listen: {count} updates from {len(gateways)} gateway(s); "
-          f"{tracker.lost} lost (sequence gaps), {tracker.restarts} publisher restarts",
+          f"{tracker.lost} lost (sequence gaps), {tracker.restarts} publisher restarts"
+          + (f", {dropped[0]} dropped (printing fell behind)" if dropped[0] else ""),
           file=err)
     return 0
 

@@ -28,10 +28,13 @@ class BurstLog:
         self.interval_s = interval_s
         self.logger = logger
         self.lines = 0  # lines written (for tests)
+        self.events = 0  # every event, logged or counted
         self._more = 0
         self._timer: Timer | None = None
 
     def event(self, detail: str = "") -> None:
+        """One event: a line if it starts a burst, else counted (``detail`` names the first)."""
+        self.events += 1
         if self._timer is None:
             self.lines += 1
             self.logger.log(self.level, "%s%s (more are counted, one line per %.0f s)",

@@ -48,6 +48,7 @@ from typing import Any, Protocol
 from gateway.checks import at_least, not_negative
 from gateway.counters import Counters
 from gateway.io.backoff import Backoff
+from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.outcome import Outcome
 
@@ -189,6 +190,7 @@ class PortEngine:
         self._shut = threading.Event()
         self._last_accepted: float | None = None
         self._outage_logged = False
+        self._bursts: dict[str, BurstLog] = {}  # made on the loop's thread, when first needed
         self._blocked_since: float | None = None  # a write has waited for room since then
         self._finish = False  # close once everything queued is written (finish())
         self._abort_next = False  # cut(): close the port with a reset where it can
@@ -545,7 +547,7 @@ class PortEngine:
         self.stats.connects += 1
         self._backoff.reset()
         if self._outage_logged or self.stats.connects > 1:
-            log.info("%s: port is up", self.name)
+            self._burst("up", "port is up", logging.INFO).event()
         self._outage_logged = False
         with self._lock:
             self._connected.set()
@@ -741,14 +743,25 @@ class PortEngine:
         if exc is not None:
             # A peer hanging up on a connection we do not reopen (an accepted client) is the
             # normal end of it, not a fault.
-            level = (self.hangup_level if not self.reopen and isinstance(exc, ConnectionError)
-                     else logging.WARNING)
-            log.log(level, "%s: %s (%s); %s", self.name, what, exc,
-                    "reopening" if self.reopen else "closed (not reopened)")
+            if self.reopen:  # a peer can hang up at once, again and again: once per burst
+                self._burst(what, f"{what}; reopening", logging.WARNING).event(str(exc))
+            else:
+                level = (self.hangup_level if isinstance(exc, ConnectionError)
+                         else logging.WARNING)
+                log.log(level, "%s: %s (%s); closed (not reopened)", self.name, what, exc)
         self._flush_protocol()
         if self.on_link is not None:
             self.on_link(False)
         self._schedule_open()
+
+    def _burst(self, kind: str, text: str, level: int) -> BurstLog:
+        """The log of a kind of event a peer can repeat (a port that comes up and fails at
+        once, in a loop): a line when a burst starts, then one with the count per 10 s."""
+        burst = self._bursts.get(kind)
+        if burst is None:
+            burst = self._bursts[kind] = BurstLog(self._loop, f"{self.name}: {text}",
+                                                  level=level, logger=log)
+        return burst
 
     def _detach(self, port: Any) -> None:
         with self._lock:
