@@ -418,6 +418,8 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
         try:  # the file's table passed already: what fails now is a flag's value
             part = config.make_backend(current.type if current else name, merged, name,
                                        f"backends.{name}")
+        except config.MissingExtraError:
+            raise
         except ConfigError as exc:
             raise ConfigError(f"{exc} (set by a --{name}… flag)") from None
         if current is None:
@@ -706,6 +708,12 @@ def _main(argv: Sequence[str] | None) -> int:
         return handler(args)
     except (ConfigError, recording.RecordingError) as exc:
         print(f"aurora-gateway: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except ModuleNotFoundError as exc:  # a command's optional dependency (plot: matplotlib)
+        extra = registry.missing_extra(exc)
+        if extra is None:
+            raise
+        print(f"aurora-gateway: {registry.extra_line(args.command, extra)}", file=sys.stderr)
         return EXIT_USAGE
 
 
