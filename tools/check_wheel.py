@@ -2,9 +2,10 @@
 """The wheel as a user installs it: build, install outside the checkout, run from elsewhere.
 
 ``python3 tools/check_wheel.py`` (``make wheel-check``; ``.ci/run`` runs it after the tests)
-builds the project's wheel (``pip wheel --no-deps``), checks that it holds every data file of
-the packages, installs it into two new virtual environments in a temporary directory outside
-the checkout, and from a directory of their own runs:
+builds the project's wheel (``pip wheel --no-deps``, from a copy of the tracked files),
+checks that it holds every data file of the packages, installs it into two new virtual
+environments in a temporary directory outside the checkout, and from a directory of their own
+runs:
 
 * with the ``all`` extra: ``run --duration 2`` with every backend's flag at once (loopback
   ports; pseudo-terminals for the serial ones) recording the flight, exit 0 and no backend
@@ -106,9 +107,19 @@ def ptys(count: int) -> Iterator[list[str]]:
 
 
 def build_wheel(out: Path) -> Path:
+    """The wheel of the checkout's tracked files as they are in the work tree, built from a
+    copy of them (pip builds in the tree: a checkout's ``build/`` from an earlier build could
+    put a deleted module back in the wheel)."""
     started = time.monotonic()
+    src = out / "src"
+    tracked = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True,
+                             check=True).stdout.decode().split("\0")
+    for name in filter(None, tracked):
+        if (ROOT / name).is_file():  # (a file deleted in the work tree is left out)
+            (src / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, src / name)
     r = sh([sys.executable, "-m", "pip", "wheel", "--quiet", "--disable-pip-version-check",
-            "--no-deps", "-w", out, ROOT], cwd=out)
+            "--no-deps", "-w", out, src], cwd=out)
     wheels = sorted(out.glob("aurora_gateway-*.whl"))
     check("build the wheel", r.returncode == 0 and len(wheels) == 1, r.stderr[-2000:], started)
     if not wheels:
@@ -203,19 +214,21 @@ def expect_ok(exe: Path, work: Path, args: list[str], name: str, output: Path | 
 def run_base(exe: Path, work: Path, recording: Path) -> None:
     """Without extras: each optional piece is one line naming its extra, exit 2."""
     cases = [
-        (["run", "--duration", "1", "--foxglove", f"127.0.0.1:{free_port()}"], "foxglove"),
-        (["run", "--duration", "1", "--http", f"127.0.0.1:{free_port()}"], "http"),
-        (["plot", str(recording), "-o", "flight.png"], "plot"),
-        (["export", str(recording), "--format", "mcap", "-o", "flight.mcap"], "mcap"),
+        ("run --foxglove", ["run", "--duration", "1", "--foxglove", f"127.0.0.1:{free_port()}"],
+         "foxglove"),
+        ("run --http", ["run", "--duration", "1", "--http", f"127.0.0.1:{free_port()}"], "http"),
+        ("plot", ["plot", str(recording), "-o", "flight.png"], "plot"),
+        ("export --format mcap", ["export", str(recording), "--format", "mcap", "-o",
+                                  "flight.mcap"], "mcap"),
     ]
-    for args, extra in cases:
+    for label, args, extra in cases:
         started = time.monotonic()
         r = sh([exe, *args], cwd=work)
         lines = r.stderr.splitlines()
         ok = (r.returncode == 2 and len(lines) == 1
               and f"pip install '{DIST}[{extra}]'" in lines[0])
-        check(f"base install: {' '.join(args[:2])}: one line naming the {extra!r} extra, "
-              "exit 2", ok, f"exit {r.returncode}, stderr: {r.stderr[-1500:]!r}", started)
+        check(f"base install: {label}: one line naming the {extra!r} extra, exit 2", ok,
+              f"exit {r.returncode}, stderr: {r.stderr[-1500:]!r}", started)
     example = work / "gateway.toml"
     shutil.copy(ROOT / "examples" / "gateway.toml", example)
     expect_ok(exe, work, ["check-config", example.name],
