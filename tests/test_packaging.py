@@ -11,6 +11,7 @@ wheel itself, built and installed outside the checkout, is checked by ``tools/ch
 from __future__ import annotations
 
 import fnmatch
+import os
 import re
 import subprocess
 import sys
@@ -205,3 +206,27 @@ def test_the_embedded_default_leaves_out_what_is_not_installed(tmp_path: Path) -
     assert proc.returncode == 0, proc.stderr
     started = next(ln for ln in proc.stderr.splitlines() if ": sources " in ln)
     assert "console" in started and "foxglove" not in started and "http" not in started
+
+
+def test_a_plugin_command_without_its_extra(tmp_path: Path) -> None:
+    """A command from the ``aurora_gateway.commands`` group whose module needs an extra at
+    import: asked for, one line naming the extra, exit 2; ``--help`` lists the others."""
+    plugins = tmp_path / "plugins"
+    plugins.mkdir()
+    (plugins / "fancy_cmd.py").write_text(
+        "import matplotlib  # an extra's module, at import time\n"
+        "def add_command(subparsers):\n"
+        "    subparsers.add_parser('fancyplot')\n")
+    dist = plugins / "aurora_fancy-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: aurora-fancy\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(
+        "[aurora_gateway.commands]\nfancyplot = fancy_cmd:add_command\n")
+    env = {**os.environ, "PYTHONPATH": str(plugins)}
+    proc = subprocess.run([sys.executable, "-c", SHIM, "matplotlib", "fancyplot"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=60)
+    _one_line(proc, "command fancyplot", "plot")
+    proc = subprocess.run([sys.executable, "-c", SHIM, "matplotlib", "--help"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert " plot " in proc.stdout and "fancyplot" not in proc.stdout

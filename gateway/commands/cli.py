@@ -235,6 +235,8 @@ def _add_plugin_commands(sub: Any, only: str | None) -> None:
         try:
             add = registry.load(registry.COMMAND_GROUP, name)
         except registry.RegistryError as exc:
+            if only is not None and isinstance(exc, registry.MissingExtra):
+                raise  # the command asked for needs an extra: named, exit 2 (_main)
             log.warning("%s", exc)
             continue
         add(sub)
@@ -701,7 +703,11 @@ def _main(argv: Sequence[str] | None) -> int:
         plugin = first
     else:
         plugin = None  # --help, --version or a typo: list every command
-    parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
+    try:
+        parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
+    except registry.MissingExtra as exc:
+        print(f"aurora-gateway: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     args = parser.parse_args(argv)
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
