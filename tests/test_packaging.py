@@ -116,6 +116,14 @@ def test_every_data_file_of_the_packages_is_package_data() -> None:
     assert not uncovered, f"not package data (add to pyproject.toml): {uncovered}"
 
 
+def test_the_files_for_the_user_exist() -> None:
+    """``[tool.setuptools] data-files``: what an install puts in share/aurora-gateway/."""
+    files = PYPROJECT["tool"]["setuptools"]["data-files"]["share/aurora-gateway"]
+    assert "docs/foxglove-layout.json" in files
+    for name in files:
+        assert (ROOT / name).is_file(), name
+
+
 # -- a missing optional dependency, through the command line -----------------------------------
 
 SHIM = ("import sys\n"

@@ -9,7 +9,9 @@ runs:
 
 * with the ``all`` extra: ``run --duration 2`` with every backend's flag at once (loopback
   ports; pseudo-terminals for the serial ones) recording the flight, exit 0 and no backend
-  that failed to start; ``check-config`` of ``examples/gateway.toml`` (a copy);
+  that failed to start; the files installed for the user (``share/aurora-gateway/``: the
+  Foxglove layout, the example configuration, the systemd unit); ``check-config`` of
+  ``examples/gateway.toml`` (a copy);
   ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap`` and ``plot`` of the
   recording;
 * without extras: ``--foxglove``, ``--http``, ``plot`` and ``export --format mcap`` each one
@@ -182,6 +184,14 @@ def run_all(exe: Path, work: Path) -> None:
           f"exit {r.returncode}; not started: {missing}; {bad[:5]}; stderr tail:\n"
           + r.stderr[-3000:], started)
 
+    share = exe.parent.parent / "share" / DIST  # the files for the user (data-files)
+    shared = {"foxglove-layout.json": ROOT / "docs" / "foxglove-layout.json",
+              "gateway.toml": ROOT / "examples" / "gateway.toml",
+              "aurora-gateway.service": ROOT / "examples" / "aurora-gateway.service"}
+    differ = [n for n, src in shared.items()
+              if not (share / n).is_file() or (share / n).read_bytes() != src.read_bytes()]
+    check(f"the install's share/{DIST}/ holds the layout, the example and the unit",
+          not differ, f"missing or different: {differ}")
     example = work / "gateway.toml"
     shutil.copy(ROOT / "examples" / "gateway.toml", example)
     expect_ok(exe, work, ["check-config", example.name], "check-config examples/gateway.toml")
