@@ -9,7 +9,8 @@ runs:
 
 * with the ``all`` extra: ``run --duration 2`` with every backend's flag at once (loopback
   ports; pseudo-terminals for the serial ones) recording the flight, exit 0 and no backend
-  that failed to start; the files installed for the user (``share/aurora-gateway/``: the
+  that failed to start; ``run --log-format json --duration 3``, every stderr line a JSON
+  object; the files installed for the user (``share/aurora-gateway/``: the
   Foxglove layout, the example configuration, the systemd unit); ``check-config`` of
   ``examples/gateway.toml`` (a copy);
   ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap`` and ``plot`` of the
@@ -184,6 +185,14 @@ def run_all(exe: Path, work: Path) -> None:
           f"exit {r.returncode}; not started: {missing}; {bad[:5]}; stderr tail:\n"
           + r.stderr[-3000:], started)
 
+    started = time.monotonic()
+    r = sh([exe, "run", "--log-format", "json", "--duration", "3"], cwd=work)
+    lines = r.stderr.splitlines()
+    text = [ln for ln in lines if not _json_object(ln)]
+    check(f"run --log-format json --duration 3: every stderr line a JSON object ({len(lines)})",
+          r.returncode == 0 and bool(lines) and not text,
+          f"exit {r.returncode}; not JSON: {text[:5]}", started)
+
     share = exe.parent.parent / "share" / DIST  # the files for the user (data-files)
     shared = {"foxglove-layout.json": ROOT / "docs" / "foxglove-layout.json",
               "gateway.toml": ROOT / "examples" / "gateway.toml",
@@ -209,6 +218,13 @@ def run_all(exe: Path, work: Path) -> None:
               "export --format mcap", work / "flight.mcap", MCAP_MAGIC)
     expect_ok(exe, work, ["plot", recording.name, "-o", "flight.png"], "plot",
               work / "flight.png", PNG_MAGIC)
+
+
+def _json_object(line: str) -> bool:
+    try:
+        return isinstance(json.loads(line), dict)
+    except ValueError:
+        return False
 
 
 def expect_ok(exe: Path, work: Path, args: list[str], name: str, output: Path | None = None,
