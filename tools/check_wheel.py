@@ -15,10 +15,11 @@ runs:
   ``examples/gateway.toml`` (a copy);
   ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap`` and ``plot`` of the
   recording;
-* without extras: ``--foxglove``, ``--http``, ``plot`` and ``export --format mcap`` each one
-  line on stderr naming the extra, exit 2; ``check-config examples/gateway.toml`` exit 0 (its
-  optional backends are disabled, so checked by their options alone); the embedded default
-  runs (it leaves out the backends whose extra is missing).
+* without extras: ``record`` a flight; ``--foxglove``, ``--http``, ``plot`` and ``export
+  --format mcap`` of it each one line on stderr naming the extra, exit 2; ``check-config
+  examples/gateway.toml`` exit 0 (its optional backends are disabled, so checked by their
+  options alone); the embedded default runs (it leaves out the backends whose extra is
+  missing).
 
 Standard library only (it runs before any environment exists).  Prints one line per check
 with its duration; exit status 0 when every check passed, 1 otherwise.  ``--keep`` leaves the
@@ -181,7 +182,7 @@ def run_all(exe: Path, work: Path) -> None:
     missing = [b for b in want if b not in started_line]
     bad = [ln for ln in r.stderr.splitlines() if any(m in ln for m in FAILURE_MARKS)]
     check("run --duration 2 with every backend's flag: exit 0, every backend started",
-          r.returncode == 0 and not missing and not bad and recording.stat().st_size > 0,
+          r.returncode == 0 and not missing and not bad and _size(recording) > 0,
           f"exit {r.returncode}; not started: {missing}; {bad[:5]}; stderr tail:\n"
           + r.stderr[-3000:], started)
 
@@ -220,6 +221,10 @@ def run_all(exe: Path, work: Path) -> None:
               work / "flight.png", PNG_MAGIC)
 
 
+def _size(path: Path) -> int:
+    return path.stat().st_size if path.exists() else 0
+
+
 def _json_object(line: str) -> bool:
     try:
         return isinstance(json.loads(line), dict)
@@ -237,8 +242,14 @@ def expect_ok(exe: Path, work: Path, args: list[str], name: str, output: Path | 
     check(name, ok, f"exit {r.returncode}: {r.stderr[-2000:]}", started)
 
 
-def run_base(exe: Path, work: Path, recording: Path) -> None:
+def run_base(exe: Path, work: Path) -> None:
     """Without extras: each optional piece is one line naming its extra, exit 2."""
+    recording = work / "flight.aur"
+    started = time.monotonic()
+    r = sh([exe, "record", recording.name, "--source", "sim", "--sim-speed", "10",
+            "--duration", "1"], cwd=work)
+    check("base install: record", r.returncode == 0 and _size(recording) > 0,
+          f"exit {r.returncode}: {r.stderr[-2000:]}", started)
     cases = [
         ("run --foxglove", ["run", "--duration", "1", "--foxglove", f"127.0.0.1:{free_port()}"],
          "foxglove"),
@@ -282,7 +293,7 @@ def main() -> int:
         full.mkdir()
         base.mkdir()
         run_all(make_venv(tmp / "venv-all", wheel, "[all]"), full)
-        run_base(make_venv(tmp / "venv-base", wheel, ""), base, full / "flight.aur")
+        run_base(make_venv(tmp / "venv-base", wheel, ""), base)
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
