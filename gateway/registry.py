@@ -70,8 +70,9 @@ def extra_line(what: str, extra: str) -> str:
 
 def missing_extra(exc: BaseException) -> str | None:
     """The extra that provides the module whose absence caused ``exc`` (a
-    ``ModuleNotFoundError``, or an error raised from one: its cause or context is followed),
-    None when that module belongs to no extra (a bug or a broken install, not a choice)."""
+    ``ModuleNotFoundError``, or an error raised from or while handling one: the chain a
+    traceback would show is followed); None when that module belongs to no extra (a bug or a
+    broken install, not a choice)."""
     seen: set[int] = set()
     cur: BaseException | None = exc
     while cur is not None and id(cur) not in seen:
@@ -80,7 +81,9 @@ def missing_extra(exc: BaseException) -> str | None:
             extra = EXTRA_OF_MODULE.get(cur.name.partition(".")[0])
             if extra is not None:
                 return extra
-        cur = cur.__cause__ or cur.__context__
+        # as a traceback shows the chain: the cause, else the context unless "from None"
+        cur = cur.__cause__ if cur.__cause__ is not None else (
+            None if cur.__suppress_context__ else cur.__context__)
     return None
 
 

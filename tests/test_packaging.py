@@ -85,6 +85,13 @@ def test_missing_extra_follows_the_cause_and_knows_only_the_table() -> None:
             raise ImportError("the http backend needs h11") from exc
     except ImportError as exc:
         assert registry.missing_extra(exc) == "http"
+    try:
+        try:
+            raise ModuleNotFoundError("No module named 'mcap'", name="mcap")
+        except ImportError:
+            raise RuntimeError("handled: not the cause") from None
+    except RuntimeError as exc:
+        assert registry.missing_extra(exc) is None
     assert registry.missing_extra(ModuleNotFoundError(name="matplotlib.figure")) == "plot"
     assert registry.missing_extra(ModuleNotFoundError(name="nosuchmodule")) is None
     assert registry.missing_extra(ValueError("x")) is None
