@@ -1,16 +1,24 @@
 # Two commands do all the set-up on a fresh machine:
 #   make run    the gateway on its embedded default (simulated flight, every backend, loopback)
 #   make test   the test suite
-# Both create .venv and install the project into it on first use, and compile the project's
-# bytecode (cheap when it is up to date): the install is editable, and with
-# PYTHONDONTWRITEBYTECODE=1 in the environment Python would otherwise compile every module,
-# the generated MAVLink dialect included, in memory on every start.  compileall writes the
-# .pyc files whatever that variable says; imports read them whatever it says.
+# Each has an environment of its own, created with the project installed editable on first use:
+#   .venv-run   `make run`: the runtime install, the project with its `all` extra (every
+#               optional backend) and nothing else, as a user's `pip install 'aurora-gateway[all]'`
+#   .venv       `make test`, `make lint`, `make bench`, `make bytecode`: the same plus the test
+#               and lint tools and the field's own programs (fprime-gds, MAVProxy …)
+# The test tools stay out of the runtime: fprime-gds pins fastcrc 0.3 (a copy per frame in the
+# router) and the many distributions slow the entry-point scans at start-up.
+# Both compile the project's bytecode (cheap when it is up to date): the install is editable,
+# and with PYTHONDONTWRITEBYTECODE=1 in the environment Python would otherwise compile every
+# module, the generated MAVLink dialect included, in memory on every start.  compileall writes
+# the .pyc files whatever that variable says; imports read them whatever it says.
 
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
+RUN_VENV ?= .venv-run
+RUN_STAMP := $(RUN_VENV)/.installed-stamp
 ARGS ?=
 PYTEST_ARGS ?=
 # The suite is mostly waiting on sockets, ptys and subprocesses: four workers on two cores.
@@ -21,7 +29,12 @@ PYTEST_WORKERS ?= 4
 
 PACKAGES := gateway backends dialects
 
-.PHONY: run test lint bench clean bytecode
+.PHONY: run test lint bench clean bytecode wheel-check
+
+$(RUN_STAMP): pyproject.toml Makefile
+	$(PYTHON) -m venv $(RUN_VENV)
+	$(RUN_VENV)/bin/python -m pip install --quiet --disable-pip-version-check -e '.[all]'
+	touch $(RUN_STAMP)
 
 $(STAMP): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
@@ -37,8 +50,9 @@ $(STAMP): pyproject.toml Makefile
 bytecode: $(STAMP)
 	$(BIN)/python -m compileall -q $(PACKAGES)
 
-run: bytecode
-	$(BIN)/aurora-gateway run $(ARGS)
+run: $(RUN_STAMP)
+	$(RUN_VENV)/bin/python -m compileall -q $(PACKAGES)
+	$(RUN_VENV)/bin/aurora-gateway run $(ARGS)
 
 test: bytecode
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
@@ -58,6 +72,10 @@ bench: bytecode
 	$(BIN)/python tools/bench/bench_xbee.py
 	$(BIN)/python tools/bench/bench_threads.py
 
+# The wheel as users install it, outside the checkout (tools/check_wheel.py; .ci/run runs it).
+wheel-check:
+	$(PYTHON) tools/check_wheel.py
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) $(RUN_VENV) build *.egg-info
 	find $(PACKAGES) tests tools -name __pycache__ -type d -prune -exec rm -rf {} +

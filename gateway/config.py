@@ -95,9 +95,16 @@ class GatewayConfig:
     backends: list[Part] = field(default_factory=list)
 
 
+class MissingExtraError(ConfigError):
+    """A configured backend or source needs an extra that is not installed (the text says
+    which, and the pip command)."""
+
+
 def _resolve(group: str, type_name: str, where: str) -> Any:
     try:
         return registry.load(group, type_name)
+    except registry.MissingExtra as exc:  # one line naming the backend and the extra
+        raise MissingExtraError(str(exc)) from None
     except registry.RegistryError as exc:
         raise ConfigError(f"{where}.type: {exc}") from None
 
@@ -184,6 +191,16 @@ def make_backend(type_name: str, options: dict[str, Any], name: str, where: str)
     return Part(type_name, name, opts, cls)
 
 
+def _check_options_only(type_name: str, table: dict[str, Any], where: str) -> None:
+    """Validate a backend's table by its options declaration alone (a light module,
+    :data:`registry.BACKEND_OPTIONS_GROUP`): a disabled backend whose class needs an extra that
+    is not installed."""
+    holder = type("_Declared", (), {"OPTIONS": _resolve(registry.BACKEND_OPTIONS_GROUP,
+                                                        type_name, where)})
+    opts = schema_of(holder).validate(table, where, ignore=("type", "enabled"))
+    _check_together(holder, opts, where)
+
+
 def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> GatewayConfig:
     """Validate a configuration mapping (what a TOML file loads to).  ``keep(name)`` False
     leaves backend ``name`` out before its options are validated, so its class is never
@@ -231,7 +248,13 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
             raise ConfigError(f"{where}.type: expected a string, got {type_name!r}")
         if keep is not None and not keep(name):
             continue
-        part = make_backend(type_name, table, name, where)
+        try:
+            part = make_backend(type_name, table, name, where)
+        except MissingExtraError:  # checked all the same when disabled: its extra runs it
+            if enabled or type_name not in registry.names(registry.BACKEND_OPTIONS_GROUP):
+                raise
+            _check_options_only(type_name, table, where)
+            continue
         if enabled:
             cfg.backends.append(part)
     return cfg

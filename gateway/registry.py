@@ -12,6 +12,11 @@ A backend's (or source's) options are found apart from its class, in
 ``add_cli_arguments(parser)`` and ``cli_options(args)``.  So building ``run``'s parser imports
 no backend: the class (and pymavlink, Zenoh…) is imported only for a backend the configuration
 runs.  A backend with no entry there has its class used instead (:func:`load_flags`).
+
+An optional dependency that is not installed (a base install running ``--foxglove``) is named
+by the extra that provides it (:data:`EXTRA_OF_MODULE`, :func:`missing_extra`):
+:func:`load` raises :class:`MissingExtra`, whose text is the one line the user sees, and the
+command line maps a command's own ``ModuleNotFoundError`` the same way.
 """
 
 from __future__ import annotations
@@ -27,11 +32,63 @@ COMMAND_GROUP = "aurora_gateway.commands"
 BACKEND_OPTIONS_GROUP = "aurora_gateway.backend_options"
 SOURCE_OPTIONS_GROUP = "aurora_gateway.source_options"
 
+DISTRIBUTION = "aurora-gateway"
+
+#: Top-level module → the extra of this distribution that installs it: the one table from which
+#: every "needs the 'x' extra" line comes.  pyproject.toml's ``[project.optional-dependencies]``
+#: says which distributions each extra installs; tests/test_packaging.py proves the two agree.
+EXTRA_OF_MODULE = {
+    "foxglove": "foxglove",              # foxglove-sdk: backends/foxglove
+    "h11": "http",                       # backends/http's HTTP/1.1 parser
+    "prometheus_client": "http",         # backends/http's /metrics
+    "mcap": "mcap",                      # export --format mcap
+    "matplotlib": "plot",                # plot
+    "gpiod": "gpio",                     # the HC-12 SET line on a Linux GPIO
+}
+
 _cache: dict[tuple[str, str], Any] = {}
 
 
 class RegistryError(LookupError):
     """No backend or source by that name, or it failed to import."""
+
+
+class MissingExtra(RegistryError):
+    """A backend, source or command needs an optional dependency that is not installed; the
+    text is one line naming the extra that installs it."""
+
+    def __init__(self, what: str, extra: str) -> None:
+        super().__init__(extra_line(what, extra))
+        self.what = what
+        self.extra = extra
+
+
+def extra_line(what: str, extra: str) -> str:
+    """``what`` needs ``extra``, and the command that installs it."""
+    return f"{what} needs the {extra!r} extra: pip install '{DISTRIBUTION}[{extra}]'"
+
+
+def missing_extra(exc: BaseException) -> str | None:
+    """The extra that provides the module whose absence caused ``exc`` (a
+    ``ModuleNotFoundError``, or an error raised from or while handling one: the chain a
+    traceback would show is followed); None when that module belongs to no extra (a bug or a
+    broken install, not a choice)."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        seen.add(id(cur))
+        if isinstance(cur, ModuleNotFoundError) and cur.name:
+            extra = EXTRA_OF_MODULE.get(cur.name.partition(".")[0])
+            if extra is not None:
+                return extra
+        # as a traceback shows the chain: the cause, else the context unless "from None"
+        cur = cur.__cause__ if cur.__cause__ is not None else (
+            None if cur.__suppress_context__ else cur.__context__)
+    return None
+
+
+_KINDS = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source", COMMAND_GROUP: "command",
+          BACKEND_OPTIONS_GROUP: "backend's options", SOURCE_OPTIONS_GROUP: "source's options"}
 
 
 def names(group: str) -> dict[str, str]:
@@ -55,9 +112,7 @@ def load(group: str, name: str) -> Any:
     targets = names(group)
     target = targets.get(name)
     if target is None:
-        kind = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source", COMMAND_GROUP: "command",
-                BACKEND_OPTIONS_GROUP: "backend's options",
-                SOURCE_OPTIONS_GROUP: "source's options"}.get(group, group)
+        kind = _KINDS.get(group, group)
         available = ", ".join(targets) or (
             "none (no aurora_gateway entry points: install the package, pip install -e .)")
         raise RegistryError(f"unknown {kind} {name!r}; available: {available}")
@@ -67,6 +122,9 @@ def load(group: str, name: str) -> Any:
         for part in attr.split(".") if attr else ():  # "module" alone names the module
             obj = getattr(obj, part)
     except Exception as exc:  # ImportError, AttributeError, or whatever a plug-in raises
+        extra = missing_extra(exc)
+        if extra is not None:
+            raise MissingExtra(f"{_KINDS.get(group, group)} {name}", extra) from exc
         raise RegistryError(f"{name!r} ({target}) failed to import: "
                             f"{type(exc).__name__}: {exc}") from exc
     _cache[key] = obj

@@ -23,6 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from gateway.registry import extra_line
+
 BENCH_HINT = (
     "the HC-12's SET line is not wired to this host (set_line = none): provision the module "
     "on the bench instead — pull SET low, connect a USB-serial adapter at 9600 baud and send "
@@ -133,8 +135,7 @@ class GpioSetLine:
         try:
             import gpiod
         except ImportError:
-            raise SetLineError("set_line gpio needs libgpiod's Python bindings: "
-                               "pip install 'gpiod>=2'") from None
+            raise SetLineError(extra_line("set_line gpio", "gpio")) from None
         if not hasattr(gpiod, "request_lines"):
             raise SetLineError("set_line gpio needs gpiod ≥ 2 (the installed bindings are the "
                                "1.x API): pip install -U 'gpiod>=2'")

@@ -4,7 +4,9 @@ The file goes through :func:`gateway.config.load`, the code ``run --config`` use
 passes here exactly when ``run`` would accept its keys and values.  What needs the outside
 world (a port, a recording, a key file) is left to ``run``: nothing is opened or built here.
 The checks between keys (MAVLink: a key file *or* a passphrase) are made, by the options
-declaration (:mod:`gateway.options`).
+declaration (:mod:`gateway.options`).  An enabled backend whose extra is not installed (a
+base install enabling Foxglove) is an error naming the extra, as ``run`` says; a disabled one
+is checked by its options declaration alone, its class not imported (:func:`config.parse`).
 
 The resolved configuration is every source and every enabled backend with all its options,
 defaults filled in, as TOML that loads back to the same configuration (``--json``: one JSON

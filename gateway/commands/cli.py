@@ -235,6 +235,8 @@ def _add_plugin_commands(sub: Any, only: str | None) -> None:
         try:
             add = registry.load(registry.COMMAND_GROUP, name)
         except registry.RegistryError as exc:
+            if only is not None and isinstance(exc, registry.MissingExtra):
+                raise  # the command asked for needs an extra: named, exit 2 (_main)
             log.warning("%s", exc)
             continue
         add(sub)
@@ -424,6 +426,8 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
         try:  # the file's table passed already: what fails now is a flag's value
             part = config.make_backend(current.type if current else name, merged, name,
                                        f"backends.{name}")
+        except config.MissingExtraError:
+            raise
         except ConfigError as exc:
             raise ConfigError(f"{exc} (set by a --{name}… flag)") from None
         if current is None:
@@ -733,13 +737,23 @@ def _main(argv: Sequence[str] | None) -> int:
         plugin = first
     else:
         plugin = None  # --help, --version or a typo: list every command
-    parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
+    try:
+        parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
+    except registry.MissingExtra as exc:
+        print(f"aurora-gateway: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     args = parser.parse_args(argv)
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
         return handler(args)
     except (ConfigError, recording.RecordingError) as exc:
         print(f"aurora-gateway: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except ModuleNotFoundError as exc:  # a command's optional dependency (plot: matplotlib)
+        extra = registry.missing_extra(exc)
+        if extra is None:
+            raise
+        print(f"aurora-gateway: {registry.extra_line(args.command, extra)}", file=sys.stderr)
         return EXIT_USAGE
 
 
