@@ -5,7 +5,7 @@ For each case an ``aurora-gateway run …`` process is started; the figures are
 * **threads**: the entries of ``/proc/PID/task`` ``--sample-s`` (3) seconds after the start,
   with their names (``/proc/PID/task/TID/comm``: Python names threads there, 15 characters);
 * **first update**: from the process's start to the first console line of the simulated
-  flight (``t= …``) on its standard output;
+  flight (``[vehicle ]t= …``) on its standard output;
 * **stop**: from SIGINT (sent ``--interrupt-s`` seconds after the start) to the process's exit.
 
 Cases: the embedded default (``run --duration 6 --status-interval 0``: the simulated flight
@@ -60,7 +60,7 @@ def measure(gateway: str, args: list[str], sample_s: float,
     def read() -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            if not first and line.startswith("t="):
+            if not first and " t=" in f" {line}":
                 first.append(time.monotonic() - t0)
                 seen.set()
 
