@@ -162,6 +162,8 @@ BAD: list[tuple[str, tuple[str, ...]]] = [
     ("listen-duration", ("listen", "--duration", "-1")),
     ("hc12-channel", ("hc12", "channel", "999", "--port", "loop://")),
     ("hc12-operation", ("hc12", "fly")),
+    ("hc12-port", ("hc12", "info", "--port", "nosuch://x", "--bench")),
+    ("hc12-config-missing", ("hc12", "info", "--config", "{missing.toml}")),
     ("fprime-dictionary-id-base", ("fprime-dictionary", "--id-base", "zz")),
     ("fprime-dictionary-scid", ("fprime-dictionary", "--scid", "5000")),
     ("mavlink-modes-sm-type", ("mavlink-modes", "--sm-type", "x")),

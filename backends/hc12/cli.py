@@ -117,6 +117,14 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
             raise _Usage(f"{args.config}: no enabled [backends.{args.backend}] table")
         table = parts[0].options
     url = args.port or table.get("url")
+    if args.port:  # a bad --port is a usage error (2), before any safety rule (3) is asked
+        from gateway.io.endpoints import EndpointError
+        from gateway.sources import check_serial_url
+
+        try:
+            check_serial_url(args.port)
+        except EndpointError as exc:
+            raise _Usage(f"--port: {exc}") from None
     if not url and not args.gateway:
         raise _Usage("no port: pass --port URL (or --config FILE with a [backends.hc12] url, "
                      "or --gateway SOCKET)")
