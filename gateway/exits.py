@@ -31,12 +31,12 @@ HELP = """\
 exit status (every command):
   0    done (the duration passed, the input or the sources ended), or stopped by
        SIGTERM (a service manager's stop)
-  1    failed at run time: a file that could not be written, a radio that did not
-       answer, an unexpected error (its traceback on stderr)
+  1    failed at run time: a file that could not be written, a radio that did
+       not answer, an unexpected error (its traceback on stderr)
   2    bad input or configuration: a bad flag value, a missing, empty or foreign
        file, an invalid config (one line on stderr naming it)
-  130  interrupted by Ctrl-C (SIGINT), quietly, at any moment; a running gateway
-       still stops cleanly and prints its stop report first
+  130  interrupted by Ctrl-C (SIGINT), quietly, at any moment; a running command
+       still stops cleanly first (run, record, replay: with their stop report)
   hc12 adds 3: refused by its safety rules (nothing sent)
 """
 
