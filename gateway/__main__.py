@@ -2,23 +2,35 @@
 
 The command's entry point is :func:`main` here, not in :mod:`gateway.commands.cli`, so that a
 Ctrl-C while that module and its imports load (the first ~0.1 s) ends quietly with status 130
-like a Ctrl-C later on, instead of a traceback."""
+like a Ctrl-C later on, instead of a traceback; and a SIGTERM then ends it with 0, as it
+does a running command (the exit-status table: :mod:`gateway.exits`)."""
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
 
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, as gateway.commands.cli.EXIT_INTERRUPTED
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as gateway.exits.INTERRUPTED
+
+
+def _terminated(signum: int, frame: object) -> None:
+    """SIGTERM before a command installs its own stop (gateway.commands.cli.Stopper): leave
+    with status 0, quietly (a service manager's stop)."""
+    raise SystemExit(0)
 
 
 def main() -> None:
     """Import the command line, then run it (:func:`gateway.commands.cli.console_main`)."""
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         from gateway.commands.cli import console_main
     except KeyboardInterrupt:
         sys.stderr.flush()
         os._exit(EXIT_INTERRUPTED)
+    except SystemExit as exc:
+        sys.stderr.flush()
+        os._exit(exc.code if isinstance(exc.code, int) else 0)
     console_main()
 
 

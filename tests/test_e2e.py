@@ -150,7 +150,7 @@ def test_simulate_into_run_records_exactly_the_frames_sent(
 
         assert gateway.wait_line("stderr", all_recorded, 15), gateway.text("stderr")[-2000:]
         gateway.proc.send_signal(signal.SIGINT)
-        assert gateway.finish(10) == 0, gateway.text("stderr")[-2000:]
+        assert gateway.finish(10) == 130, gateway.text("stderr")[-2000:]  # Ctrl-C: 130
         t_end = time.time()
     finally:
         for p in (simulate, gateway):

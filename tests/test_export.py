@@ -214,12 +214,12 @@ def test_a_torn_tail_is_skipped_and_reported(flight: tuple[Path, list[dict[str, 
 
 @pytest.mark.parametrize("content", [None, b"", b"not a recording at all\n",
                                      b"\x89AUR\r\n\x1a\n\x07\x00\x00\x00"])
-def test_a_missing_or_invalid_recording_is_one_line_and_status_1(
+def test_a_missing_or_invalid_recording_is_one_line_and_status_2(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None) -> None:
     path = tmp_path / "bad.aur"
     if content is not None:
         path.write_bytes(content)
-    assert main(["export", str(path)]) == 1
+    assert main(["export", str(path)]) == 2  # bad input, as for replay and decode (issue 23)
     out, err = capsys.readouterr()
     assert out == ""
     assert len(err.splitlines()) == 1

@@ -251,11 +251,12 @@ def test_install_refuses_a_file_it_cannot_read_and_leaves_it(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "map.json"
     path.write_text("{not json")
-    assert cli.main(["mavlink-modes", "--install", "--file", str(path)]) == 1
+    # a foreign file: bad input, 2 (issue 23's exit-code table)
+    assert cli.main(["mavlink-modes", "--install", "--file", str(path)]) == 2
     assert "not valid JSON" in capsys.readouterr().err
     assert path.read_text() == "{not json"
     path.write_text("[1, 2]")
-    assert cli.main(["mavlink-modes", "--install", "--file", str(path)]) == 1
+    assert cli.main(["mavlink-modes", "--install", "--file", str(path)]) == 2
     assert path.read_text() == "[1, 2]"
 
 

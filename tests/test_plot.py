@@ -136,23 +136,25 @@ def test_the_console_script_draws_the_size_asked(
 
 
 @pytest.mark.parametrize("content", [None, b"garbage", recording.HEADER])
-def test_a_missing_invalid_or_empty_recording_is_one_line_and_status_1(
+def test_a_missing_invalid_or_empty_recording_is_one_line_and_status_2(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None) -> None:
     path = tmp_path / "bad.aur"
     if content is not None:
         path.write_bytes(content)
     out = tmp_path / "x.png"
-    assert main(["plot", str(path), "-o", str(out)]) == 1
+    assert main(["plot", str(path), "-o", str(out)]) == 2  # bad input (issue 23)
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and err.startswith("aurora-gateway plot: ")
     assert not out.exists()
 
 
-def test_an_unwritable_picture_is_one_line_and_status_1(
+def test_an_unwritable_picture_is_one_line_and_status_1_or_2(
         flight: tuple[Path, list[tuple[float, SmUpdate]]], tmp_path: Path,
         capsys: pytest.CaptureFixture[str]) -> None:
-    for target in (tmp_path / "no" / "dir.png", tmp_path / "flight.notaformat"):
-        assert main(["plot", str(flight[0]), "-o", str(target)]) == 1
+    # a directory that is not there: failed (1); an extension matplotlib cannot write: a bad
+    # -o, bad input (2)
+    for target, status in ((tmp_path / "no" / "dir.png", 1), (tmp_path / "flight.notaformat", 2)):
+        assert main(["plot", str(flight[0]), "-o", str(target)]) == status
         err = capsys.readouterr().err
         assert len(err.splitlines()) == 1 and "cannot write" in err, err
 

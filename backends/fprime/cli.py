@@ -13,8 +13,9 @@ from collections.abc import Sequence
 from typing import Any
 
 from backends.fprime.channels import DEFAULT_ID_BASE
+from gateway import exits
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = exits.OK, exits.FAILED, exits.USAGE
 PROG = "aurora-gateway fprime-dictionary"
 
 
@@ -73,7 +74,9 @@ def run_dictionary(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command alone (``python -m backends.fprime.cli fprime-dictionary …``)."""
-    parser = argparse.ArgumentParser(prog="aurora-gateway")
+    from gateway.commands.cli import CommandParser  # one-line errors, the exit-status table
+
+    parser = CommandParser(prog="aurora-gateway")
     sub = parser.add_subparsers(dest="command", required=True)
     add_command(sub)
     args = parser.parse_args(argv)

@@ -24,12 +24,14 @@ from backends.hc12.port import open_port
 from backends.hc12.provision import OPERATIONS, Result, Timing, check_request, plan, run_request
 from backends.hc12.setline import SetLine, SetLineSpec, make_set_line, parse_set_line
 from backends.hc12.vehicle import DEFAULT_MAX_AGE_S, VehicleWatch
+from gateway import exits
 from gateway.io.port import PortEngine, PortNotReady
 from gateway.io.transport import TransportError
 from gateway.model import SmUpdate, Status
 from gateway.wire import Decoder
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REFUSED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_REFUSED, EXIT_INTERRUPTED = (
+    exits.OK, exits.FAILED, exits.USAGE, exits.REFUSED, exits.INTERRUPTED)
 DEFAULT_LISTEN_S = 1.5
 ENGINE_DEADLINE_S = 5.0  # to take the port into the engine, and to hand it back on close
 PROG = "aurora-gateway hc12"
@@ -115,6 +117,14 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
             raise _Usage(f"{args.config}: no enabled [backends.{args.backend}] table")
         table = parts[0].options
     url = args.port or table.get("url")
+    if args.port:  # a bad --port is a usage error (2), before any safety rule (3) is asked
+        from gateway.io.endpoints import EndpointError
+        from gateway.sources import check_serial_url
+
+        try:
+            check_serial_url(args.port)
+        except EndpointError as exc:
+            raise _Usage(f"--port: {exc}") from None
     if not url and not args.gateway:
         raise _Usage("no port: pass --port URL (or --config FILE with a [backends.hc12] url, "
                      "or --gateway SOCKET)")
@@ -267,8 +277,10 @@ def main_handler(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m backends.hc12.cli …`` — the same command without the gateway's CLI."""
-    parser = argparse.ArgumentParser(prog=PROG, description=DESCRIPTION,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    from gateway.commands.cli import CommandParser  # one-line errors, the exit-status table
+
+    parser = CommandParser(prog=PROG, description=DESCRIPTION,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(parser)
     return main_handler(parser.parse_args(argv))
 

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from dialects.states import STATE_MACHINES, state_names
+from gateway import exits
 
 #: MAV_TYPE_ROCKET (common.xml), the type of the gateway's HEARTBEAT (a test checks it against
 #: the dialect; the dialect module is not imported here: it is 1.85 MB).
@@ -109,11 +110,19 @@ def main_handler(args: argparse.Namespace) -> int:
     if not args.install:
         print(json.dumps(custom_mode_map(args.sm_type), indent=2))
         return 0
+    if args.file is not None and args.file.expanduser().is_dir():
+        print(f"aurora-gateway mavlink-modes: --file: {args.file} is a directory",
+              file=sys.stderr)
+        return exits.USAGE
     try:
         path = install(args.file, args.sm_type)
-    except (ValueError, OSError) as exc:
+    except ValueError as exc:  # the file is there but is not a JSON object: bad input
         print(f"aurora-gateway mavlink-modes: {exc}", file=sys.stderr)
-        return 1
+        return exits.USAGE
+    except OSError as exc:  # could not be read or written
+        print(f"aurora-gateway mavlink-modes: {exc.filename or args.file}: "
+              f"{exc.strerror or exc}", file=sys.stderr)
+        return exits.FAILED
     print(f"mode names of MAV_TYPE_ROCKET ({MAV_TYPE_ROCKET}) written to {path}; pymavlink "
           "tools started from now on show them")
     return 0

@@ -33,11 +33,12 @@ from backends.zenoh.keys import (
     parse_stats_key,
 )
 from backends.zenoh.session import SessionOptions, zerror_text
+from gateway import exits
 from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
 from gateway.wire import decode_all, to_wire_dict
 
-EXIT_USAGE = 2
+EXIT_USAGE = exits.USAGE
 QUERY_TIMEOUT_S = 2.0
 COMPACT_INTERVAL_S = 0.1
 MAX_GATEWAYS = 4096  # gateway ids counted at most (a peer chooses them)
@@ -200,9 +201,15 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
     stop = stop if stop is not None else threading.Event()
     samples: queue.SimpleQueue[Any] = queue.SimpleQueue()
     installed: dict[signal.Signals, Any] = {}
+    got: list[int] = []  # the signal that stopped it: SIGINT exits 130 (gateway.exits)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        got.append(signum)
+        stop.set()
+
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
-            installed[sig] = signal.signal(sig, lambda *_: stop.set())
+            installed[sig] = signal.signal(sig, on_signal)
     session = None
     tracker = SeqTracker()
     gateways: set[str] = set()
@@ -240,7 +247,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
                           f"{zerror_text(exc)}; retrying", file=err)
                 stop.wait(backoff.next())
         if session is None:
-            return 0
+            return exits.after_stop(got[-1] if got else None)
         if args.gateways:
             # The gateways alive now are asked for (and queued) before any update can be:
             # so they print first, whatever --count says.  A token that appears between the
@@ -318,11 +325,13 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
           f"{tracker.lost} lost (sequence gaps), {tracker.restarts} publisher restarts"
           + (f", {dropped[0]} dropped (printing fell behind)" if dropped[0] else ""),
           file=err)
-    return 0
+    return exits.after_stop(got[-1] if got else None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="aurora-gateway")
+    from gateway.commands.cli import CommandParser  # one-line errors, the exit-status table
+
+    parser = CommandParser(prog="aurora-gateway")
     sub = parser.add_subparsers(dest="command", required=True)
     add_command(sub)
     args = parser.parse_args(argv)

@@ -28,11 +28,11 @@ import re
 import sys
 from typing import Any
 
-from gateway import config
+from gateway import config, exits
 from gateway.config import ConfigError, GatewayConfig
 
 PROG = "aurora-gateway check-config"
-EXIT_OK, EXIT_INVALID = 0, 2
+EXIT_OK, EXIT_INVALID = exits.OK, exits.USAGE
 
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 

@@ -4,7 +4,9 @@ replay).
 Every flag that sets a configuration key is checked by that key's :class:`config.Key` — the
 one a file's value goes through — whether or not anything uses it, and a bad value is one
 line naming the flag and what is allowed, exit 2.  So is a bad file.  Ctrl-C at any point,
-start-up and imports included, ends quietly with status 130 (130 = 128 + SIGINT).
+start-up and imports included, ends quietly with status 130 (130 = 128 + SIGINT), after a
+running gateway's clean stop and stop report; SIGTERM stops the same way with 0.  The table:
+:mod:`gateway.exits`.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any, NoReturn
 
-from gateway import __version__, config, logjson, recording, registry, vehicles
+from gateway import __version__, config, exits, logjson, recording, registry, vehicles
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
@@ -33,18 +35,9 @@ from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
 
-EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
-EXIT_CODES_HELP = """\
-exit status:
-  0    done: the duration passed, the sources ended, or SIGINT/SIGTERM stopped a
-       running gateway cleanly (a backend that failed to start is reported, not fatal)
-  1    a failure: an unexpected error (its traceback on stderr), or a subcommand that
-       could not do its job (a file it could not write, a radio that did not answer)
-  2    a usage or configuration error (one line on stderr naming the flag or key)
-  130  Ctrl-C outside a clean stop: during start-up and imports, or in decode
-  subcommands may add their own (hc12: 3 = refused by its safety rules)
-"""
+EXIT_USAGE = exits.USAGE
+EXIT_INTERRUPTED = exits.INTERRUPTED
+EXIT_CODES_HELP = exits.HELP  # every command's --help ends with it (_Parser)
 
 # -- flags that set configuration keys -------------------------------------------------------
 # Declared with the keys they set (gateway.options): the gateway's own in
@@ -222,6 +215,14 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
+    def format_help(self) -> str:
+        """The usage, then the exit-status table every command shares (:mod:`gateway.exits`)."""
+        return super().format_help().rstrip("\n") + "\n\n" + exits.HELP
+
+
+#: the parser every command uses (a standalone ``python -m backends.….cli`` too)
+CommandParser = _Parser
+
 
 def _add_plugin_commands(sub: Any, only: str | None) -> None:
     """Subcommands from the ``aurora_gateway.commands`` entry points (``listen``, ``hc12``).
@@ -252,7 +253,7 @@ def build_parser(backend_flags: bool = True,
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
                     "to every configured backend.",
-        epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
@@ -451,7 +452,9 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
 # -- commands ----------------------------------------------------------------------------------
 
 class Stopper:
-    """SIGINT/SIGTERM set an event instead of raising in the middle of something."""
+    """SIGINT/SIGTERM set an event instead of raising in the middle of something; the last
+    one received is :attr:`signal`, and :attr:`status` the exit status it makes
+    (:func:`gateway.exits.after_stop`: 130 for SIGINT, 0 for SIGTERM or none)."""
 
     def __init__(self, event: threading.Event) -> None:
         self.event = event
@@ -467,6 +470,10 @@ class Stopper:
     def _handle(self, signum: int, frame: Any) -> None:
         self.signal = signum
         self.event.set()
+
+    @property
+    def status(self) -> int:
+        return exits.after_stop(self.signal)
 
     def __exit__(self, *exc: object) -> None:
         for sig, old in self._old.items():
@@ -547,9 +554,10 @@ def _report(summary: dict[str, Any]) -> None:
 
 
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
-    """Start everything, run until a signal, the duration, or the sources' end; stop."""
+    """Start everything, run until a signal, the duration, or the sources' end; stop.  The
+    exit status: 130 when SIGINT stopped it, else 0 (:class:`Stopper`)."""
     gw = Gateway(cfg)
-    with Stopper(gw.stop_event):
+    with Stopper(gw.stop_event) as stopper:
         failures = gw.start()
         for name, err in failures:
             say(f"aurora-gateway: backend {name} did not start: {err}", logging.ERROR)
@@ -562,7 +570,7 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
         finally:
             summary = gw.stop()
     _report(summary)
-    return 0
+    return stopper.status
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -683,7 +691,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     sent = errors = 0
     port = None
     backoff = Backoff(0.05, 2.0)
-    with Stopper(stop):
+    with Stopper(stop) as stopper:
         frames = paced(flight_frames(model, sim["rate_hz"], sim["status_hz"], sim["cycles"]),
                        sim["speed"], stop)
         for _, frame in frames:
@@ -710,7 +718,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 port.close()
     print(f"simulate: {sent} frames written to {out}, {errors} write errors",
           file=sys.stderr)
-    return 0
+    return stopper.status
 
 
 COMMANDS = {"run": cmd_run, "decode": cmd_decode, "simulate": cmd_simulate,

@@ -56,8 +56,10 @@ JSONL: one JSON object per line; booleans as ``true``/``false``; non-finite floa
 ``.ndjson`` or ``.json`` file, to MCAP when it names a ``.mcap`` file, else CSV.  An MCAP
 export needs ``-o FILE``: to stdout it is refused with one line and exit status 2.
 
-A missing or unreadable file, or one that is not a recording, is one line on stderr and
-exit status 1.  Records that fail their CRC are skipped (as ``decode`` and ``replay`` do) and
+A missing, unreadable or empty file, or one that is not a recording, is one line on stderr
+and exit status 2, as for ``replay`` and ``decode`` (bad input: :mod:`gateway.exits`); so is
+an MCAP export without the ``mcap`` extra.  A file that cannot be written: exit status 1.
+Records that fail their CRC are skipped (as ``decode`` and ``replay`` do) and
 counted on stderr.  A closed pipe (``| head``) ends the export quietly.
 """
 
@@ -74,12 +76,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from gateway import recording
+from gateway import exits, recording
 from gateway.model import SmUpdate, Status
 from gateway.wire import Decoder
 
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
+EXIT_FAILURE = exits.FAILED
+EXIT_USAGE = exits.USAGE
 
 #: The export's columns, in order (see the module docstring for their meaning).
 COLUMNS: tuple[str, ...] = (
@@ -286,7 +288,7 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
         flight = load(args.recording, args.vehicle)
     except ExportError as exc:
         print(f"aurora-gateway export: {exc}", file=err)
-        return EXIT_USAGE if isinstance(exc, UnknownVehicle) else EXIT_FAILURE
+        return EXIT_USAGE  # a missing, empty or foreign file, or a vehicle it does not have
     if fmt == "mcap":
         return _run_mcap(args, flight)
     to_stdout = args.output == "-"

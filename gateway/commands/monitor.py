@@ -258,7 +258,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     srcs = ", ".join(s.name for s in gw.sources)
     state.title = f"aurora-gateway monitor · {srcs}"
     stop = gw.stop_event
-    with cli.Stopper(stop):
+    with cli.Stopper(stop) as stopper:
         failures = gw.start()
         for name, err in failures:
             state.note(f"backend {name} did not start: {err}")
@@ -271,7 +271,7 @@ def run_monitor(args: argparse.Namespace) -> int:
             gw.stop()
             if speaker is not None:
                 speaker.close()
-    return 0
+    return stopper.status  # q, the duration, the sources' end: 0; Ctrl-C: 130
 
 
 def _run_plain(gw: Gateway, state: LiveState, stop: threading.Event, refresh: float,

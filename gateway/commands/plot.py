@@ -14,7 +14,9 @@ the last, so a recording with minutes on the pad does not squash the flight into
 A recording of several vehicles draws one series per vehicle, in its own colour and named in
 a legend, each with its apogee marked (the state bands, which would overlap, are left out),
 over the union of their flights; ``--vehicle NAME`` draws that vehicle alone, as above (a
-name the recording does not have: one line naming the ones it has, exit status 2).
+name the recording does not have: one line naming the ones it has, exit status 2).  A
+missing, empty or foreign file, a recording with no SM update, or no matplotlib: one line,
+exit status 2; a picture that cannot be written: exit status 1 (:mod:`gateway.exits`).
 
 matplotlib (the ``plot`` extra: ``pip install 'aurora-gateway[plot]'``) is imported only
 when the command runs, and draws with its Agg canvas: no display needed.  The picture is
@@ -32,13 +34,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dialects.states import is_in_flight
-from gateway.commands.export import ExportError, UnknownVehicle, load
+from gateway import exits
+from gateway.commands.export import ExportError, load
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-EXIT_FAILURE = 1
-EXIT_USAGE = 2
+EXIT_FAILURE = exits.FAILED  # a picture that could not be written
+EXIT_USAGE = exits.USAGE  # a missing, empty or foreign recording; no SM update; no matplotlib
 DPI = 100
 DEFAULT_SIZE = (1200, 900)
 BAND_ALPHA = 0.18
@@ -278,11 +281,11 @@ def run_plot(args: argparse.Namespace) -> int:
         flight = load(args.recording, args.vehicle)
     except ExportError as exc:
         print(f"aurora-gateway plot: {exc}", file=err)
-        return EXIT_USAGE if isinstance(exc, UnknownVehicle) else EXIT_FAILURE
+        return EXIT_USAGE  # a missing, empty or foreign file, or a vehicle it does not have
     rows = flight.rows
     if not rows:
         print(f"aurora-gateway plot: {args.recording}: no SM updates to plot", file=err)
-        return EXIT_FAILURE
+        return EXIT_USAGE
     # without matplotlib: the command line names the extra, exit 2 (gateway.registry)
     import matplotlib  # noqa: F401
     title = args.title if args.title is not None else _default_title(args.recording,
@@ -294,8 +297,8 @@ def run_plot(args: argparse.Namespace) -> int:
         start, end = flight_window(rows)
         rows = [r for r in rows if start <= r["t_s"] <= end]
     fig, apogee = build_figure(rows, title, args.size)
-    if not _save(fig, args):
-        return EXIT_FAILURE
+    if failed := _save(fig, args):
+        return failed
     where = (f"apogee {apogee.altitude_m:.1f} m at t = {apogee.t_s:.2f} s"
              if apogee is not None else "no altitude")
     notes = flight.notes()
@@ -305,14 +308,16 @@ def run_plot(args: argparse.Namespace) -> int:
     return 0
 
 
-def _save(fig: Figure, args: argparse.Namespace) -> bool:
+def _save(fig: Figure, args: argparse.Namespace) -> int:
+    """Write the picture; 0, else the exit status (one line said why): 2 for an extension
+    matplotlib cannot write (a bad ``-o``), 1 for a file that could not be written."""
     try:
         fig.savefig(args.output, dpi=DPI)
     except (OSError, ValueError) as exc:  # ValueError: an extension matplotlib cannot write
         text = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
         print(f"aurora-gateway plot: cannot write {args.output}: {text}", file=sys.stderr)
-        return False
-    return True
+        return EXIT_FAILURE if isinstance(exc, OSError) else EXIT_USAGE
+    return 0
 
 
 def _plot_vehicles(args: argparse.Namespace, series: dict[str, list[dict[str, Any]]],
@@ -324,8 +329,8 @@ def _plot_vehicles(args: argparse.Namespace, series: dict[str, list[dict[str, An
         series = {v: kept for v, rows in series.items()
                   if (kept := [r for r in rows if start <= r["t_s"] <= end])}
     fig, apogees = build_vehicles_figure(series, title, args.size)
-    if not _save(fig, args):
-        return EXIT_FAILURE
+    if failed := _save(fig, args):
+        return failed
     n = sum(len(rows) for rows in series.values())
     where = "; ".join(f"{v} apogee {a.altitude_m:.1f} m at t = {a.t_s:.2f} s"
                       if a is not None else f"{v} no altitude" for v, a in apogees.items())
