@@ -42,7 +42,9 @@ Each record (with the names it needs) is written with one unbuffered ``write`` c
 skips what fails: a torn tail ends the replay cleanly, and corruption mid-file is passed by
 rescanning one byte at a time (the same resync rule as the wire decoder).  Opening an
 existing recording for append cuts a torn tail off first, so new records never follow
-garbage.
+garbage.  A file exists from its first record on (the header goes out with it) and a write
+that fails part-way (a full disk) is cut off again (:class:`RecordingFile`): no recording is
+empty, a bare header, or torn before its end by the writer itself.
 
 The writers, :class:`gateway.recorder.Recorder` (one file) and
 :class:`gateway.recorder.DirectoryRecorder` (``record_dir``: a file per vehicle per flight),
