@@ -345,7 +345,9 @@ class DirectoryRecorder(Recorder):
     counted (``dropped_vehicle_limit``) and warned about once.  A file that cannot be created (a
     full disk) is tried again :data:`OPEN_RETRY_S` later, not at every message; meanwhile
     the vehicle's messages go on into its old file, or are dropped and counted
-    (``dropped_open_failed``); the error is logged once per vehicle."""
+    (``dropped_disk_full`` when the disk is full, else ``dropped_open_failed``); the error
+    is logged once per vehicle.  A directory that cannot be made at start because the disk
+    is full is made with the first file."""
 
     #: seconds before a vehicle's file that could not be created is tried again
     OPEN_RETRY_S = 5.0
@@ -361,11 +363,20 @@ class DirectoryRecorder(Recorder):
         self.open_errors = 0
         self._open: dict[str, RecordingFile] = {}
         self._retry_at: dict[str, float] = {}  # vehicle -> when to try its file again
+        self._full: set[str] = set()  # vehicles whose file could not be made: disk full
         self._failed: set[str] = set()  # vehicles whose file failed once (logged)
         super().__init__(directory, fsync_interval_s, queue_depth)
 
     def _open_files(self) -> None:
-        self.path.mkdir(parents=True, exist_ok=True)  # OSError: the caller's to report
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)  # OSError: the caller's to report
+        except OSError as exc:
+            if exc.errno not in _DISK_FULL_ERRNOS:
+                raise
+            # a full disk is no configuration error: the first recording makes it
+            log.error("%s: cannot create the directory yet (%s); trying again with the "
+                      "first recording", self.path, exc.strerror)
+            return
         if not os.access(self.path, os.W_OK | os.X_OK):
             raise PermissionError(13, "Permission denied", str(self.path))
 
@@ -377,7 +388,7 @@ class DirectoryRecorder(Recorder):
         if name in self._retry_at:
             if time.monotonic() < self._retry_at[name]:
                 if f is None:
-                    self.dropped_open_failed += 1
+                    self._drop_unopened(name)
                 return f
             del self._retry_at[name]
         if len(self.files) >= self.max_files:
@@ -417,8 +428,13 @@ class DirectoryRecorder(Recorder):
                           "%.0f s", self.path, name, exc,
                           f"; recording on into {old.path}" if old is not None else "",
                           self.OPEN_RETRY_S)
+            if getattr(exc, "errno", None) in _DISK_FULL_ERRNOS:
+                if len(self._full) < self.max_vehicles:
+                    self._full.add(name)
+            else:
+                self._full.discard(name)
             if old is None:
-                self.dropped_open_failed += 1
+                self._drop_unopened(name)
             return old
         if old is not None:
             self._sync_file(old)
@@ -431,6 +447,13 @@ class DirectoryRecorder(Recorder):
         self._open[name] = new
         self.files.append(new)
         return new
+
+    def _drop_unopened(self, name: str) -> None:
+        """A message of ``name``, whose file could not be made: disk full, or else."""
+        if name in self._full:
+            self.dropped_disk_full += 1
+        else:
+            self.dropped_open_failed += 1
 
     @property
     def dropped(self) -> dict[str, int]:

@@ -54,6 +54,7 @@ append through :class:`RecordingFile`.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import re
@@ -388,7 +389,12 @@ class RecordingFile:
         self._bound: set[str] = set()  # names bound since the last repeat
         self._since_repeat = 0
         self._next = 0  # the next free index
-        self.fd = self._open()
+        try:
+            self.fd = self._open()
+        except OSError as exc:  # no inode left: as if created, and removed again
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            self.fd = -1
         self._unlink_if_empty()  # (created again by the first record that is written)
 
     def _open(self) -> int:
@@ -476,7 +482,11 @@ class RecordingFile:
             raise ValueError(f"{self.path}: closed")
         header = len(HEADER) if self.size == 0 else 0
         if self.fd < 0:
-            self.fd = self._open()
+            try:
+                self.fd = self._open()
+            except (OSError, RecordingError):
+                self.forget_bindings()
+                raise
             if self.size:  # not the file that went: its name table is not ours
                 self.forget_bindings()
                 raise RecordingError(f"{self.path}: another recording took its place")

@@ -11,6 +11,7 @@ values and the file read back, never from the counters under test alone.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import logging
@@ -35,16 +36,17 @@ from gateway.wire import frame
 CONSOLE_SCRIPT = Path(sys.executable).parent / "aurora-gateway"
 TIMEOUT_S = 30.0
 FS_KIB = 64
+INODES = 8
 
 
-@pytest.fixture
-def small_fs(tmp_path: Path) -> Iterator[Path]:
-    """A tmpfs of :data:`FS_KIB` KiB mounted for the test (unmounted after it)."""
+@contextlib.contextmanager
+def tmpfs(where: Path, options: str) -> Iterator[Path]:
+    """A tmpfs mounted at ``where`` (made) with ``options`` for the block, unmounted after it;
+    the test skips, saying why, where it cannot be mounted."""
     if os.geteuid() != 0:
         pytest.skip("a real full filesystem needs a tmpfs mount, which needs root (CI is root)")
-    where = tmp_path / "disk"
     where.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={FS_KIB}k", "tmpfs", str(where)],
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(where)],
                        capture_output=True, text=True, check=False)
     if r.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip() or r.returncode}")
@@ -53,6 +55,33 @@ def small_fs(tmp_path: Path) -> Iterator[Path]:
     finally:
         if subprocess.run(["umount", str(where)], check=False).returncode != 0:
             subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+@pytest.fixture
+def small_fs(tmp_path: Path) -> Iterator[Path]:
+    """A tmpfs of :data:`FS_KIB` KiB mounted for the test."""
+    with tmpfs(tmp_path / "disk", f"size={FS_KIB}k") as where:
+        yield where
+
+
+@pytest.fixture
+def few_inodes_fs(tmp_path: Path) -> Iterator[Path]:
+    """A tmpfs with room for data but for :data:`INODES` files and directories only."""
+    with tmpfs(tmp_path / "disk", f"size=1m,nr_inodes={INODES}") as where:
+        yield where
+
+
+def fill_inodes(fs: Path) -> list[Path]:
+    """Make empty files in ``fs`` until the kernel says ENOSPC; returns them."""
+    made = []
+    for i in range(INODES + 1):
+        try:
+            (fs / f"inode{i}").touch()
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC, exc
+            return made
+        made.append(fs / f"inode{i}")
+    raise AssertionError(f"{INODES + 1} files made on a tmpfs of {INODES} inodes")
 
 
 def fill(fs: Path, leave: int = 0) -> Path:
@@ -179,6 +208,37 @@ def test_record_dir_on_a_full_disk_makes_no_file_per_flight_then_records_when_sp
     assert [r.vehicle for r in recording.read_records(path)] == ["alpha"]
     assert len(messages(caplog, "cannot write")) == 1  # not one per flight
     assert rec.stats()["dropped_disk_full"] == 50
+
+
+def test_no_inode_left_is_a_full_disk_too_and_no_configuration_error(
+        few_inodes_fs: Path, caplog: pytest.LogCaptureFixture) -> None:
+    fillers = fill_inodes(few_inodes_fs)
+    path = few_inodes_fs / "flight.aur"
+    d = few_inodes_fs / "flights"
+    with caplog.at_level(logging.ERROR, logger="gateway.recorder"):
+        one = Recorder(path)  # no file can be made: counted, not refused
+        many = DirectoryRecorder(d)
+    one.WRITE_RETRY_S = 0.0
+    many.OPEN_RETRY_S = 0.0
+    try:
+        for i in range(10):
+            one.write(tframe(i), t=T0 + i)
+            assert many.submit(_update("alpha", SimpleState.ARMED, i, 1.0), t=T0 + i)
+        assert wait_for(lambda: many.dropped_disk_full == 10)
+        assert one.dropped_disk_full == 10 and many.dropped_open_failed == 0
+        assert not path.exists() and not d.exists()
+        for f in fillers[:3]:
+            f.unlink()  # a file for each, and the directory
+        one.write(tframe(10), t=T0 + 10)
+        assert many.submit(_update("alpha", SimpleState.ARMED, 10, 1.0), t=T0 + 10)
+        assert wait_for(lambda: many.records == 1)
+    finally:
+        one.close()
+        many.close(5.0)
+    assert list(recording.read(path)) == [(T0 + 10, tframe(10))]
+    (flight,) = many.paths
+    assert [r.vehicle for r in recording.read_records(flight)] == ["alpha"]
+    assert len(messages(caplog, "cannot create the directory yet")) == 1
 
 
 def test_dev_full_counts_disk_full_without_a_mount(caplog: pytest.LogCaptureFixture) -> None:
