@@ -372,7 +372,8 @@ class RecordingFile:
 
     def __init__(self, path: str | Path, new: bool = False) -> None:
         """``new``: the caller has just created the (empty) file for this object, which then
-        treats it as its own."""
+        treats it as its own: it stays, holding the name, until the first write, and goes if
+        that fails.  Any other file that does not exist yet is made by the first record."""
         self.path = Path(path)
         self.records = 0
         self.bytes = 0
@@ -395,7 +396,8 @@ class RecordingFile:
             if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
                 raise
             self.fd = -1
-        self._unlink_if_empty()  # (created again by the first record that is written)
+        if not new:  # (created again by the first record; a new one keeps its name till then)
+            self._unlink_if_empty()
 
     def _open(self) -> int:
         flags = os.O_RDWR | os.O_APPEND
