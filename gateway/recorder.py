@@ -175,6 +175,7 @@ class Recorder:
             self._written_while_failing(f, failure)
         f.records += 1
         f.bytes += written
+
     def _drop(self, reason: str) -> None:
         if reason == DISK_FULL:
             self.dropped_disk_full += 1
@@ -369,8 +370,8 @@ class DirectoryRecorder(Recorder):
 
     def _open_files(self) -> None:
         try:
-            self.path.mkdir(parents=True, exist_ok=True)  # OSError: the caller's to report
-        except OSError as exc:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # (the caller reports any but a full disk)
             if exc.errno not in _DISK_FULL_ERRNOS:
                 raise
             # a full disk is no configuration error: the first recording makes it

@@ -384,7 +384,7 @@ class RecordingFile:
         self.created = new
         #: set by :meth:`close`
         self.closed = False
-        #: the recorder's state while writes fail (:class:`gateway.recorder.WriteFailure`)
+        #: while writes to it fail: why, since when, what it cost (set by the recorder)
         self.failure: WriteFailure | None = None
         self._index: dict[str, int] = {}  # the file's name table
         self._bound: set[str] = set()  # names bound since the last repeat
