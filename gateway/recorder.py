@@ -200,15 +200,17 @@ class Recorder:
         failure.lost += 1
         failure.retry_at = time.monotonic() + self.WRITE_RETRY_S
 
-    def _written_while_failing(self, f: RecordingFile, failure: WriteFailure) -> None:
+    def _written_while_failing(self, f: RecordingFile, failure: WriteFailure,
+                               at_close: bool = False) -> None:
         """A write worked after failures: once writes have worked for
         :data:`RESUME_AFTER_S` in a row, say so (with the frames lost) and leave the failing
         state; a disk with a few bytes free now and then (a small record fits, the next
-        does not) logs no pair of lines per frame."""
+        does not) logs no pair of lines per frame.  ``at_close``: the file closes while
+        writing again; say so now."""
         now = time.monotonic()
         if failure.ok_since is None:
             failure.ok_since = now
-        elif now - failure.ok_since >= self.RESUME_AFTER_S:
+        elif at_close or now - failure.ok_since >= self.RESUME_AFTER_S:
             f.failure = None
             log.warning("%s: writing again; %d frames not written in the %.1f s before (%s)",
                         f.path, failure.lost, failure.ok_since - failure.since,
@@ -217,7 +219,9 @@ class Recorder:
     def _closing_file(self, f: RecordingFile) -> None:
         """Before ``f`` is closed: say what a write failure still going on cost."""
         failure = f.failure
-        if failure is not None:
+        if failure is not None and failure.ok_since is not None:  # it was writing again
+            self._written_while_failing(f, failure, at_close=True)
+        elif failure is not None:
             f.failure = None
             log.warning("%s: closed; %d frames not written since writes started failing "
                         "%.1f s before (%s)%s", f.path, failure.lost,

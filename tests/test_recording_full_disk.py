@@ -140,15 +140,16 @@ def test_while_writes_fail_they_are_tried_again_later_not_per_frame(small_fs: Pa
     assert rec.stats()["dropped_disk_full"] == 100  # every frame counted
 
 
+@pytest.mark.parametrize("resume_after_s", [0.0, 3600.0])  # said at once; said at close
 def test_when_space_returns_the_recording_goes_on_whole_and_readable(
-        small_fs: Path, caplog: pytest.LogCaptureFixture) -> None:
+        small_fs: Path, caplog: pytest.LogCaptureFixture, resume_after_s: float) -> None:
     filler = fill(small_fs, leave=3 * 4096)
     path = small_fs / "flight.aur"
     written: list[recording.Record] = []
     with caplog.at_level(logging.INFO, logger="gateway.recorder"):
         rec = Recorder(path)
         rec.WRITE_RETRY_S = 0.0
-        rec.RESUME_AFTER_S = 0.0  # "writing again" at the second write that works
+        rec.RESUME_AFTER_S = resume_after_s
         i = 0
 
         def put() -> bool:
