@@ -44,6 +44,11 @@ _DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 Frame = bytes  # (the recorder's ``bytes`` counter hides the type in its class)
 
 
+def _fields(f: RecordingFile, reason: str, lost: int) -> dict[str, Any]:
+    """A write-failure line's figures, as keys of their own with ``--log-format json``."""
+    return {"fields": {"recording": str(f.path), "reason": reason, "frames_not_written": lost}}
+
+
 class Recorder:
     """Appends frames to a recording; thread-safe; every record reaches the OS in one write.
 
@@ -194,7 +199,8 @@ class Recorder:
             failure = f.failure = WriteFailure(reason)
             log.error("%s: cannot write: %s; counting the frames not written "
                       "(dropped_%s), trying again every %.1f s", f.path,
-                      getattr(exc, "strerror", None) or exc, reason, self.WRITE_RETRY_S)
+                      getattr(exc, "strerror", None) or exc, reason, self.WRITE_RETRY_S,
+                      extra=_fields(f, reason, 1))
         failure.reason = reason
         failure.ok_since = None
         failure.lost += 1
@@ -214,7 +220,8 @@ class Recorder:
             f.failure = None
             log.warning("%s: writing again; %d frames not written in the %.1f s before (%s)",
                         f.path, failure.lost, failure.ok_since - failure.since,
-                        failure.reason.replace("_", " "))
+                        failure.reason.replace("_", " "),
+                        extra=_fields(f, failure.reason, failure.lost))
 
     def _closing_file(self, f: RecordingFile) -> None:
         """Before ``f`` is closed: say what a write failure still going on cost."""
@@ -226,7 +233,8 @@ class Recorder:
             log.warning("%s: closed; %d frames not written since writes started failing "
                         "%.1f s before (%s)%s", f.path, failure.lost,
                         time.monotonic() - failure.since, failure.reason.replace("_", " "),
-                        "" if f.size else "; nothing was written: no file")
+                        "" if f.size else "; nothing was written: no file",
+                        extra=_fields(f, failure.reason, failure.lost))
 
     def _frame_of(self, msg: Any) -> Frame | None:
         if isinstance(msg, bytes | bytearray):

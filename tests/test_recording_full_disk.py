@@ -127,6 +127,10 @@ def test_a_recording_on_a_full_disk_leaves_no_file_and_counts_every_frame(
     assert str(path) in failed and os.strerror(errno.ENOSPC) in failed
     (closed,) = messages(caplog, "closed;")
     assert "50 frames not written" in closed and "no file" in closed
+    # with --log-format json the figures are keys of their own
+    (record,) = [r for r in caplog.records if "closed;" in r.getMessage()]
+    assert getattr(record, "fields", None) == {"recording": str(path), "reason": "disk_full",
+                                               "frames_not_written": 50}
 
 
 def test_while_writes_fail_they_are_tried_again_later_not_per_frame(small_fs: Path) -> None:
