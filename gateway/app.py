@@ -209,5 +209,8 @@ class Gateway:
             dropped = st.get("dropped", st.get("queue-full", 0) + st.get("not-ready", 0))
             parts.append(f"{name} sent {sent} dropped {dropped}")
         if self.recorder is not None:
-            parts.append(f"rec {self.recorder.records}")
+            rec = self.recorder
+            lost = {k: v for k, v in rec.dropped.items() if v}
+            parts.append(f"rec {rec.records}" + (" dropped " + " ".join(
+                f"{k.replace('_', '-')} {v}" for k, v in lost.items()) if lost else ""))
         return " | ".join(parts)

@@ -15,6 +15,7 @@ writes one file per vehicle per flight, created and closed by its writer thread.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
 import queue
@@ -25,13 +26,27 @@ from pathlib import Path
 from typing import Any
 
 from gateway.model import kind
-from gateway.recording import MAX_FRAME, RecordingError, RecordingFile, encode_record
+from gateway.recording import (
+    DISK_FULL,
+    MAX_FRAME,
+    WRITE_ERROR,
+    RecordingError,
+    RecordingFile,
+    WriteFailure,
+    encode_record,
+)
 from gateway.wire import encode
 
 log = logging.getLogger(__name__)
 
 _WAKE = object()
+_DISK_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 Frame = bytes  # (the recorder's ``bytes`` counter hides the type in its class)
+
+
+def _fields(f: RecordingFile, reason: str, lost: int) -> dict[str, Any]:
+    """A write-failure line's figures, as keys of their own with ``--log-format json``."""
+    return {"fields": {"recording": str(f.path), "reason": reason, "frames_not_written": lost}}
 
 
 class Recorder:
@@ -41,7 +56,20 @@ class Recorder:
     path) never waits: it queues the message for the writer thread, or drops and counts it
     when ``queue_depth`` messages are already waiting.  The writer thread fsyncs every
     ``fsync_interval_s`` while there is something unsynced (0 = only on close).
+
+    A write that fails (a full disk) drops its frame, counted by reason
+    (``dropped_disk_full``, ``dropped_write_error``); it is logged once when a file's writes
+    start failing and once when they have worked again for :data:`RESUME_AFTER_S` (with
+    the count lost in between); while they fail, a write is tried again every
+    :data:`WRITE_RETRY_S` (the frames in between are dropped without trying).  What a
+    failed write left is cut off, so writing resumes on whole records; no file is left that
+    holds nothing (:class:`gateway.recording.RecordingFile`).
     """
+
+    #: seconds between attempts to write to a file whose writes fail
+    WRITE_RETRY_S = 0.2
+    #: seconds writes must work in a row before a file counts as writing again
+    RESUME_AFTER_S = 2.0
 
     def __init__(self, path: str | Path, fsync_interval_s: float = 1.0,
                  queue_depth: int = 4096) -> None:
@@ -50,6 +78,8 @@ class Recorder:
         self.syncs = 0
         self.dropped_queue_full = 0
         self.dropped_at_close = 0
+        self.dropped_disk_full = 0
+        self.dropped_write_error = 0
         self.not_recordable: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._drop_lock = threading.Lock()
@@ -73,12 +103,19 @@ class Recorder:
 
     def _file_for(self, vehicle: str, t: float, new_flight: bool) -> RecordingFile | None:
         """The file a record of ``vehicle`` goes to (under the lock)."""
-        return self._file if self._file.fd >= 0 else None
+        return None if self._file.closed else self._file
 
     @property
     def paths(self) -> list[Path]:
-        """Every file this recorder wrote, in the order opened."""
-        return [f.path for f in self.files]
+        """Every file this recorder wrote (that holds records), in the order opened."""
+        return [f.path for f in self.files if f.size]
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        """The messages not recorded, by reason (``disk_full`` …; the ones not recordable
+        at all are in :attr:`not_recordable`)."""
+        return {"queue_full": self.dropped_queue_full, "at_close": self.dropped_at_close,
+                "disk_full": self.dropped_disk_full, "write_error": self.dropped_write_error}
 
     @property
     def records(self) -> int:
@@ -128,18 +165,76 @@ class Recorder:
         f = self._file_for(vehicle or source, t, new_flight)
         if f is None:
             return
+        failure = f.failure
+        if failure is not None and time.monotonic() < failure.retry_at:
+            self._drop(failure.reason)
+            failure.lost += 1
+            return
         rec = f.encode(t, frame, vehicle, source)
         try:
-            os.write(f.fd, rec)
-        except OSError as exc:
-            f.forget_bindings()
-            self.errors += 1
-            if self.errors == 1:
-                log.error("%s: write failed: %s", f.path, exc)
+            written = f.append(rec)
+        except (OSError, RecordingError) as exc:
+            self._write_failed(f, exc)
             return
+        if failure is not None:
+            self._written_while_failing(f, failure)
         f.records += 1
-        f.bytes += len(rec)
-        f.dirty = True
+        f.bytes += written
+
+    def _drop(self, reason: str) -> None:
+        if reason == DISK_FULL:
+            self.dropped_disk_full += 1
+        else:
+            self.dropped_write_error += 1
+
+    def _write_failed(self, f: RecordingFile, exc: Exception) -> None:
+        """A write to ``f`` failed: the frame is dropped, counted by reason; the first
+        failure in a row is logged, and writes are tried again :data:`WRITE_RETRY_S` later
+        (the frames meanwhile are dropped without trying)."""
+        self.errors += 1
+        reason = DISK_FULL if getattr(exc, "errno", None) in _DISK_FULL_ERRNOS else WRITE_ERROR
+        self._drop(reason)
+        failure = f.failure
+        if failure is None:
+            failure = f.failure = WriteFailure(reason)
+            log.error("%s: cannot write: %s; counting the frames not written "
+                      "(dropped_%s), trying again every %.1f s", f.path,
+                      getattr(exc, "strerror", None) or exc, reason, self.WRITE_RETRY_S,
+                      extra=_fields(f, reason, 1))
+        failure.reason = reason
+        failure.ok_since = None
+        failure.lost += 1
+        failure.retry_at = time.monotonic() + self.WRITE_RETRY_S
+
+    def _written_while_failing(self, f: RecordingFile, failure: WriteFailure,
+                               at_close: bool = False) -> None:
+        """A write worked after failures: once writes have worked for
+        :data:`RESUME_AFTER_S` in a row, say so (with the frames lost) and leave the failing
+        state; a disk with a few bytes free now and then (a small record fits, the next
+        does not) logs no pair of lines per frame.  ``at_close``: the file closes while
+        writing again; say so now."""
+        now = time.monotonic()
+        if failure.ok_since is None:
+            failure.ok_since = now
+        elif at_close or now - failure.ok_since >= self.RESUME_AFTER_S:
+            f.failure = None
+            log.warning("%s: writing again; %d frames not written in the %.1f s before (%s)",
+                        f.path, failure.lost, failure.ok_since - failure.since,
+                        failure.reason.replace("_", " "),
+                        extra=_fields(f, failure.reason, failure.lost))
+
+    def _closing_file(self, f: RecordingFile) -> None:
+        """Before ``f`` is closed: say what a write failure still going on cost."""
+        failure = f.failure
+        if failure is not None and failure.ok_since is not None:  # it was writing again
+            self._written_while_failing(f, failure, at_close=True)
+        elif failure is not None:
+            f.failure = None
+            log.warning("%s: closed; %d frames not written since writes started failing "
+                        "%.1f s before (%s)%s", f.path, failure.lost,
+                        time.monotonic() - failure.since, failure.reason.replace("_", " "),
+                        "" if f.size else "; nothing was written: no file",
+                        extra=_fields(f, failure.reason, failure.lost))
 
     def _frame_of(self, msg: Any) -> Frame | None:
         if isinstance(msg, bytes | bytearray):
@@ -218,6 +313,7 @@ class Recorder:
             self._sync()
             with self._lock:
                 for f in self.files:
+                    self._closing_file(f)
                     f.close()
             self.finished.set()
 
@@ -243,8 +339,8 @@ class Recorder:
 
     def stats(self) -> dict[str, Any]:
         return {"records": self.records, "bytes": self.bytes, "write_errors": self.errors,
-                "syncs": self.syncs, "dropped_queue_full": self.dropped_queue_full,
-                "dropped_at_close": self.dropped_at_close,
+                "syncs": self.syncs,
+                **{f"dropped_{k}": v for k, v in self.dropped.items()},
                 "not_recordable": dict(self.not_recordable)}
 
 
@@ -262,7 +358,9 @@ class DirectoryRecorder(Recorder):
     counted (``dropped_vehicle_limit``) and warned about once.  A file that cannot be created (a
     full disk) is tried again :data:`OPEN_RETRY_S` later, not at every message; meanwhile
     the vehicle's messages go on into its old file, or are dropped and counted
-    (``dropped_open_failed``); the error is logged once per vehicle."""
+    (``dropped_disk_full`` when the disk is full, else ``dropped_open_failed``); the error
+    is logged once per vehicle.  A directory that cannot be made at start because the disk
+    is full is made with the first file."""
 
     #: seconds before a vehicle's file that could not be created is tried again
     OPEN_RETRY_S = 5.0
@@ -278,11 +376,20 @@ class DirectoryRecorder(Recorder):
         self.open_errors = 0
         self._open: dict[str, RecordingFile] = {}
         self._retry_at: dict[str, float] = {}  # vehicle -> when to try its file again
+        self._full: set[str] = set()  # vehicles whose file could not be made: disk full
         self._failed: set[str] = set()  # vehicles whose file failed once (logged)
         super().__init__(directory, fsync_interval_s, queue_depth)
 
     def _open_files(self) -> None:
-        self.path.mkdir(parents=True, exist_ok=True)  # OSError: the caller's to report
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # (the caller reports any but a full disk)
+            if exc.errno not in _DISK_FULL_ERRNOS:
+                raise
+            # a full disk is no configuration error: the first recording makes it
+            log.error("%s: cannot create the directory yet (%s); trying again with the "
+                      "first recording", self.path, exc.strerror)
+            return
         if not os.access(self.path, os.W_OK | os.X_OK):
             raise PermissionError(13, "Permission denied", str(self.path))
 
@@ -294,7 +401,7 @@ class DirectoryRecorder(Recorder):
         if name in self._retry_at:
             if time.monotonic() < self._retry_at[name]:
                 if f is None:
-                    self.dropped_open_failed += 1
+                    self._drop_unopened(name)
                 return f
             del self._retry_at[name]
         if len(self.files) >= self.max_files:
@@ -320,7 +427,7 @@ class DirectoryRecorder(Recorder):
         from gateway.flight_summary import new_recording
 
         try:
-            new = RecordingFile(new_recording(self.path, t, name))
+            new = RecordingFile(new_recording(self.path, t, name), new=True)
         except (OSError, RecordingError) as exc:
             self.open_errors += 1
             now = time.monotonic()
@@ -334,16 +441,37 @@ class DirectoryRecorder(Recorder):
                           "%.0f s", self.path, name, exc,
                           f"; recording on into {old.path}" if old is not None else "",
                           self.OPEN_RETRY_S)
+            if getattr(exc, "errno", None) in _DISK_FULL_ERRNOS:
+                if len(self._full) < self.max_vehicles:
+                    self._full.add(name)
+            else:
+                self._full.discard(name)
             if old is None:
-                self.dropped_open_failed += 1
+                self._drop_unopened(name)
             return old
         if old is not None:
             self._sync_file(old)
+            if old.failure is not None:  # writes failing go on failing: no new log lines
+                new.failure, old.failure = old.failure, None
+                new.failure.retry_at = 0.0  # (the new file is tried at once)
             old.close()
-            log.info("new flight of %s: recording into %s", name, new.path)
+            log.log(logging.DEBUG if new.failure else logging.INFO,
+                    "new flight of %s: recording into %s", name, new.path)
         self._open[name] = new
         self.files.append(new)
         return new
+
+    def _drop_unopened(self, name: str) -> None:
+        """A message of ``name``, whose file could not be made: disk full, or else."""
+        if name in self._full:
+            self.dropped_disk_full += 1
+        else:
+            self.dropped_open_failed += 1
+
+    @property
+    def dropped(self) -> dict[str, int]:
+        return {**super().dropped, "vehicle_limit": self.dropped_vehicle_limit,
+                "open_failed": self.dropped_open_failed}
 
     def stats(self) -> dict[str, Any]:
         return {**super().stats(), "dropped_vehicle_limit": self.dropped_vehicle_limit,

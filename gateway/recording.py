@@ -42,7 +42,9 @@ Each record (with the names it needs) is written with one unbuffered ``write`` c
 skips what fails: a torn tail ends the replay cleanly, and corruption mid-file is passed by
 rescanning one byte at a time (the same resync rule as the wire decoder).  Opening an
 existing recording for append cuts a torn tail off first, so new records never follow
-garbage.
+garbage.  A file exists from its first record on (the header goes out with it) and a write
+that fails part-way (a full disk) is cut off again (:class:`RecordingFile`): no recording is
+empty, a bare header, or torn before its end by the writer itself.
 
 The writers, :class:`gateway.recorder.Recorder` (one file) and
 :class:`gateway.recorder.DirectoryRecorder` (``record_dir``: a file per vehicle per flight),
@@ -51,13 +53,16 @@ append through :class:`RecordingFile`.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
 import os
 import re
 import struct
+import time
 import zlib
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
@@ -338,28 +343,74 @@ def only_vehicle(recs: list[Record], vehicle: str | None, path: object = "the re
     return kept
 
 
+#: why a frame was not written: the disk (or the user's quota) is full, or any other error
+DISK_FULL, WRITE_ERROR = "disk_full", "write_error"
+
+
+@dataclass
+class WriteFailure:
+    """Writes to one file failing: why (:data:`DISK_FULL`, :data:`WRITE_ERROR`), since when
+    (monotonic), the frames not written since, when to try again."""
+
+    reason: str
+    since: float = field(default_factory=time.monotonic)
+    lost: int = 0
+    retry_at: float = 0.0
+    #: since when writes work again (None: the last one failed)
+    ok_since: float | None = None
+
+
 class RecordingFile:
     """One recording open for appending, with its name table: what the recorders write to.
-    Not thread-safe: its recorder holds a lock around it."""
+    Not thread-safe: its recorder holds a lock around it.
 
-    def __init__(self, path: str | Path) -> None:
+    A file holds whole records only, from its first one on: a new file's header goes out with
+    its first record, in the same ``write``; a file this object created is removed again
+    while nothing of it is written (it exists once a record made it: a full disk leaves no
+    empty or header-only file).  A write that fails (:meth:`append`) is cut off the file
+    again, so whatever is written later follows whole records."""
+
+    def __init__(self, path: str | Path, new: bool = False) -> None:
+        """``new``: the caller has just created the (empty) file for this object, which then
+        treats it as its own: it stays, holding the name, until the first write, and goes if
+        that fails.  Any other file that does not exist yet is made by the first record."""
         self.path = Path(path)
         self.records = 0
         self.bytes = 0
         self.dirty = False
+        #: bytes of whole records (and the header) in the file; 0: nothing written yet
+        self.size = 0
+        #: whether this object created the file (then it removes it while it is empty)
+        self.created = new
+        #: set by :meth:`close`
+        self.closed = False
+        #: while writes to it fail: why, since when, what it cost (set by the recorder)
+        self.failure: WriteFailure | None = None
         self._index: dict[str, int] = {}  # the file's name table
         self._bound: set[str] = set()  # names bound since the last repeat
         self._since_repeat = 0
         self._next = 0  # the next free index
-        self.fd = self._open()
+        try:
+            self.fd = self._open()
+        except OSError as exc:  # no inode left: as if created, and removed again
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            self.fd = -1
+        if not new:  # (created again by the first record; a new one keeps its name till then)
+            self._unlink_if_empty()
 
     def _open(self) -> int:
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_APPEND, 0o644)
+        flags = os.O_RDWR | os.O_APPEND
+        try:
+            fd = os.open(self.path, flags | os.O_CREAT | os.O_EXCL, 0o644)
+            self.created = True
+            return fd
+        except FileExistsError:
+            fd = os.open(self.path, flags | os.O_CREAT, 0o644)
         try:
             size = os.fstat(fd).st_size
             if size == 0:
-                os.write(fd, HEADER)
-                return fd
+                return fd  # the header goes out with the first record
             with open(self.path, "rb") as f:
                 data = f.read()
             if check_header(data, self.path) != VERSION:
@@ -380,10 +431,19 @@ class RecordingFile:
                 log.warning("%s: cutting %d torn bytes off the end before appending",
                             self.path, size - end)
                 os.ftruncate(fd, end)
+            self.size = end
         except Exception:
             os.close(fd)
             raise
         return fd
+
+    def _unlink_if_empty(self) -> None:
+        """Close and remove the file if this object created it and nothing is in it."""
+        if self.fd >= 0 and self.created and self.size == 0:
+            os.close(self.fd)
+            self.fd = -1
+            with contextlib.suppress(OSError):
+                self.path.unlink()
 
     def _name(self, name: str, t: float, out: list[bytes]) -> int:
         if not name:
@@ -400,24 +460,60 @@ class RecordingFile:
         return index
 
     def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "") -> bytes:
-        """A frame record with the name records it needs first (ValueError: too long)."""
+        """A frame record with the name records it needs first (and the header, when the file
+        holds nothing yet); ValueError: too long."""
         if len(frame) > MAX_FRAME:
             encode_record(t, frame)  # raises
         self._since_repeat += 1
         if self._since_repeat >= NAME_REPEAT:
             self._since_repeat = 0
             self._bound.clear()
-        out: list[bytes] = []
+        out: list[bytes] = [HEADER] if self.size == 0 else []
         vi = self._name(vehicle, t, out)
         si = self._name(source, t, out)
         out.append(encode_record(t, frame, vi, si))
         return b"".join(out) if len(out) > 1 else out[0]
+
+    def append(self, data: bytes) -> int:
+        """Write ``data`` (what :meth:`encode` made just before) at the end of the file,
+        creating it first if it does not exist yet; returns the bytes of records written (the
+        header not counted).  On failure (OSError; RecordingError when another file took its
+        place meanwhile) whatever a short write left is cut off again, every name is bound
+        again before its next use, and a file holding nothing is removed."""
+        if self.closed:
+            raise ValueError(f"{self.path}: closed")
+        header = len(HEADER) if self.size == 0 else 0
+        if self.fd < 0:
+            try:
+                self.fd = self._open()
+            except (OSError, RecordingError):
+                self.forget_bindings()
+                raise
+            if self.size:  # not the file that went: its name table is not ours
+                self.forget_bindings()
+                raise RecordingError(f"{self.path}: another recording took its place")
+        try:
+            done = os.write(self.fd, data)
+            while done < len(data):  # a short write: the disk filled up mid-record
+                done += os.write(self.fd, memoryview(data)[done:])
+        except OSError:
+            self.forget_bindings()
+            with contextlib.suppress(OSError):  # (else the reader resyncs past it)
+                os.ftruncate(self.fd, self.size)
+            self._unlink_if_empty()
+            raise
+        self.size += len(data)
+        self.dirty = True
+        return len(data) - header
 
     def forget_bindings(self) -> None:
         """After a failed write: bind every name again before its next use."""
         self._bound.clear()
 
     def close(self) -> None:
+        """Close the file (removing it if this object created it and nothing made it in)."""
+        self.closed = True
+        self._unlink_if_empty()
         if self.fd >= 0:
             os.close(self.fd)
             self.fd = -1

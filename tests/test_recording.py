@@ -395,12 +395,23 @@ def test_an_unknown_version_is_a_recording_error(tmp_path: Path, version: int) -
     assert path.read_bytes() == content
 
 
-def test_a_new_recorder_writes_the_header_to_an_empty_file(tmp_path: Path) -> None:
-    path = tmp_path / "empty.agrec"
-    path.touch()
-    Recorder(path).close()
-    assert path.read_bytes() == DOC_HEADER
-    assert os.path.getsize(path) == 12
+def test_a_recording_holds_whole_records_from_its_first_one_or_does_not_exist(
+        tmp_path: Path) -> None:
+    # (issue 23: no empty or header-only files; this test pinned a header-only file before)
+    path = tmp_path / "new.agrec"
+    rec = Recorder(path)
+    assert not path.exists()  # created by its first record
+    rec.close()
+    assert not path.exists() and rec.paths == []
+    touched = tmp_path / "empty.agrec"
+    touched.touch()  # somebody else's empty file: left as it was
+    Recorder(touched).close()
+    assert touched.read_bytes() == b""
+    rec = Recorder(touched)
+    rec.write(tframe(1), t=1.0)
+    rec.close()
+    assert touched.read_bytes() == DOC_HEADER + doc_record(1.0, tframe(1))
+    assert os.path.getsize(touched) == 12 + len(doc_record(1.0, tframe(1)))
 
 
 # -- off the hot path: submit() never waits on disk ---------------------------------------------

@@ -500,7 +500,8 @@ def _report(summary: dict[str, Any]) -> None:
     drops = []
     rec = summary.get("recorder") or {}
     rec_drops = {k: rec.get(f"dropped_{k}", 0)
-                 for k in ("queue_full", "at_close", "vehicle_limit", "open_failed")}
+                 for k in ("queue_full", "at_close", "disk_full", "write_error", "vehicle_limit",
+                           "open_failed")}
     if any(rec_drops.values()):
         drops.append("recorder " + " ".join(f"dropped_{k}={v}"
                                             for k, v in rec_drops.items() if v))
