@@ -62,7 +62,8 @@ class _ClientLines(logging.Filter):
     def __init__(self) -> None:
         super().__init__("foxglove-sdk per-client lines")
         self._lock = threading.Lock()
-        self.counts: dict[str, int] = {}
+        self.counts: dict[str, int] = {}  # since the last take()
+        self.totals: dict[str, int] = {}  # since the start
 
     def filter(self, record: logging.LogRecord) -> bool:
         kind = kind_of(record.msg if isinstance(record.msg, str) else str(record.msg))
@@ -70,6 +71,7 @@ class _ClientLines(logging.Filter):
             return True
         with self._lock:
             self.counts[kind] = self.counts.get(kind, 0) + 1
+            self.totals[kind] = self.totals.get(kind, 0) + 1
         if not logging.getLogger(record.name).isEnabledFor(logging.DEBUG):
             return False
         record.levelno, record.levelname = logging.DEBUG, "DEBUG"
@@ -98,6 +100,11 @@ def take_counts() -> dict[str, int]:
     """The per-client lines kept out since the last call, by kind (process-wide: the SDK's
     loggers are)."""
     return _FILTER.take()
+
+
+def total(kind: str) -> int:
+    """The per-client lines of ``kind`` kept out since the process started."""
+    return _FILTER.totals.get(kind, 0)
 
 
 def summary(counts: dict[str, int]) -> str:
