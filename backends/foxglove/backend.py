@@ -1,6 +1,10 @@
-"""Foxglove live backend: serves the flight on the Foxglove WebSocket protocol
-(``foxglove.websocket.v1``) with ``foxglove-sdk``'s own server, so the Foxglove app (or any
-client of that protocol) plots it live.
+"""Foxglove live backend: serves the flight on the Foxglove WebSocket protocol with
+``foxglove-sdk``'s own server, so the Foxglove app, Lichtblick (or any client of that
+protocol) plots it live.  Clients of both generations connect: the public port is a
+:class:`~backends.foxglove.relay.ProtocolRelay` in front of the SDK's server (which listens on
+a loopback port of its own), renaming ``foxglove.websocket.v1`` to the SDK's
+``foxglove.sdk.v1`` in the handshake, holding clients to the listener limits and logging them
+once per burst; the SDK's own per-client lines are kept out (:mod:`backends.foxglove.sdklog`).
 
 Channels, per vehicle (``<vehicle>``: the vehicle's name, e.g. ``sim`` or ``alpha``; one
 :class:`foxglove.Context` per backend: two gateways in one process share nothing):

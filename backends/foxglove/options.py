@@ -36,7 +36,9 @@ class FoxgloveOptions(ListenerOptions):
     port: int = option(DEFAULT_PORT, "TCP port of the WebSocket server, 0 to 65535 (0: any "
                        "free port)", validator=check_port,
                        flag=Flag("--foxglove", "serve the flight live to the Foxglove app "
-                                 "(Foxglove WebSocket protocol, foxglove-sdk) on HOST:PORT; a "
+                                 "or Lichtblick (Foxglove WebSocket protocol, foxglove-sdk; "
+                                 "clients offering foxglove.sdk.v1 or foxglove.websocket.v1) "
+                                 "on HOST:PORT; a "
                                  f"bare PORT listens on {DEFAULT_HOST} only (give "
                                  "0.0.0.0:PORT for the field network; IPv6 as [::1]:PORT); "
                                  "off by default",

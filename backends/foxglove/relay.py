@@ -151,6 +151,8 @@ class _Connection:
         self._blocked_since: float | None = None
         self._finish: Timer | None = None
         sock.setblocking(False)
+        with contextlib.suppress(OSError):  # relay each message as it comes (no Nagle wait)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._update()
 
     # -- what the server reads -----------------------------------------------------------------
@@ -211,8 +213,7 @@ class _Connection:
         elif self.up is None or self._up_shut:
             return  # the SDK's side is gone: what the client says is dropped
         else:
-            self._to_up += data
-            self._send(self.up, self._to_up)
+            self._forward(self.up, self._to_up, data)
 
     def _request(self, data: bytes) -> None:
         self._head += data
@@ -259,8 +260,7 @@ class _Connection:
             data = head + handshake.END + rest
             self._state = _RELAY
         if not self._client_shut:
-            self._to_client += data
-            self._send(self.sock, self._to_client)
+            self._forward(self.sock, self._to_client, data)
 
     def _answered(self, head: bytes) -> None:
         relay = self.relay
@@ -283,6 +283,23 @@ class _Connection:
         self._send(self.sock, self._to_client)
 
     # -- writing, interest, the end ------------------------------------------------------------
+
+    def _forward(self, sock: socket.socket, buf: bytearray, data: bytes) -> None:
+        """Send ``data`` on ``sock`` now if nothing waits before it; what it does not take
+        waits in ``buf``."""
+        if buf or (sock is self.up and self._connecting):
+            buf += data
+            return
+        try:
+            n = sock.send(data)
+        except (BlockingIOError, InterruptedError):
+            n = 0
+        if n < len(data):
+            buf += memoryview(data)[n:]
+            if buf is self._to_client:  # (nothing waited before: it starts waiting now)
+                self._blocked_since = time.monotonic()
+        elif buf is self._to_client:
+            self._blocked_since = None
 
     def _send(self, sock: socket.socket, buf: bytearray) -> None:
         if not buf or (sock is self.up and self._connecting):
