@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import logging
 import math
@@ -248,10 +249,12 @@ def test_clients_past_the_cap_are_refused_and_counted() -> None:
     backend.init()
     try:
         kept = [_handshake(backend.port) for _ in range(2)]
-        with pytest.raises(InvalidStatus, match="503"), connect(
-                f"ws://127.0.0.1:{backend.port}", open_timeout=DEADLINE_S,
-                subprotocols=[Subprotocol(handshake.SDK)]):
-            pass
+        with socket.create_connection(("127.0.0.1", backend.port), timeout=DEADLINE_S) as s:
+            s.sendall(_request(f"Sec-WebSocket-Protocol: {handshake.SDK}") + b"\r\n\r\n")
+            answer = b""
+            while chunk := s.recv(4096):
+                answer += chunk
+        assert answer.startswith(b"HTTP/1.1 503 ")
         assert backend.stats()["clients_refused"] == 1
         for sock in kept:
             sock.close()
@@ -313,3 +316,24 @@ def test_a_client_that_stops_reading_is_cut() -> None:
         sock.close()
     finally:
         dispatcher.close()
+
+
+def test_a_request_left_incomplete_is_cut_and_a_huge_one_refused() -> None:
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0, client_timeout_s=0.3))
+    backend.init()
+    try:
+        with socket.create_connection(("127.0.0.1", backend.port), timeout=DEADLINE_S) as slow:
+            slow.sendall(b"GET / HTTP/1.1\r\nHost: x\r\n")  # and nothing more
+            assert wait_for(lambda: backend.stats()["clients_cut_partial"] == 1)
+            with contextlib.suppress(ConnectionResetError):  # (a cut is a reset)
+                assert slow.recv(100) == b""
+        with socket.create_connection(("127.0.0.1", backend.port), timeout=DEADLINE_S) as big:
+            big.sendall(b"GET / HTTP/1.1\r\n" + b"X-Junk: " + b"a" * handshake.MAX_HEAD)
+            answer = b""
+            while chunk := big.recv(4096):
+                answer += chunk
+            assert answer.startswith(b"HTTP/1.1 431 ")
+        assert backend.stats()["handshakes_refused"] == 1
+        assert wait_for(lambda: backend.stats()["connections"] == 0)
+    finally:
+        backend.close()

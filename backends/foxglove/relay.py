@@ -210,8 +210,8 @@ class _Connection:
             return
         if self._state == _REQUEST:
             self._request(data)
-        elif self.up is None or self._up_shut:
-            return  # the SDK's side is gone: what the client says is dropped
+        elif self.up is None or self._up_shut or self._up_eof:
+            return  # the SDK's side has ended: what the client says is dropped
         else:
             self._forward(self.up, self._to_up, data)
 
