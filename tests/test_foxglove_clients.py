@@ -233,10 +233,17 @@ def test_the_sdks_per_client_lines_are_kept_out_and_counted(
     server.error("Server does not support time capability")  # not a client's: it passes
     assert [r.getMessage() for r in caplog.records if r.name.startswith("foxglove")] == [
         "Server does not support time capability"]
-    counts = sdklog.take_counts()
+    counts = dict(sdklog._FILTER.counts)
     assert counts == {"connection": 100, "bad_messages": 50, "dropped_slow": 50}
     assert sdklog.summary(counts) == ("50 client messages the SDK could not use, "
                                       "50 messages dropped for slow clients")
+    caplog.clear()
+    FoxgloveBackend()._log_sdk_lines()  # what the backend logs of them, once per interval
+    FoxgloveBackend()._log_sdk_lines()  # (nothing new: no line)
+    assert [r.getMessage() for r in caplog.records] == [
+        "foxglove: in the last 10 s: 50 client messages the SDK could not use, 50 messages "
+        "dropped for slow clients"]
+    assert sdklog.take_counts() == {}
     caplog.clear()
     caplog.set_level(logging.DEBUG, logger=poller.name)  # asked for: they pass, as DEBUG
     poller.info("Connection closed by client 127.0.0.1:40002")
