@@ -41,8 +41,9 @@ from gateway.vehicles import SERVICE as VEHICLES
 from gateway.vehicles import SourceVehicle
 
 DEADLINE_S = 5.0
-# The protocol's name since foxglove-sdk 0.15-ish; the SDK's server refuses the older name
-# (test_the_legacy_protocol_name_alone_is_refused), the messages are the same.
+# The protocol's name since foxglove-sdk 0.15-ish, and the older one (the messages are the
+# same): the backend serves clients offering either (test_a_client_offering_only_the_legacy_
+# name_is_served).
 SUBPROTOCOL = "foxglove.sdk.v1"
 LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 LEAVES = ("state", "altitude", "attitude", "position", "link", "status")
@@ -193,9 +194,10 @@ class FoxgloveClient:
 
 @contextlib.contextmanager
 def foxglove_client(port: int) -> Iterator[FoxgloveClient]:
-    """A client offering both names of the protocol, as the Foxglove app does."""
+    """A client offering both names of the protocol, as the Foxglove app and Lichtblick 1.22
+    do (here the older first: the SDK's is chosen all the same)."""
     with connect(f"ws://127.0.0.1:{port}", open_timeout=DEADLINE_S,
-                 subprotocols=[Subprotocol(SUBPROTOCOL), Subprotocol(LEGACY_SUBPROTOCOL)]
+                 subprotocols=[Subprotocol(LEGACY_SUBPROTOCOL), Subprotocol(SUBPROTOCOL)]
                  ) as ws:
         assert ws.subprotocol == SUBPROTOCOL
         yield FoxgloveClient(ws)
@@ -483,16 +485,44 @@ def test_a_busy_port_is_a_backend_error_naming_it() -> None:
         b.close()
 
 
-def test_the_legacy_protocol_name_alone_is_refused() -> None:
-    b = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
-    b.init()
+def test_a_client_offering_only_the_legacy_name_is_served() -> None:
+    """Clients of the older generation (Lichtblick up to 1.21, Foxglove Studio, the npm
+    ws-protocol client) offer only foxglove.websocket.v1: answered under that name (a client
+    must fail a connection named otherwise), the same flight on the same channels.  (Until
+    issue 23 the SDK's server refused them with HTTP 400.)"""
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
+    backend.attach(one_source("sim"))
+    dispatcher = Dispatcher([backend])
+    assert dispatcher.start() == []
     try:
-        with pytest.raises(InvalidStatus), connect(
-                f"ws://127.0.0.1:{b.port}", open_timeout=DEADLINE_S,
-                subprotocols=[Subprotocol(LEGACY_SUBPROTOCOL)]):
-            pass
+        with connect(f"ws://127.0.0.1:{backend.port}", open_timeout=DEADLINE_S,
+                     subprotocols=[Subprotocol(LEGACY_SUBPROTOCOL)]) as ws:
+            assert ws.subprotocol == LEGACY_SUBPROTOCOL
+            assert ws.response is not None
+            assert ws.response.headers["Sec-WebSocket-Protocol"] == LEGACY_SUBPROTOCOL
+            client = FoxgloveClient(ws)
+            assert client.server_info is not None
+            assert client.server_info["name"] == "aurora-gateway foxglove"
+            check_a_flight(backend, dispatcher, client)
+        s = backend.stats()
+        assert (s["served_legacy"], s["served_sdk"], s["handshakes_refused"]) == (1, 0, 0)
     finally:
-        b.close()
+        dispatcher.close()
+
+
+def test_a_client_offering_neither_name_is_refused() -> None:
+    backend = FoxgloveBackend(FoxgloveOptions(host="127.0.0.1", port=0))
+    backend.init()
+    try:
+        for protocols in ([Subprotocol("foxglove.websocket.v2")], None):
+            with pytest.raises(InvalidStatus, match="400"), connect(
+                    f"ws://127.0.0.1:{backend.port}", open_timeout=DEADLINE_S,
+                    subprotocols=protocols):
+                pass
+        assert wait_for(lambda: backend.stats()["handshakes_refused"] == 2)
+        assert backend.stats()["served_legacy"] == backend.stats()["served_sdk"] == 0
+    finally:
+        backend.close()
 
 
 @settings(max_examples=150, deadline=None)

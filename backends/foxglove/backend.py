@@ -1,6 +1,10 @@
-"""Foxglove live backend: serves the flight on the Foxglove WebSocket protocol
-(``foxglove.websocket.v1``) with ``foxglove-sdk``'s own server, so the Foxglove app (or any
-client of that protocol) plots it live.
+"""Foxglove live backend: serves the flight on the Foxglove WebSocket protocol with
+``foxglove-sdk``'s own server, so the Foxglove app, Lichtblick (or any client of that
+protocol) plots it live.  Clients of both generations connect: the public port is a
+:class:`~backends.foxglove.relay.ProtocolRelay` in front of the SDK's server (which listens on
+a loopback port of its own), renaming ``foxglove.websocket.v1`` to the SDK's
+``foxglove.sdk.v1`` in the handshake, holding clients to the listener limits and logging them
+once per burst; the SDK's own per-client lines are kept out (:mod:`backends.foxglove.sdklog`).
 
 Channels, per vehicle (``<vehicle>``: the vehicle's name, e.g. ``sim`` or ``alpha``; one
 :class:`foxglove.Context` per backend: two gateways in one process share nothing):
@@ -42,11 +46,16 @@ from foxglove.channels import FrameTransformChannel, LocationFixChannel
 from foxglove.messages import FrameTransform, LocationFix, Quaternion, Timestamp, Vector3
 from foxglove.websocket import ServerListener
 
+from backends.foxglove import handshake, sdklog
 from backends.foxglove.options import FoxgloveOptions
+from backends.foxglove.relay import ProtocolRelay
 from gateway.attitude import quaternion_xyzw
 from gateway.backend import Backend, BackendError, Routes
 from gateway.handover import Handover
+from gateway.io.burstlog import BURST_LOG_S
 from gateway.io.ioloop import IoLoop, Timer
+from gateway.io.server import ClientLimits, server_stats
+from gateway.io.transport import TransportError, open_tcp_listener
 from gateway.model import LinkStats, Position, SmUpdate, Status
 from gateway.vehicles import SERVICE as VEHICLES_SERVICE
 
@@ -68,6 +77,8 @@ UNNAMED = "vehicle"
 #: Seconds between two logs of the gateway's counters on ``/aurora/backends``.
 COUNTERS_INTERVAL_S = 1.0
 CLOSE_TIMEOUT_S = 0.5
+#: Where foxglove-sdk's own server listens (any free port): only the relay connects to it.
+SDK_HOST = "127.0.0.1"
 
 #: The parent frame of every vehicle's attitude transform (its child: the vehicle's name).
 PARENT_FRAME = "world"
@@ -208,6 +219,9 @@ class FoxgloveBackend(Backend):
         self._loop: IoLoop | None = None
         self._counters: Timer | None = None
         self._server: Any = None
+        self._relay: ProtocolRelay | None = None
+        self._sdk_lines: Timer | None = None
+        self.limits = ClientLimits.of(options)
         self._context: Any = None
         self._counters_channel: Any = None
         #: name → its channels (written on the backend's loop only)
@@ -224,38 +238,53 @@ class FoxgloveBackend(Backend):
         configured = self.context.services.get(VEHICLES_SERVICE) or ()
         if configured:
             self._unnamed = configured[0].vehicle or UNNAMED
+        sdklog.install()
+        try:
+            listener = open_tcp_listener(self.host, self.port)
+        except TransportError as exc:
+            raise BackendError(f"{self.name}: {exc}") from None
         self._context = foxglove.Context()
         ctx = self._context
         self._counters_channel = foxglove.Channel(
             TOPIC_BACKENDS, message_encoding="json", context=ctx,
             schema=foxglove.Schema(name=JSON_SCHEMAS[TOPIC_BACKENDS]["title"],
                                    encoding="jsonschema", data=_SCHEMA_DATA[TOPIC_BACKENDS]))
-        try:
+        try:  # the SDK's server on a loopback port of its own, behind the relay
             self._server = foxglove.start_server(
-                name=f"aurora-gateway {self.name}", host=self.host, port=self.port,
+                name=f"aurora-gateway {self.name}", host=SDK_HOST, port=0,
                 context=ctx, server_listener=self._listener,
                 message_backlog_size=self.backlog)
         except Exception as exc:
+            listener.close()
             self._close_channels()
-            raise BackendError(f"{self.name}: cannot serve on {self.host}:{self.port}: "
+            raise BackendError(f"{self.name}: cannot start foxglove-sdk's server: "
                                f"{exc}") from exc
-        self.port = self._server.port  # the one bound, when 0 asked for any
+        self.port = listener.getsockname()[1]  # the one bound, when 0 asked for any
         self._loop = loop = IoLoop(self.name)
+        self._relay = ProtocolRelay(listener, (SDK_HOST, self._server.port), loop=loop,
+                                    name=self.name, limits=self.limits)
         loop.start()
+        self._relay.start()
         self._counters = loop.call_every(COUNTERS_INTERVAL_S, self._log_counters,
                                          first=COUNTERS_INTERVAL_S)
+        self._sdk_lines = loop.call_every(BURST_LOG_S, self._log_sdk_lines, first=BURST_LOG_S)
         self.handover.open(loop)
-        log.info("%s: Foxglove WebSocket server on ws://%s:%d", self.name, self.host,
-                 self.port)
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        log.info("%s: Foxglove WebSocket server on ws://%s:%d (clients offering %s)",
+                 self.name, host, self.port, " or ".join(handshake.ACCEPTED))
 
     def close(self) -> None:
         """Log what is queued (within 0.5 s), then stop the server; safe twice."""
         self.handover.close(CLOSE_TIMEOUT_S)
-        if self._counters is not None:
-            self._counters.cancel()
-            self._counters = None
+        for timer in (self._counters, self._sdk_lines):
+            if timer is not None:
+                timer.cancel()
+        self._counters = self._sdk_lines = None
         loop, self._loop = self._loop, None
-        if loop is not None and loop.stop(CLOSE_TIMEOUT_S):
+        stopped = loop is not None and loop.stop(CLOSE_TIMEOUT_S)
+        if self._relay is not None:  # (its loop has stopped: its sockets are ours to close)
+            self._relay.close()
+        if loop is not None and stopped:
             loop.close()
         if self._server is not None:
             server, self._server = self._server, None
@@ -352,6 +381,13 @@ class FoxgloveBackend(Backend):
             self.errors += 1
             log.exception("%s: cannot log the gateway's counters", self.name)
 
+    def _log_sdk_lines(self) -> None:
+        """What the SDK's per-client lines, kept out of the log, counted (one line per
+        interval, when there were any it is the only one to see)."""
+        said = sdklog.summary(sdklog.take_counts())
+        if said:
+            log.info("%s: in the last %.0f s: %s", self.name, BURST_LOG_S, said)
+
     def wait_idle(self, timeout: float) -> bool:
         """Wait until every update handed over so far is logged (for tools and benchmarks)."""
         return self.handover.barrier(timeout)
@@ -365,10 +401,13 @@ class FoxgloveBackend(Backend):
 
     def stats(self) -> dict[str, Any]:
         h = self.handover
+        relay = self._relay
         return {"sent": self.sent, "dropped": h.dropped,
                 "errors": self.errors + h.handler_errors, "link": int(self._server is not None),
                 "clients": self._listener.clients(), **h.stats(), "port": self.port,
-                "vehicles": len(self.vehicles), "vehicles_refused": self.vehicles_refused}
+                "vehicles": len(self.vehicles), "vehicles_refused": self.vehicles_refused,
+                **(relay.stats() if relay is not None else {}),
+                **server_stats((relay.server,) if relay is not None else ())}
 
 
 def _json(channel: Any, data: dict[str, Any], log_time: int) -> None:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 from gateway.io.endpoints import TCPIN, check_host, check_port, parse_endpoint
-from gateway.options import Flag, Options, option
+from gateway.options import Flag, ListenerOptions, option
 
 #: Where the server listens when only a port (or nothing) is given: loopback, never the field
 #: network unless asked.
@@ -26,8 +26,9 @@ def _listen(text: str) -> dict[str, Any]:
 
 
 @dataclass(frozen=True, kw_only=True)
-class FoxgloveOptions(Options):
-    """``[backends.foxglove]``: the flight live in the Foxglove app."""
+class FoxgloveOptions(ListenerOptions):
+    """``[backends.foxglove]``: the flight live in the Foxglove app (``max_clients`` and
+    ``client_timeout_s``: the listener's limits, as every TCP server of the gateway has)."""
 
     TITLE: ClassVar[str] = "Foxglove backend"
     host: str = option(DEFAULT_HOST, "address to listen on (loopback by default; 0.0.0.0 for "
@@ -35,7 +36,9 @@ class FoxgloveOptions(Options):
     port: int = option(DEFAULT_PORT, "TCP port of the WebSocket server, 0 to 65535 (0: any "
                        "free port)", validator=check_port,
                        flag=Flag("--foxglove", "serve the flight live to the Foxglove app "
-                                 "(Foxglove WebSocket protocol, foxglove-sdk) on HOST:PORT; a "
+                                 "or Lichtblick (Foxglove WebSocket protocol, foxglove-sdk; "
+                                 "clients offering foxglove.sdk.v1 or foxglove.websocket.v1) "
+                                 "on HOST:PORT; a "
                                  f"bare PORT listens on {DEFAULT_HOST} only (give "
                                  "0.0.0.0:PORT for the field network; IPv6 as [::1]:PORT); "
                                  "off by default",
