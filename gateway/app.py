@@ -48,7 +48,7 @@ class Gateway:
         self.dispatcher = Dispatcher()
         self.context = GatewayContext(emit=self.ingest)
         self.context.services["gateway.stats"] = self.counters
-        self.monitor = LinkMonitor(self.dispatcher.dispatch, cfg.gateway["link_timeout_s"])
+        self.monitor = LinkMonitor(self._link_changed, cfg.gateway["link_timeout_s"])
         self.counts: Counter[str] = Counter()
         #: the recording (``record``: one file for every vehicle; ``record_dir``: one per
         #: vehicle per flight, :class:`DirectoryRecorder`)
@@ -144,7 +144,8 @@ class Gateway:
                 break
             self.monitor.check()
             if next_status is not None and now >= next_status:
-                logjson.say(self.status_line(), self.status_out)
+                text, fields = self.status()
+                logjson.say(text, self.status_out, fields=fields)
                 next_status += interval
                 if next_status < now:
                     next_status = now + interval
@@ -194,23 +195,48 @@ class Gateway:
             "blocking_calls": self.loop.blocking.stats(),
         }
 
+    def _link_changed(self, ev: Any) -> None:
+        """A link went up or down: every backend hears it; a JSON log gets a line of it too
+        (the plain log leaves that to the console backend)."""
+        if logjson.json_mode():
+            state = "up" if ev.up else f"down after {ev.silence_s:.1f} s of silence"
+            logjson.say(f"link {ev.vehicle or ev.source} {state}", self.status_out,
+                        fields={"event": "link", "source": ev.source, "vehicle": ev.vehicle,
+                                "up": ev.up, "silence_s": round(ev.silence_s, 3),
+                                "via": ev.via})
+        self.dispatcher.dispatch(ev)
+
     def status_line(self) -> str:
+        """The per-second status line."""
+        return self.status()[0]
+
+    def status(self) -> tuple[str, dict[str, Any]]:
+        """The per-second status line and its figures (the fields of its JSON form)."""
         up = time.monotonic() - (self.started_at or time.monotonic())
         c = self.counts
         parts = [f"[{up:7.1f}s] in {sum(c.values())} "
                  f"(sm {c['sm_update']} st {c['status']} raw {c['raw']})"]
-        for name, state in self.monitor.states().items():
+        links = self.monitor.states()
+        for name, state in links.items():
             parts.append(f"{name} {'up' if state else 'DOWN'}")
+        backends: dict[str, Any] = {}
         for name, st in self.dispatcher.stats().items():
             if "init_error" in st:
                 parts.append(f"{name} FAILED")
+                backends[name] = {"failed": st["init_error"]}
                 continue
             sent = st.get("sent", st.get("accepted", 0))
             dropped = st.get("dropped", st.get("queue-full", 0) + st.get("not-ready", 0))
             parts.append(f"{name} sent {sent} dropped {dropped}")
+            backends[name] = {"sent": sent, "dropped": dropped}
+        fields: dict[str, Any] = {"event": "status", "uptime_s": round(up, 3),
+                                  "messages_in": dict(c), "links": links,
+                                  "backends": backends}
         if self.recorder is not None:
             rec = self.recorder
             lost = {k: v for k, v in rec.dropped.items() if v}
             parts.append(f"rec {rec.records}" + (" dropped " + " ".join(
                 f"{k.replace('_', '-')} {v}" for k, v in lost.items()) if lost else ""))
-        return " | ".join(parts)
+            fields["recorded"] = rec.records
+            fields["recorder_dropped"] = lost
+        return " | ".join(parts), fields

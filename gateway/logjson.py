@@ -5,7 +5,8 @@ One JSON object a line: ``time`` (ISO-8601, UTC, milliseconds), ``level`` (``INF
 (the exception's traceback text) and ``stack``.  Output is ASCII: anything else is escaped,
 so the lines survive any locale.  The lines a command writes itself (``run``'s start line,
 status lines and stop report) go through :func:`say`: plain text, or in JSON mode an object of
-the same form (logger ``aurora-gateway.report``), so a JSON log holds nothing but JSON.
+the same form (logger ``aurora-gateway.report``), so a JSON log holds nothing but JSON; ``fields`` give a line's figures as keys of their own
+(:func:`jsonable` makes them plain JSON).
 
 Each record reaches the file descriptor in one ``os.write`` of the whole line (when the stream
 has one), past the stream's buffer: ``print`` writes a line's text and its newline
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import sys
 from datetime import UTC, datetime
@@ -48,8 +50,27 @@ class JsonFormatter(logging.Formatter):
             doc["stack"] = self.formatStack(record.stack_info)
         fields = getattr(record, "fields", None)  # a report line's figures (say's fields)
         if fields:
-            doc.update({k: v for k, v in fields.items() if k not in doc})
+            doc.update({k: jsonable(v) for k, v in fields.items() if k not in doc})
         return json.dumps(doc, ensure_ascii=True)
+
+
+def json_mode() -> bool:
+    """True once :func:`setup_logging` chose JSON lines."""
+    return _json_mode
+
+
+def jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON values: tuples and sets as lists, keys as strings, a float that
+    is not finite as None (JSON has no NaN), anything else as its ``str``."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple | set | frozenset):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, str | int | bool):
+        return obj
+    return str(obj)
 
 
 def write_line(stream: TextIO, line: str) -> None:

@@ -337,3 +337,31 @@ def test_json_logs_carry_the_status_lines_as_objects_too() -> None:
     status = [d for d in docs if d["message"].startswith("[")]
     assert status and all(d["logger"] == "aurora-gateway.report" and d["level"] == "INFO"
                           for d in status), docs
+
+
+def test_a_json_log_has_its_figures_as_fields_and_one_stop_object() -> None:
+    """The start line names sources and vehicles, each status line carries its counters, a
+    link change is a line of its own, and the stop report is ONE object holding the summary
+    (the plain report's lines under ``report``)."""
+    r = subprocess.run([sys.executable, "-m", "gateway", "run", "--duration", "1.6",
+                        "--log-format", "json", "--only", "console", "--status-interval", "0.5",
+                        "--source", "alpha=sim", "--source", "beta=sim", "--sim-speed", "5"],
+                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    docs = [json.loads(line) for line in _own_lines(r.stderr)]
+    events = [d.get("event") for d in docs if d["logger"] == "aurora-gateway.report"]
+    assert events[0] == "start" and events[-1] == "stop" and events.count("stop") == 1, events
+    start = docs[[d.get("event") for d in docs].index("start")]
+    assert start["sources"] == [{"name": "alpha", "vehicle": "alpha"},
+                                {"name": "beta", "vehicle": "beta"}]
+    links = [d for d in docs if d.get("event") == "link"]
+    assert {(d["vehicle"], d["up"]) for d in links} == {("alpha", True), ("beta", True)}
+    status = [d for d in docs if d.get("event") == "status"]
+    assert status and all(d["links"] == {"alpha": True, "beta": True} for d in status[1:])
+    last = status[-1]
+    assert sum(last["messages_in"].values()) > 0 and last["backends"]["console"]["sent"] > 0
+    stop = docs[-1]
+    assert stop["event"] == "stop" and stop["message"].startswith("stopped after ")
+    assert set(stop["summary"]["flights"]) == {"alpha", "beta"}
+    assert any(line.startswith("flight alpha: ") for line in stop["report"]), stop["report"]
+    assert "dropped: nothing" in stop["report"]

@@ -264,10 +264,11 @@ def test_the_json_stop_report_keys_each_flight_by_its_vehicle(tmp_path: Path) ->
                        capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     objs = [json.loads(ln) for ln in r.stderr.splitlines()]  # nothing but JSON
-    flights = {o["vehicle"]: o for o in objs if o["message"].startswith("flight ")}
+    stops = [o for o in objs if o.get("event") == "stop"]  # the stop report: one object
+    assert len(stops) == 1, objs
+    flights = stops[0]["summary"]["flights"]
     assert set(flights) == {"alpha", "beta"}
-    for name, o in flights.items():
-        assert o["message"].startswith(f"flight {name}: ")
-        figures = o["flight"]
-        assert figures["updates"] > 0 and f"{figures['updates']} updates" in o["message"]
+    for name, figures in flights.items():
+        line = next(ln for ln in stops[0]["report"] if ln.startswith(f"flight {name}: "))
+        assert figures["updates"] > 0 and f"{figures['updates']} updates" in line
         assert figures["states"][0] == "IDLE"

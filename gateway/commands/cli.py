@@ -497,6 +497,15 @@ IDENTITY_KEYS = ("impostor_frames", "rejected_signing", "unverified_systems", "s
 
 
 def _report(summary: dict[str, Any]) -> None:
+    """The stop report: plain lines; in JSON mode one object, its first line as the message,
+    the others as ``report`` and the whole summary as ``summary``."""
+    lines: list[str] = []
+
+    def line_out(text: str) -> None:
+        lines.append(text)
+        if not logjson.json_mode():
+            say(text)
+
     drops = []
     rec = summary.get("recorder") or {}
     rec_drops = {k: rec.get(f"dropped_{k}", 0)
@@ -526,32 +535,34 @@ def _report(summary: dict[str, Any]) -> None:
         if unrecordable:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
                      + ", ".join(f"{k} {v}" for k, v in sorted(unrecordable.items())) + ")")
-    say(line)
+    line_out(line)
     flights = summary.get("flights") or {}
-    for name, text in zip(flights, summary_lines(flights), strict=True):
-        say(text, fields={"vehicle": name, "flight": flights[name]})
+    for text in summary_lines(flights):
+        line_out(text)
     crc = summary.get("crc_errors") or {}
-    say(f"crc errors: {sum(crc.values())}"
-        + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""))
+    line_out(f"crc errors: {sum(crc.values())}"
+             + (f" ({', '.join(f'{k} {v}' for k, v in sorted(crc.items()))})" if crc else ""))
     for path in summary.get("recordings") or ():
-        say(f"recording: {path}", fields={"recording": path})
-    say("dropped: " + ("; ".join(drops) if drops else "nothing"))
+        line_out(f"recording: {path}")
+    line_out("dropped: " + ("; ".join(drops) if drops else "nothing"))
     refusals = [f"{name} " + " ".join(f"{k}={st[k]}" for k in SERVER_KEYS if st.get(k))
                 for name, st in summary["backends"].items()
                 if any(isinstance(st.get(k), int) and st.get(k) for k in SERVER_KEYS)]
     if refusals:  # a listener refused or cut clients (gateway.io.server)
-        say("clients: " + "; ".join(refusals))
+        line_out("clients: " + "; ".join(refusals))
     systems = [f"{name} " + ", ".join(f"{v} {s['sysid']}" for v, s in st["systems"].items())
                for name, st in summary["backends"].items()
                if isinstance(st.get("systems"), dict) and st["systems"]
                and all(isinstance(s, dict) and "sysid" in s for s in st["systems"].values())]
     if systems:  # each vehicle's MAVLink system id
-        say("systems: " + "; ".join(systems))
+        line_out("systems: " + "; ".join(systems))
     identity = [f"{name} " + " ".join(f"{k}={st[k]}" for k in IDENTITY_KEYS if st.get(k))
                 for name, st in summary["backends"].items()
                 if any(isinstance(st.get(k), int) and st.get(k) for k in IDENTITY_KEYS)]
     if identity:  # frames that claimed a vehicle's id and what came of it (MAVLink)
-        say("identity: " + "; ".join(identity))
+        line_out("identity: " + "; ".join(identity))
+    if logjson.json_mode():
+        say(lines[0], fields={"event": "stop", "report": lines[1:], "summary": summary})
 
 
 def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
@@ -561,11 +572,15 @@ def run_gateway(cfg: GatewayConfig, duration_s: float | None = None) -> int:
     with Stopper(gw.stop_event) as stopper:
         failures = gw.start()
         for name, err in failures:
-            say(f"aurora-gateway: backend {name} did not start: {err}", logging.ERROR)
+            say(f"aurora-gateway: backend {name} did not start: {err}", logging.ERROR,
+                fields={"event": "backend_failed", "backend": name, "error": err})
         names = ", ".join(p.name for p in cfg.backends) or "none"
         srcs = ", ".join(s.name if s.vehicle == s.name else f"{s.name} (vehicle {s.vehicle})"
                          for s in gw.sources) or "none"
-        say(f"aurora-gateway {__version__}: sources {srcs}; backends {names}")
+        say(f"aurora-gateway {__version__}: sources {srcs}; backends {names}",
+            fields={"event": "start", "version": __version__,
+                    "sources": [{"name": s.name, "vehicle": s.vehicle} for s in gw.sources],
+                    "backends": [p.name for p in cfg.backends]})
         try:
             gw.run(duration_s)
         finally:
