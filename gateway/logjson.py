@@ -5,8 +5,9 @@ One JSON object a line: ``time`` (ISO-8601, UTC, milliseconds), ``level`` (``INF
 (the exception's traceback text) and ``stack``.  Output is ASCII: anything else is escaped,
 so the lines survive any locale.  The lines a command writes itself (``run``'s start line,
 status lines and stop report) go through :func:`say`: plain text, or in JSON mode an object of
-the same form (logger ``aurora-gateway.report``), so a JSON log holds nothing but JSON; ``fields`` give a line's figures as keys of their own
-(:func:`jsonable` makes them plain JSON).
+the same form (logger ``aurora-gateway.report``), so a JSON log holds nothing but JSON;
+``fields`` give a line's figures as keys of their own (:func:`jsonable` makes them plain
+JSON).
 
 Each record reaches the file descriptor in one ``os.write`` of the whole line (when the stream
 has one), past the stream's buffer: ``print`` writes a line's text and its newline
