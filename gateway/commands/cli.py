@@ -800,8 +800,12 @@ def console_main() -> NoReturn:
             print(exc.code, file=sys.stderr)
     except KeyboardInterrupt:  # between main's own handler and here: still quiet
         code = EXIT_INTERRUPTED
-    except BaseException:
-        traceback.print_exc()  # os._exit below would otherwise swallow it
+    except BaseException as exc:
+        status = exits.signalled(exc)  # a signal's exception, wrapped on its way here
+        if status is not None:
+            code = status
+        else:
+            traceback.print_exc()  # os._exit below would otherwise swallow it
     finally:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(OSError, ValueError):  # a closed pipe
