@@ -1,0 +1,174 @@
+"""A recording holds every message kind (issue 24): the message records' documented layout,
+every kind recorded by the recorder and read back equal (NaN and unknown fields included),
+readers of frames only passing them over, malformed bodies skipped and counted; and the
+recordings of the previous release (tests/data, written by main's recorder before the
+change: tests/data/make_fixtures.py) reading as they did."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import zlib
+from pathlib import Path
+
+from test_recording import DOC_HEADER, doc_name, doc_record
+
+from gateway import recording
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RcChannels,
+    SmUpdate,
+    Status,
+    VehicleState,
+)
+from gateway.recorder import Recorder
+from gateway.wire import decode_all, encode
+
+DATA = Path(__file__).resolve().parent / "data"
+T0 = 1_790_000_000.0
+
+#: one message of every kind recorded as its fields, as a MAVLink source makes them
+KINDS = [
+    Position(47.397742, 8.545594, 488.123, 12.5, 3.25, 271.5, 11, 3, origin="mav",
+             vehicle="drone"),
+    Battery(12.587, 1.25, 350.0, 87, 0, origin="mav", vehicle="drone"),
+    VehicleState(True, "GUIDED", 4, 0.125, -0.25, math.nan, 12.0, None, origin="mav",
+                 vehicle="drone"),
+    RcChannels((1500, None, 2000, 988), 7, origin="crsf", vehicle="drone"),
+    LinkStats(rssi_dbm=-61.0, link_quality_pct=99, snr_db=8.5, origin="crsf", vehicle="drone"),
+    LinkEvent("mav", False, 3.0, vehicle="drone"),
+]
+
+
+def doc_message(rtype: int, t: float, fields: dict, vehicle: int = 0xFFFF,
+                source: int = 0xFFFF) -> bytes:
+    """A message record exactly as documented: type, f64 time, u16 body length, u16 vehicle
+    and source indexes, the fields as one JSON object, CRC-32 over all before."""
+    body = struct.pack("<HH", vehicle, source) + json.dumps(fields, separators=(",", ":")).encode()
+    head = bytes([rtype]) + struct.pack("<dH", t, len(body)) + body
+    return head + struct.pack("<I", zlib.crc32(head))
+
+
+def same(a: object, b: object) -> bool:
+    """Equal, NaN equal to NaN (a recorded NaN reads back as NaN)."""
+    return repr(a) == repr(b)
+
+
+def test_every_kind_is_recorded_and_reads_back_equal(tmp_path: Path) -> None:
+    path = tmp_path / "kinds.aur"
+    frame = encode(SmUpdate(1000, 2, True, 0, 10.0, 9.8, 9.7, 1.0, 0.0, 0.0, 0.0))
+    rec = Recorder(path)
+    for i, msg in enumerate([*KINDS, frame]):
+        assert rec.submit(msg, t=T0 + i)
+    rec.close()
+    assert rec.not_recordable == {}
+    stats = recording.ReadStats()
+    got = list(recording.read_records(path, stats, messages=True))
+    assert [r.t for r in got] == [T0 + i for i in range(len(KINDS) + 1)]
+    for r, sent in zip(got, KINDS, strict=False):
+        assert isinstance(r, recording.MessageRecord)
+        assert (r.vehicle, r.source) == (sent.vehicle, sent.origin)
+        assert same(r.message, sent), (r.message, sent)
+    assert got[-1] == recording.Record(T0 + len(KINDS), frame)
+    assert (stats.records, stats.messages, stats.bad_messages) == (1, len(KINDS), 0)
+
+
+def test_message_records_have_the_documented_layout(tmp_path: Path) -> None:
+    path = tmp_path / "layout.aur"
+    pos = KINDS[0]
+    rec = Recorder(path)
+    rec.write(encode(Status(5, 1, 0, 3)), t=T0, vehicle="drone", source="mav")
+    rec.close()
+    # a position after the frame, by the queue (names already bound)
+    rec = Recorder(path)
+    rec.submit(pos, t=T0 + 1)
+    rec.close()
+    data = path.read_bytes()
+    frame = encode(Status(5, 1, 0, 3))
+    fields = {"lat_deg": 47.397742, "lon_deg": 8.545594, "alt_amsl_m": 488.123,
+              "relative_alt_m": 12.5, "ground_speed_mps": 3.25, "course_deg": 271.5,
+              "satellites": 11, "fix_type": 3}
+    prefix = DOC_HEADER + doc_name(T0, 0, "drone") + doc_name(T0, 1, "mav") + \
+        doc_record(T0, frame, 0, 1)
+    assert data.startswith(prefix)
+    rest = data[len(prefix):]
+    # appending binds the names again (a new writer), then the position, type 3
+    assert rest == doc_name(T0 + 1, 0, "drone") + doc_name(T0 + 1, 1, "mav") + \
+        doc_message(3, T0 + 1, fields, 0, 1)
+
+
+def test_a_hand_made_record_of_each_type_reads_as_its_kind(tmp_path: Path) -> None:
+    """The documented type numbers, written from the docstring, not by the writer; a field
+    a later version adds is ignored, one left out takes its default."""
+    path = tmp_path / "hand.aur"
+    bodies = [
+        (3, {"lat_deg": 1.5, "lon_deg": -2, "future_field": [1, 2]}),
+        (4, {"voltage_v": 11.1, "remaining_pct": 40}),
+        (5, {"armed": False, "mode": "LOITER", "custom_mode": 5}),
+        (6, {"channels_us": [1000, None]}),
+        (7, {"rssi_dbm": -90}),
+        (8, {"source": "s", "up": True}),
+    ]
+    path.write_bytes(DOC_HEADER + doc_name(T0, 0, "copter") + b"".join(
+        doc_message(rt, T0 + i, body, 0) for i, (rt, body) in enumerate(bodies)))
+    got = [r.message for r in recording.read_records(path, messages=True)]
+    assert got == [
+        Position(1.5, -2.0, vehicle="copter"), Battery(11.1, remaining_pct=40, vehicle="copter"),
+        VehicleState(False, "LOITER", 5, vehicle="copter"),
+        RcChannels((1000, None), vehicle="copter"), LinkStats(-90.0, vehicle="copter"),
+        LinkEvent("s", True, vehicle="copter")]
+    assert type(got[1].voltage_v) is float and type(got[4].rssi_dbm) is float
+
+
+def test_malformed_message_bodies_are_skipped_and_counted(tmp_path: Path) -> None:
+    path = tmp_path / "bad.aur"
+    good = doc_message(4, T0 + 9, {"voltage_v": 12.0})
+    raw_bad = struct.pack("<HH", 0xFFFF, 0xFFFF) + b"{not json"
+    head = bytes([3]) + struct.pack("<dH", T0, len(raw_bad)) + raw_bad
+    path.write_bytes(DOC_HEADER + head + struct.pack("<I", zlib.crc32(head))
+                     + doc_message(3, T0, [1, 2])  # not an object
+                     + doc_message(3, T0, {"lon_deg": 1.0})  # lat_deg missing
+                     + doc_message(4, T0, {"voltage_v": "12 V"})  # a string for a float
+                     + doc_message(5, T0, {"armed": 1, "mode": "X"})  # an int for a bool
+                     + doc_message(6, T0, {"channels_us": [1500.5]})
+                     + good)
+    stats = recording.ReadStats()
+    got = list(recording.read_records(path, stats, messages=True))
+    assert [r.message for r in got] == [Battery(12.0)]
+    assert (stats.messages, stats.bad_messages, stats.corrupt_skips) == (7, 6, 0)
+
+
+def test_readers_of_frames_only_pass_message_records_over(tmp_path: Path) -> None:
+    path = tmp_path / "mixed.aur"
+    frame = encode(Status(5, 1, 0, 3))
+    rec = Recorder(path)
+    rec.submit(KINDS[0], t=T0)
+    rec.submit(frame, t=T0 + 1)
+    rec.submit(KINDS[1], t=T0 + 2)
+    rec.close()
+    stats = recording.ReadStats()
+    assert list(recording.read(path, stats)) == [(T0 + 1, frame)]
+    assert (stats.records, stats.messages, stats.unknown_records) == (1, 2, 0)
+
+
+# -- the previous release's recordings -------------------------------------------------------
+
+def test_the_previous_releases_recordings_read_as_they_did() -> None:
+    """flight-v1.aur (version 1) and flight-v2.aur (version 2 before issue 24: frames of
+    alpha, and of beta every other one): every frame reads, names as written."""
+    v1 = list(recording.read_records(DATA / "flight-v1.aur", messages=True))
+    v2 = list(recording.read_records(DATA / "flight-v2.aur", messages=True))
+    assert len(v1) == 102 and len(v2) == 102 + 51
+    assert all(isinstance(r, recording.Record) and r.vehicle == "" for r in v1)
+    alpha = [r for r in v2 if r.vehicle == "alpha"]
+    beta = [r for r in v2 if r.vehicle == "beta"]
+    assert [r.frame for r in alpha] == [r.frame for r in v1]
+    assert [r.t for r in alpha] == [r.t for r in v1]
+    assert [r.frame for r in beta] == [r.frame for r in v1][::2]
+    assert {r.source for r in beta} == {"serial-b"}
+    msgs = [m for r in v1 for m in decode_all(r.frame)]  # type: ignore[union-attr]
+    assert {type(m) for m in msgs} == {SmUpdate, Status}
