@@ -6,12 +6,21 @@ change: tests/data/make_fixtures.py) reading as they did."""
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 import math
+import re
+import signal
+import socket
 import struct
+import subprocess
+import time
 import zlib
 from pathlib import Path
 
+import pytest
+from helpers import GATEWAY, ROOT, Running
 from test_recording import DOC_HEADER, doc_name, doc_record
 
 from gateway import recording
@@ -172,3 +181,92 @@ def test_the_previous_releases_recordings_read_as_they_did() -> None:
     assert {r.source for r in beta} == {"serial-b"}
     msgs = [m for r in v1 for m in decode_all(r.frame)]  # type: ignore[union-attr]
     assert {type(m) for m in msgs} == {SmUpdate, Status}
+
+
+# -- done when: a MAVLink vehicle's flight recorded and exported ---------------------------------
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def test_a_mavlink_vehicles_positions_batteries_and_states_are_recorded_and_exported(
+        tmp_path: Path) -> None:
+    """``record --source mavlink:udpin:…`` while a pymavlink vehicle sends HEARTBEAT,
+    GLOBAL_POSITION_INT, ATTITUDE, SYS_STATUS and BATTERY_STATUS: ``export --format csv``
+    of the recording shows the positions, batteries and vehicle states that were sent, each
+    row's values those of a message sent (every message sent carries values of its own)."""
+    from mavlink_peer import MavPeer, upstream_dialect
+
+    dev = upstream_dialect()
+    port = _free_udp_port()
+    out = tmp_path / "drone.aur"
+    p = Running("record", str(out), "--source", f"mavlink:udpin:127.0.0.1:{port}",
+                "--status-interval", "0.1", "--duration", "60")
+    veh = MavPeer(1, 1, dest=("127.0.0.1", port))
+    armed = dev.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | dev.MAV_MODE_FLAG_SAFETY_ARMED
+    positions: dict[int, tuple[float, ...]] = {}  # lat e7 -> (lat, lon, alt, rel alt)
+    attitudes: set[tuple[float, float]] = set()
+    volts: set[float] = set()
+
+    def recorded(ln: str) -> bool:
+        m = re.search(r"\| rec (\d+)$", ln)
+        return m is not None and int(m.group(1)) >= 40
+
+    try:
+        deadline = time.monotonic() + 30
+        k = 0
+        while not p.wait_line("stderr", recorded, 0.05):
+            assert time.monotonic() < deadline, p.text("stderr")[-2000:]
+            k += 1
+            veh.send(dev.MAVLink_heartbeat_message(dev.MAV_TYPE_QUADROTOR,
+                                                   dev.MAV_AUTOPILOT_ARDUPILOTMEGA, armed, 4,
+                                                   dev.MAV_STATE_ACTIVE, 3))
+            roll, pitch = 0.001 * k, -0.002 * k  # f32 on the wire: kept as sent below
+            veh.send(dev.MAVLink_attitude_message(k, roll, pitch, 1.5, 0, 0, 0))
+            attitudes.add((struct.unpack("<f", struct.pack("<f", roll))[0],
+                           struct.unpack("<f", struct.pack("<f", pitch))[0]))
+            lat, lon = 473977420 + 10 * k, 85455940 - 10 * k
+            veh.send(dev.MAVLink_global_position_int_message(
+                k, lat, lon, 500000 + k, 20000 + k, 300, -400, -250, 9000))
+            positions[lat] = (lat / 1e7, lon / 1e7, (500000 + k) / 1000, (20000 + k) / 1000)
+            veh.send(dev.MAVLink_sys_status_message(0, 0, 0, 0, 11000 + k, 1500, 80, 0, 0, 0,
+                                                    0, 0, 0))
+            volts.add(round((11000 + k) / 1000, 6))
+            veh.send(dev.MAVLink_battery_status_message(
+                0, 0, 0, 0x7FFF, [4100 + k] * 3 + [0xFFFF] * 7, 1530, 420, -1, 76))
+            volts.add(round(3 * (4100 + k) / 1000, 6))
+        p.proc.send_signal(signal.SIGINT)
+        assert p.finish(10) == 130, p.text("stderr")[-2000:]
+    finally:
+        veh.close()
+        p.kill()
+    assert "not recorded" not in p.text("stderr")
+    done = subprocess.run([*GATEWAY, "export", str(out), "--format", "csv"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    rows = list(csv.DictReader(io.StringIO(done.stdout)))
+    by_kind: dict[str, list[dict[str, str]]] = {}
+    for row in rows:
+        by_kind.setdefault(row["kind"], []).append(row)
+    assert {"position", "battery", "vehicle_state"} <= set(by_kind), done.stdout[:500]
+    for row in by_kind["position"]:
+        lat, lon, alt, rel = positions[round(float(row["lat"]) * 1e7)]
+        assert (float(row["lat"]), float(row["lon"])) == pytest.approx((lat, lon), abs=1e-9)
+        assert (float(row["alt_amsl"]), float(row["relative_alt"])) == pytest.approx(
+            (alt, rel))
+        assert row["ground_speed"] and float(row["ground_speed"]) == pytest.approx(5.0)
+    for row in by_kind["battery"]:
+        assert round(float(row["voltage"]), 6) in volts, row
+        # SYS_STATUS's (80 %, 15.0 A), BATTERY_STATUS's (76 %, 15.3 A)
+        assert (row["remaining"], row["current"]) in {("80", "15.0"), ("76", "15.3")}, row
+    for row in by_kind["vehicle_state"]:
+        assert (row["armed"], row["mode"], row["custom_mode"]) == ("1", "GUIDED", "4")
+        if row["roll_deg"]:
+            got = (math.radians(float(row["roll_deg"])), math.radians(float(row["pitch_deg"])))
+            assert any(got == pytest.approx(a, abs=1e-12) for a in attitudes), got
+    assert any(r["roll_deg"] for r in by_kind["vehicle_state"])
+    assert len({r["vehicle"] for r in rows}) == 1 and rows[0]["vehicle"]
+    assert len(by_kind["position"]) >= 2 and len(by_kind["battery"]) >= 10
+    assert f"position {len(by_kind['position'])}" in done.stderr
