@@ -33,6 +33,7 @@ from gateway.model import (
     LinkEvent,
     LinkStats,
     Position,
+    RawFrame,
     RcChannels,
     SmUpdate,
     Status,
@@ -373,3 +374,94 @@ def test_every_kind_replays_as_itself_of_its_vehicle(tmp_path: Path) -> None:
         assert m.origin == "replay:kinds.aur"
     (st,) = summary["sources"].values()
     assert st["messages"] == len(KINDS) and st["link_events_skipped"] == 1
+
+
+def _recording_of_every_kind(path: Path) -> bytes:
+    """A recording of an SM update, a raw frame of no known type, then every other kind."""
+    frame = encode(SmUpdate(1000, 2, True, 0, 10.0, 9.8, 9.7, 1.0, 0.0, 0.0, 0.0))
+    raw = encode(RawFrame(0x42, b"who knows"))
+    rec = Recorder(path)
+    rec.write(frame, t=T0, vehicle="drone", source="mav")
+    rec.write(raw, t=T0 + 0.5, vehicle="drone", source="mav")
+    rec.close()
+    rec = Recorder(path)
+    for i, msg in enumerate(KINDS):
+        rec.submit(msg, t=T0 + 1 + i)
+    rec.close()
+    return frame
+
+
+def test_mcap_has_a_channel_for_every_kind_and_counts_what_it_skips(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    src, out = tmp_path / "kinds.aur", tmp_path / "kinds.mcap"
+    _recording_of_every_kind(src)
+    done = _cli("export", str(src), "-o", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "skipped (no channel): RawFrame 1" in done.stderr
+    got: dict[str, list[dict[str, Any]]] = {}
+    with out.open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            got.setdefault(channel.topic, []).append(json.loads(message.data))
+            assert schema is not None
+    pos, = got["/aurora/drone/position"]
+    assert (pos["latitude"], pos["longitude"], pos["altitude"]) == (47.397742, 8.545594,
+                                                                     488.123)
+    assert got["/aurora/drone/battery"][0]["voltage_v"] == 12.587
+    state, = got["/aurora/drone/vehicle"]
+    assert (state["armed"], state["mode"], state["roll_rad"], state["yaw_rad"]) == (
+        True, "GUIDED", 0.125, None)  # (NaN: null in JSON)
+    assert len(got["/aurora/drone/attitude"]) == 2  # the SM update's and the state's
+    assert got["/aurora/drone/rc"] == [{"channels_us": [1500, None, 2000, 988], "seq": 7}]
+    assert got["/aurora/drone/link"][0]["rssi_dbm"] == -61.0
+    assert {"source": "mav", "up": False, "silence_s": 3.0} in got["/aurora/link_events"]
+
+
+def test_csv_and_jsonl_show_every_kind_and_count_raw_frames_skipped(tmp_path: Path) -> None:
+    src = tmp_path / "kinds.aur"
+    _recording_of_every_kind(src)
+    done = _cli("export", str(src), "--format", "csv")
+    assert done.returncode == 0, done.stderr
+    assert "skipped 1 frames of no known type (raw)" in done.stderr
+    rows = list(csv.DictReader(io.StringIO(done.stdout)))
+    assert [r["kind"] for r in rows] == ["sm_update", "position", "battery", "vehicle_state",
+                                         "rc_channels", "link_stats", "link"]
+    sm, pos, bat, vs, rc, ls, link = rows
+    assert (sm["altitude_m"], sm["state_name"], sm["lat"]) == ("10.0", "BOOST", "")
+    assert (pos["lat"], pos["lon"], pos["alt_amsl"], pos["satellites"]) == (
+        "47.397742", "8.545594", "488.123", "11")
+    assert (bat["voltage"], bat["current"], bat["consumed"], bat["remaining"]) == (
+        "12.587", "1.25", "350.0", "87")
+    assert (vs["armed"], vs["mode"], vs["yaw_deg"], vs["climb"]) == ("1", "GUIDED", "nan", "")
+    assert float(vs["roll_deg"]) == pytest.approx(math.degrees(0.125))
+    assert (rc["channels"], rc["seq"], ls["rssi_dbm"]) == ("1500 - 2000 988", "7", "-61.0")
+    assert (link["link_source"], link["up"], link["silence_s"]) == ("mav", "0", "3.0")
+    assert {r["vehicle"] for r in rows} == {"drone"} and pos["source"] == "mav"
+    done = _cli("export", str(src), "--format", "jsonl", "--kind", "position",
+                "--kind", "battery")
+    lines = [json.loads(ln) for ln in done.stdout.splitlines()]
+    assert [ln["kind"] for ln in lines] == ["position", "battery"]
+    assert lines[0]["lat"] == 47.397742 and "altitude_m" not in lines[0]
+    assert lines[1]["voltage"] == 12.587 and lines[1]["lat"] is None
+    done = _cli("export", str(src), "--format", "csv", "--kind", "rc_channels")
+    assert done.stdout.splitlines()[0] == "t_s,rx_time,vehicle,kind,source,channels,seq"
+
+
+def test_plot_draws_the_sm_updates_and_counts_the_kinds_it_cannot_show(
+        tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    src, png = tmp_path / "kinds.aur", tmp_path / "kinds.png"
+    _recording_of_every_kind(src)
+    done = _cli("plot", str(src), "-o", str(png), "--all")
+    assert done.returncode == 0, done.stderr
+    assert png.stat().st_size > 0
+    assert ("not drawn: position 1, battery 1, vehicle_state 1, rc_channels 1, link_stats 1, "
+            "link 1, raw 1") in done.stderr
+    # a recording of a MAVLink vehicle alone: nothing to draw, said with what it holds
+    only = tmp_path / "drone.aur"
+    rec = Recorder(only)
+    rec.submit(KINDS[0], t=T0)
+    rec.close()
+    done = _cli("plot", str(only), "-o", str(png))
+    assert done.returncode == 2
+    assert "no SM updates to plot (not drawn: position 1)" in done.stderr

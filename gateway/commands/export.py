@@ -308,7 +308,9 @@ def load(path: str | Path, vehicle: str | None = None) -> Flight:
                 msg = msg._replace(origin=source)
             flight.messages.append((t, msg))
             if isinstance(msg, SmUpdate):
-                flight.rows.append(row_of(round(t - t0, 6), t, msg, health.get(name)))
+                row = row_of(round(t - t0, 6), t, msg, health.get(name))
+                row["kind"], row["source"] = "sm_update", source  # (for a mixed export)
+                flight.rows.append(row)
                 flight.kinds["sm_update"] += 1
             elif isinstance(msg, Status):
                 flight.statuses += 1
@@ -503,7 +505,9 @@ def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
         return EXIT_FAILURE
     topics = ", ".join(f"{t} {n}" for t, n in written.counts.items())
     notes = flight.notes()
-    print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
-          f"of {_vehicles(flight)} as mcap to {args.output}: {topics or 'no messages'}"
+    skipped = ", ".join(f"{k} {n}" for k, n in written.skipped.items())
+    print(f"aurora-gateway export: {flight.kinds['sm_update']} SM updates ({flight.statuses} "
+          f"STATUS) of {_vehicles(flight)} as mcap to {args.output}: "
+          f"{topics or 'no messages'}" + (f"; skipped (no channel): {skipped}" if skipped else "")
           + (f"; {notes}" if notes else ""), file=sys.stderr)
     return 0
