@@ -245,3 +245,37 @@ def test_a_ground_station_gets_the_flight_at_the_recorded_rate(tmp_path: Path) -
     assert [m.relative_alt for _, m in timed] == [i * 1000 for i in range(31)]  # as recorded
     span = timed[-1][0] - timed[0][0]
     assert span == pytest.approx(3.0, rel=0.05)
+
+
+def test_loop_starts_again_and_stop_ends_it(tmp_path: Path) -> None:
+    """``loop``: the log again and again, flight time running on (the second pass's positions
+    come through the rate limits like the first's); stop() ends it promptly."""
+    w = copter_flight(seconds=1.0)
+    path = tmp_path / "flight.tlog"
+    path.write_bytes(w.data)
+    source = TlogSource(TlogSourceOptions(path=str(path), speed=0.0, loop=True))
+    sink = Collected()
+    source.start(sink)
+    try:
+        assert wait_for(lambda: source.frames >= 3 * w.frames, WAIT)
+        assert not source.done.is_set()
+    finally:
+        source.stop()
+    assert source.done.is_set()
+    alts = [p.relative_alt_m for p in sink.of(Position)]
+    restarts = sum(1 for a, b in zip(alts, alts[1:], strict=False) if b < a)
+    assert restarts >= 2 and alts.count(10.0) >= 2  # every pass, to its end
+
+
+def test_stop_in_the_middle_of_a_real_time_replay(tmp_path: Path) -> None:
+    path = tmp_path / "flight.tlog"
+    path.write_bytes(copter_flight(seconds=60.0).data)
+    source = TlogSource(TlogSourceOptions(path=str(path)))
+    sink = Collected()
+    source.start(sink)
+    assert wait_for(lambda: bool(sink.of(Position)), WAIT)
+    source.stop(timeout=1.0)
+    assert source.done.is_set()
+    frames = source.frames
+    assert frames < copter_flight(seconds=60.0).frames  # not the whole minute
+    assert not wait_for(lambda: source.frames > frames, 0.5)  # and nothing after the stop

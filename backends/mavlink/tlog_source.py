@@ -274,6 +274,7 @@ class TlogSource(Source):
                             stats.corrupt_skips, stats.bytes_skipped, stats.torn_tail_bytes)
             if not self.loop or first is None:
                 return
+            self._collect()  # the last of each, before the next pass replaces it
 
     def _deliver(self, t: float, frame: bytes) -> None:  # the hub's loop
         router = self.router
@@ -293,11 +294,14 @@ class TlogSource(Source):
             self.emit(pending.popleft())
             self.emitted += 1
 
-    def _ended(self) -> None:
+    def _collect(self) -> None:  # the hub's loop
         router = self.router
         if router is not None:
-            router.collect(self.listener)  # the last of each
+            router.collect(self.listener)
             self._emit_pending()
+
+    def _ended(self) -> None:
+        self._collect()  # the last of each
         log.info("source %s: end of %s: %d frames", self.name, self.path, self.frames)
         self.finish()
 
