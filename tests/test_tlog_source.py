@@ -7,6 +7,7 @@ frame (packed by pymavlink) after its 8-byte big-endian UNIX time in microsecond
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import struct
@@ -263,7 +264,7 @@ def test_loop_starts_again_and_stop_ends_it(tmp_path: Path) -> None:
         source.stop()
     assert source.done.is_set()
     alts = [p.relative_alt_m for p in sink.of(Position)]
-    restarts = sum(1 for a, b in zip(alts, alts[1:], strict=False) if b < a)
+    restarts = sum(1 for a, b in itertools.pairwise(alts) if b < a)
     assert restarts >= 2 and alts.count(10.0) >= 2  # every pass, to its end
 
 
