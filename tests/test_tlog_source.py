@@ -11,7 +11,10 @@ import itertools
 import json
 import socket
 import struct
+import subprocess
+import sys
 import threading
+import time
 import urllib.request
 from pathlib import Path
 from typing import Any
@@ -19,6 +22,9 @@ from typing import Any
 import pytest
 from helpers import Running, wait_for
 from mavlink_peer import MavPeer, upstream_dialect
+from test_mavlink_mavproxy import Output, needs_mavproxy
+from test_mavlink_mavproxy import _env as mavproxy_env
+from test_mavlink_mavproxy import _stop as stop_mavproxy
 
 from backends.mavlink.dialect import mav
 from backends.mavlink.options import TlogSourceOptions
@@ -280,3 +286,58 @@ def test_stop_in_the_middle_of_a_real_time_replay(tmp_path: Path) -> None:
     frames = source.frames
     assert frames < copter_flight(seconds=60.0).frames  # not the whole minute
     assert not wait_for(lambda: source.frames > frames, 0.5)  # and nothing after the stop
+
+
+@needs_mavproxy
+def test_a_telemetry_log_written_by_mavproxy_replays_frame_for_frame(tmp_path: Path) -> None:
+    """The field's own writer: a stock MAVProxy logs a pymavlink vehicle; that ``.tlog``
+    served by ``--source tlog:`` reaches a ground station as pymavlink's own log reader
+    (mavutil) reads the file, and its last position is the gateway's too."""
+    from pymavlink import mavutil
+
+    port = free_port()
+    log_path = tmp_path / "mav.tlog"
+    mavproxy = subprocess.Popen(
+        [sys.executable, "-m", "MAVProxy.mavproxy", f"--master=udpin:127.0.0.1:{port}",
+         "--daemon", "--non-interactive", f"--logfile={log_path}"],
+        cwd=tmp_path, env=mavproxy_env(tmp_path), stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    out = Output(mavproxy)
+    try:
+        deadline = time.monotonic() + 60.0
+        assert out.wait_for("Waiting for heartbeat", deadline), out.text
+        with MavPeer(1, 1, dest=("127.0.0.1", port)) as vehicle:
+            vehicle.send(dev.MAVLink_heartbeat_message(
+                dev.MAV_TYPE_QUADROTOR, dev.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                dev.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 5, dev.MAV_STATE_ACTIVE, 3))
+            for i in range(31):
+                vehicle.send(dev.MAVLink_global_position_int_message(
+                    i * 100, 473_977_000 + i, 85_455_000, 500_000 + i * 1000, i * 1000, 0, 0,
+                    0, 9000))
+            vehicle.send(dev.MAVLink_statustext_message(dev.MAV_SEVERITY_INFO, b"logged"))
+            assert out.wait_for("logged", deadline), out.text  # (all before it, in order)
+    finally:
+        stop_mavproxy(mavproxy)  # it writes its log out as it exits
+        out.join(5)
+        if mavproxy.stdout is not None:
+            mavproxy.stdout.close()
+    reader = mavutil.mavlink_connection(str(log_path), dialect="development")
+    in_file = []
+    while (m := reader.recv_match()) is not None:
+        if m.get_srcSystem() == 1:  # the vehicle's (MAVProxy's own are addressed to it)
+            in_file.append(m.get_type())
+    assert in_file.count("GLOBAL_POSITION_INT") == 31 and "STATUSTEXT" in in_file
+
+    with MavPeer(255, 190) as gcs:
+        r = Running("run", "--source", f"tlog:{log_path}", "--only", "mavlink", "--only",
+                    "console", "--mavlink", f"udpout:127.0.0.1:{gcs.port}", "--tlog-speed", "0")
+        try:
+            assert r.finish(WAIT + 10) == 0, r.text("stderr")
+        finally:
+            r.stop()
+        assert gcs.wait_until(lambda: len(gcs.messages("STATUSTEXT")) >= 1, WAIT)
+        served = [m.get_type() for m in gcs.messages() if m.get_srcSystem() == 1]
+        last = gcs.messages("GLOBAL_POSITION_INT")[-1]
+    assert served == in_file
+    assert last.relative_alt == 30_000
+    assert "following vehicle 1 as mav-1" in r.text("stderr")
