@@ -169,6 +169,7 @@ def test_corrupt_stretches_and_a_torn_tail_are_counted_and_skipped(tmp_path: Pat
     st = source.stats()
     assert st["corrupt_skips"] == 1 and st["bytes_skipped"] == len(garbage)
     assert st["torn_tail_bytes"] == 20
+    assert st["crc_failures"] == 1  # (the stop report's "crc errors")
     assert st["records"] == w.frames  # every good record replayed
     assert sink.of(Position)[-1].relative_alt_m == pytest.approx(10.0)
 

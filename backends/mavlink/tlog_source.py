@@ -333,4 +333,7 @@ class TlogSource(Source):
         return {"frames": self.frames, "emitted": self.emitted, "records": st.records,
                 "corrupt_skips": st.corrupt_skips, "bytes_skipped": st.bytes_skipped,
                 "torn_tail_bytes": st.torn_tail_bytes, "unknown_ids": st.unknown_ids,
+                # each corrupt stretch starts at a record failing its frame check: the stop
+                # report's "crc errors" count them
+                "crc_failures": st.corrupt_skips,
                 "systems": systems, "systems_ignored": self.listener.systems_ignored}
