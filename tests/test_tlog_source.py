@@ -234,25 +234,29 @@ def test_the_status_page_shows_the_replayed_flight(tmp_path: Path) -> None:
         r.stop()
 
 
-def test_a_ground_station_gets_the_flight_at_the_recorded_rate(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("seconds", "speed"), [(3.0, 1.0), (6.0, 2.0)])
+def test_a_ground_station_gets_the_flight_at_the_recorded_rate(
+        tmp_path: Path, seconds: float, speed: float) -> None:
     """The issue's check: ``--source tlog:`` serves the flight to a pymavlink listener at the
-    recorded rate within 5 % (the span of the frames received against the log's, 3 s)."""
-    flight = copter_flight(seconds=3.0)
+    recorded rate within 5 % (the span of the frames received against the log's), or N times
+    faster with ``--tlog-speed N`` (each a 3 s replay)."""
+    flight = copter_flight(seconds=seconds)
     path = tmp_path / "flight.tlog"
     path.write_bytes(flight.data)
     with MavPeer(255, 190) as gcs:
         r = Running("run", "--source", f"tlog:{path}", "--only", "mavlink",
-                    "--mavlink", f"udpout:127.0.0.1:{gcs.port}")
+                    "--mavlink", f"udpout:127.0.0.1:{gcs.port}", "--tlog-speed", f"{speed:g}")
         try:
             assert r.finish(WAIT + 10) == 0, r.text("stderr")
         finally:
             r.stop()
-        assert gcs.wait_until(lambda: len(gcs.timed("GLOBAL_POSITION_INT")) >= 31, WAIT)
+        n = round(seconds * 10) + 1
+        assert gcs.wait_until(lambda: len(gcs.timed("GLOBAL_POSITION_INT")) >= n, WAIT)
         timed = [(t, m) for t, m in gcs.timed("GLOBAL_POSITION_INT")
                  if m.get_srcSystem() == 1]
-    assert [m.relative_alt for _, m in timed] == [i * 1000 for i in range(31)]  # as recorded
+    assert [m.relative_alt for _, m in timed] == [i * 1000 for i in range(n)]  # as recorded
     span = timed[-1][0] - timed[0][0]
-    assert span == pytest.approx(3.0, rel=0.05)
+    assert span == pytest.approx(seconds / speed, rel=0.05)
 
 
 def test_loop_starts_again_and_stop_ends_it(tmp_path: Path) -> None:
