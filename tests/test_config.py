@@ -337,9 +337,13 @@ def test_the_example_file_is_valid_with_every_commented_key_switched_on(
     rec = Recorder(replay)  # the example's path names a recording the user has
     rec.write(b"\xa5\x5a\x7f\x00\xb4\x83")  # (a file exists from its first record on)
     rec.close()
+    tlog = tmp_path / "flight.tlog"
+    tlog.write_bytes(b"")  # (an empty telemetry log is one: it replays nothing)
     for table in data["sources"]:
         if table["type"] == "replay":
             table["path"] = str(replay)
+        if table["type"] == "tlog":
+            table["path"] = str(tlog)
     cfg = parse(data)
     assert {p.type for p in cfg.sources} == set(registry.source_names())
     assert {p.type for p in cfg.backends} == {"console"}  # the others are shown disabled

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from gateway.io.endpoints import KINDS, list_validator, text_of, validator
-from gateway.options import ConfigError, Flag, ListenerOptions, Options, option
+from gateway.options import ConfigError, Flag, ListenerOptions, Options, lazy, option
 
 #: The default endpoint: QGroundControl on this machine.
 QGC_UDP = "udpout:127.0.0.1:14550"
@@ -134,3 +134,22 @@ class MavlinkSourceOptions(Options):
 
     def check(self) -> None:
         _one_signing(self)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TlogSourceOptions(Options):
+    """``[[sources]] type = "tlog"``: a MAVLink telemetry log (``.tlog``) replayed as the
+    vehicles it recorded."""
+
+    TITLE: ClassVar[str] = "telemetry log source"
+    path: str = option(help="telemetry log: each MAVLink frame after its 8-byte big-endian "
+                       "UNIX time in microseconds (MAVProxy, QGroundControl, mavlink-router, "
+                       "run --tlog, export --format tlog)",
+                       validator=lazy("backends.mavlink.tlog_source:check_file"))
+    speed: float = option(1.0, "1 = the recorded speed, N = N times faster, 0 = as fast as "
+                          "possible", minimum=0,
+                          flag=Flag("--tlog-speed", "replay --source tlog:FILE N times faster "
+                                    "(0 = as fast as possible)", metavar="N"))
+    loop: bool = option(False, "start again at the end")
+    rate_hz: float = option(10.0, "most vehicle-state and position messages per second of "
+                            "flight time", minimum=0.1, maximum=1000)
