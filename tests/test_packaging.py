@@ -136,8 +136,9 @@ def test_the_files_for_the_user_exist() -> None:
 SHIM = ("import sys\n"
         "for name in sys.argv[1].split(','):\n"
         "    sys.modules[name] = None  # import name: ModuleNotFoundError, as on a base install\n"
-        "from gateway.commands.cli import main\n"
-        "sys.exit(main(sys.argv[2:]))\n")
+        "from gateway.commands.cli import console_main\n"
+        "sys.argv = ['aurora-gateway', *sys.argv[2:]]\n"
+        "console_main()  # as the console script: no interpreter teardown (Zenoh's threads)\n")
 
 
 def without(modules: str, *argv: str | Path, cwd: Path) -> subprocess.CompletedProcess[str]:
