@@ -18,9 +18,11 @@ from backends.mavlink.endpoints import (
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.options import QGC_UDP, MavlinkOptions
 from backends.mavlink.router import LAST_ID, Router
+from backends.mavlink.tlog import TlogWriter
 from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__, vehicles
 from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.flight_summary import FlightSummary
 from gateway.handover import Handover
 from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import KINDS, list_validator
@@ -117,6 +119,10 @@ class MavlinkBackend(Backend):
         self._started_at = 0.0
         self._next_expiry = 0.0
         self.not_repeated = 0
+        #: ``tlog``: the telemetry log's writer (the router's tap), and the flights that
+        #: start its next file (a vehicle arming on the pad after a flight)
+        self.tlog: TlogWriter | None = None
+        self._flights = FlightSummary()
 
     @property
     def vehicle(self) -> AuroraVehicle | None:
@@ -188,6 +194,15 @@ class MavlinkBackend(Backend):
                 self._vacant[source] = node
             if planned and "" not in self.nodes:
                 self.nodes[""] = self._node_list[0]  # what comes without a vehicle name
+        if self.options.tlog:
+            try:
+                self.tlog = TlogWriter(self.options.tlog, self.name)
+            except OSError as exc:
+                self._leave(hub)
+                raise BackendError(f"tlog: cannot write telemetry logs into "
+                                   f"{self.options.tlog}: {exc.strerror or exc}") from None
+            with router.lock:
+                router.tap = self.tlog.frame
         try:
             endpoints = hub.open(self.specs, GCS, self.serial_queue_depth, self.limits)
         except OSError as exc:
@@ -210,6 +225,14 @@ class MavlinkBackend(Backend):
             for node in self._node_list:
                 hub.remove(node)
         hub.leave(None, endpoints or [])
+        tlog = self.tlog  # (kept: its figures are the stop report's)
+        if tlog is not None and not tlog.closed:
+            with hub.router.lock:
+                if hub.router.tap == tlog.frame:
+                    hub.router.tap = None
+            tlog.close()
+            for path in tlog.paths:
+                log.info("%s: telemetry log %s", self.name, path)
 
     def close(self) -> None:
         hub, self.hub = self.hub, None
@@ -351,6 +374,9 @@ class MavlinkBackend(Backend):
         self.emit(RcChannels(channels, origin=self.name, vehicle=vehicle))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
+        tlog = self.tlog
+        if tlog is not None and self._flights.feed(msg):
+            tlog.new_flight()  # (before this update's frames: they open the new file)
         node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_sm_update(msg))
@@ -428,4 +454,12 @@ class MavlinkBackend(Backend):
                 d["signing"] = self.router.verifier.stats.as_dict()
         d["vehicle"] = dict(first.stats.__dict__) if first is not None else {}
         d["systems"] = systems
+        tlog = self.tlog
+        if tlog is not None:
+            # what the telemetry log lost, by reason (disk_full as dropped_disk_full: the
+            # stop report's dropped line), also in the backend's total
+            for reason, n in tlog.dropped.items():
+                d["dropped_disk_full" if reason == "disk_full" else f"dropped_tlog_{reason}"] = n
+            d["dropped"] += sum(tlog.dropped.values())
+            d["tlog"] = {**tlog.stats(), "files": [str(p) for p in tlog.paths]}
         return d
