@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 from collections import Counter
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,9 @@ def test_run_tlog_holds_every_frame_that_crossed_the_gateway_once(tmp_path: Path
             assert wait_for(lambda: len(vehicle.from_gcs()) >= 10, WAIT)
             assert gcs.wait_for("COMMAND_ACK", count=10, timeout=WAIT)
             assert gcs.wait_until(lambda: len(gcs.messages("ATTITUDE")) >= 40, WAIT)
+            # the gateway's own heartbeat (its MAVLink source's, to the vehicle) has gone out
+            assert vehicle.wait_for("HEARTBEAT", lambda m: m.get_srcSystem() not in (1, 255),
+                                    timeout=WAIT)
             assert proc.poll() is None
         assert proc.returncode in (0, 130), (tmp_path / "log").read_text()
     finally:
@@ -115,9 +119,88 @@ def test_run_tlog_holds_every_frame_that_crossed_the_gateway_once(tmp_path: Path
     for mtype in ("GLOBAL_POSITION_INT", "ATTITUDE", "SYS_STATUS", "BATTERY_STATUS"):
         assert by_type[(1, mtype)] == 40, (mtype, by_type)
     assert by_type[(255, "COMMAND_LONG")] == 10
-    assert by_type[(1, "COMMAND_ACK")] == 10
+    acks = [m for m in dumped if m["meta"]["type"] == "COMMAND_ACK"
+            and m["data"]["target_system"] == 255]
+    assert len(acks) == 10 and {m["meta"]["srcSystem"] for m in acks} == {1}
     assert by_type[(1, "HEARTBEAT")] > 0
     assert any(src not in (1, 255) and t == "HEARTBEAT" for src, t in by_type), by_type
     positions = [m["data"]["relative_alt"] for m in dumped
                  if m["meta"]["type"] == "GLOBAL_POSITION_INT"]
     assert positions == [20_000] * 40
+
+
+def aurora_dialect_env(tmp_path: Path) -> dict[str, str]:
+    """The project's dialect where pymavlink's tools look for one by name
+    (``--dialect aurora_mavlink``): its generated module as ``pymavlink.dialects.v10/v20``'s
+    ``aurora_mavlink``, through a ``sitecustomize`` on PYTHONPATH (what the README's
+    one-line install does in the real package directory)."""
+    from dialects import aurora_mavlink
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text(
+        "import importlib.util, sys\n"
+        f"spec = importlib.util.spec_from_file_location('aurora_mavlink', "
+        f"{aurora_mavlink.__file__!r})\n"
+        "mod = importlib.util.module_from_spec(spec)\n"
+        "spec.loader.exec_module(mod)\n"
+        "for v in ('v10', 'v20'):\n"
+        "    sys.modules[f'pymavlink.dialects.{v}.aurora_mavlink'] = mod\n"
+        "    __import__(f'pymavlink.dialects.{v}')\n"
+        "    setattr(sys.modules[f'pymavlink.dialects.{v}'], 'aurora_mavlink', mod)\n")
+    return {"PYTHONPATH": os.pathsep.join([str(site), os.environ.get("PYTHONPATH", "")])}
+
+
+def test_export_tlog_of_a_simulated_flight(tmp_path: Path) -> None:
+    rec = tmp_path / "flight.aur"
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[gateway]\nrecord = "{rec}"\nstatus_interval_s = 0\n'
+                   '[[sources]]\ntype = "sim"\nspeed = 8\ncycles = 1\npad_idle_s = 1\n'
+                   'pad_armed_s = 1\n')
+    gw = [sys.executable, "-m", "gateway"]
+    r = subprocess.run([*gw, "run", "-c", str(cfg), "--duration", "60"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    out = tmp_path / "flight.tlog"
+    r = subprocess.run([*gw, "export", str(rec), "-o", str(out)], cwd=ROOT,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "as tlog" in r.stderr
+
+    from gateway import recording
+    rx = [rec_.t for rec_ in recording.read_records(rec)]
+    dumped = mavlogdump(out, "--dialect", "aurora_mavlink", env=aurora_dialect_env(tmp_path))
+    assert len(dumped) == len(tlog.read(out))
+    stamps = [m["meta"]["timestamp"] for m in dumped]
+    assert stamps == sorted(stamps)
+    assert rx[0] - 1e-6 <= stamps[0] and stamps[-1] <= rx[-1] + 1e-6  # the recording's times
+    types = Counter(m["meta"]["type"] for m in dumped)
+    assert "BAD_DATA" not in types, types
+    for t in ("HEARTBEAT", "ATTITUDE", "ALTITUDE", "SYS_STATUS",
+              "STATUSTEXT", "AURORA_SM_UPDATE", "AURORA_STATUS"):
+        assert types[t] > 0, (t, types)
+    assert {m["meta"]["srcSystem"] for m in dumped} == {1}
+
+    # ALTITUDE rises to the apogee, then falls
+    alt = [m["data"]["altitude_relative"] for m in dumped if m["meta"]["type"] == "ALTITUDE"]
+    top = alt.index(max(alt))
+    assert max(alt) > 10 and 0 < top < len(alt) - 1
+    assert alt[0] < 1 and alt[-1] < max(alt) / 10
+    assert sum(b >= a for a, b in pairwise(alt[:top + 1])) > 0.9 * top
+    assert sum(b <= a for a, b in pairwise(alt[top:])) > 0.9 * (len(alt) - top - 1)
+
+    # HEARTBEAT's custom mode follows the flight's states, in the order the recording's updates
+    # gave them; periodic at 1 Hz of the recording's clock (plus one at each change)
+    from gateway.commands.export import load
+
+    def runs(xs: list[int]) -> list[int]:
+        return [x for i, x in enumerate(xs) if i == 0 or xs[i - 1] != x]
+
+    states = runs([row["state"] for row in load(rec).rows])
+    beats = [m for m in dumped if m["meta"]["type"] == "HEARTBEAT"]
+    modes = runs([b["data"]["custom_mode"] for b in beats])
+    assert len(modes) >= 4, modes
+    it = iter(states)
+    assert all(m in it for m in modes), (str(modes), str(states))
+    span = beats[-1]["meta"]["timestamp"] - beats[0]["meta"]["timestamp"]
+    assert span >= 5 and span <= len(beats) <= span + 1 + len(states)
