@@ -204,3 +204,55 @@ def test_export_tlog_of_a_simulated_flight(tmp_path: Path) -> None:
     assert all(m in it for m in modes), (str(modes), str(states))
     span = beats[-1]["meta"]["timestamp"] - beats[0]["meta"]["timestamp"]
     assert span >= 5 and span <= len(beats) <= span + 1 + len(states)
+
+
+def custom_modes(path: Path) -> list[int]:
+    """The HEARTBEAT custom modes in a telemetry log, as mavlogdump.py prints them."""
+    return [m["data"]["custom_mode"] for m in mavlogdump(path, "--types", "HEARTBEAT")]
+
+
+def test_run_tlog_starts_a_new_file_when_a_vehicle_starts_a_new_flight(tmp_path: Path) -> None:
+    from test_recording_vehicles import _flight, _update
+
+    from backends.mavlink.backend import MavlinkBackend
+    from backends.mavlink.options import MavlinkOptions
+    from dialects.states import SimpleState
+    from gateway.dispatcher import Dispatcher
+
+    logs = tmp_path / "tlogs"
+    with MavPeer(255, 190) as gcs:
+        b = MavlinkBackend(MavlinkOptions(endpoints=[f"udpout:127.0.0.1:{gcs.port}"],
+                                          tlog=str(logs)))
+        d = Dispatcher([b])
+        assert d.start() == []
+        try:
+            for msg in _flight("alpha", 0, 300.0):
+                def state(m: Any, s: int = int(msg.state)) -> bool:
+                    return bool(m.custom_mode == s)
+
+                before = len(gcs.messages("HEARTBEAT", state))
+                d.dispatch(msg)
+                assert len(gcs.wait_for("HEARTBEAT", state, count=before + 1,
+                                        timeout=WAIT)) > before
+            # armed on the pad again after a flight: the next flight's file
+            def armed(m: Any) -> bool:
+                return bool(m.custom_mode == SimpleState.ARMED)
+
+            before = len(gcs.messages("HEARTBEAT", armed))
+            d.dispatch(_update("alpha", SimpleState.ARMED, 10_000, 0.0))
+            assert len(gcs.wait_for("HEARTBEAT", armed, count=before + 1,
+                                    timeout=WAIT)) > before
+            assert wait_for(lambda: len(b.tlog.paths) == 2 if b.tlog else False, WAIT)
+        finally:
+            d.close()
+    first, second = (Path(p) for p in b.stats()["tlog"]["files"])  # in the order opened
+    assert set(logs.glob("*.tlog")) == {first, second}
+    assert runs_of(custom_modes(first))[-1] == SimpleState.IDLE
+    assert SimpleState.APOGEE in custom_modes(first)
+    assert custom_modes(second)[0] == SimpleState.ARMED  # the new flight's frames only
+    assert SimpleState.APOGEE not in custom_modes(second)
+    assert b.stats()["tlog"]["dropped_disk_full"] == 0
+
+
+def runs_of(xs: list[int]) -> list[int]:
+    return [x for i, x in enumerate(xs) if i == 0 or xs[i - 1] != x]

@@ -114,7 +114,8 @@ class MavlinkBackend(Backend):
         # (what came from a MAVLink system on our router is skipped in the dispatcher's thread)
         self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out,
                                  skip=self._repeats)
-        self._out: list[tuple[AuroraVehicle, list[Any]]] = []
+        #: (None, []): a vehicle starts a new flight there (``tlog``)
+        self._out: list[tuple[AuroraVehicle | None, list[Any]]] = []
         self._ticker: Timer | None = None
         self._started_at = 0.0
         self._next_expiry = 0.0
@@ -332,7 +333,10 @@ class MavlinkBackend(Backend):
         if router is None:
             return
         for node, msgs in out:
-            if self._may_speak(node):
+            if node is None:  # a vehicle's new flight: the telemetry log's next file
+                if self.tlog is not None:
+                    self.tlog.new_flight()
+            elif self._may_speak(node):
                 router.broadcast(msgs, node)
 
     def _repeats(self, msg: Any) -> bool:
@@ -374,9 +378,10 @@ class MavlinkBackend(Backend):
         self.emit(RcChannels(channels, origin=self.name, vehicle=vehicle))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
-        tlog = self.tlog
-        if tlog is not None and self._flights.feed(msg):
-            tlog.new_flight()  # (before this update's frames: they open the new file)
+        if self.tlog is not None and self._flights.feed(msg):
+            # the telemetry log's next file, from this update's frames on (in the order
+            # the frames go out: after the batch's earlier messages')
+            self._out.append((None, []))
         node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_sm_update(msg))
