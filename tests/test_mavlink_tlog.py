@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -256,3 +257,49 @@ def test_run_tlog_starts_a_new_file_when_a_vehicle_starts_a_new_flight(tmp_path:
 
 def runs_of(xs: list[int]) -> list[int]:
     return [x for i, x in enumerate(xs) if i == 0 or xs[i - 1] != x]
+
+
+def test_tlog_on_a_full_disk_leaves_no_file_counts_and_goes_on_when_space_returns(
+        tmp_path: Path) -> None:
+    from test_recording_full_disk import fill, tmpfs
+
+    with tmpfs(tmp_path / "disk", "size=64k") as fs:
+        filler = fill(fs)
+        d = fs / "tlogs"
+        w = tlog.TlogWriter(d)
+        w.WRITE_RETRY_S = 0.0
+        frames = [dev.MAVLink_heartbeat_message(6, 8, 0, i, 4, 3).pack(
+            dev.MAVLink(None, 1, 1)) for i in range(60)]
+        for f in frames[:50]:
+            assert w.submit(f, t=1_790_000_000.0)
+        assert wait_for(lambda: w.dropped_disk_full == 50, WAIT)
+        assert list(d.iterdir()) == []  # not one empty file
+        filler.unlink()
+        for i, f in enumerate(frames[50:]):
+            assert w.submit(f, t=1_790_000_001.0 + i)
+        assert wait_for(lambda: w.records == 10, WAIT)
+        w.close(5.0)
+        (path,) = w.paths
+        assert list(d.iterdir()) == [path] and path.suffix == ".tlog"
+        assert [f for _, f in tlog.read(path)] == frames[50:]
+        assert path.stat().st_size == sum(8 + len(f) for f in frames[50:])
+        assert w.stats()["dropped_disk_full"] == 50 and w.stats()["bytes"] == path.stat().st_size
+        assert [m["data"]["custom_mode"] for m in mavlogdump(path)] == list(range(50, 60))
+
+
+def test_run_tlog_on_a_full_disk_reports_the_frames_not_written(tmp_path: Path) -> None:
+    from test_recording_full_disk import fill, tmpfs
+
+    with tmpfs(tmp_path / "disk", "size=64k") as fs, MavPeer(255, 190) as gcs:
+        fill(fs)
+        d = fs / "tlogs"
+        r = subprocess.run([sys.executable, "-m", "gateway", "run", "--source", "sim",
+                            "--sim-speed", "4", "--duration", "2", "--only", "mavlink",
+                            "--mavlink", f"udpout:127.0.0.1:{gcs.port}", "--tlog", str(d),
+                            "--status-interval", "0"],
+                           capture_output=True, text=True, timeout=60, cwd=ROOT)
+        assert r.returncode == 0, r.stderr  # the run worked; the log is what failed
+        assert list(d.iterdir()) == []
+        (dropped,) = [ln for ln in r.stderr.splitlines() if ln.startswith("dropped: ")]
+        n = int(re.search(r"mavlink .*\bdropped_disk_full=(\d+)", dropped).group(1))  # type: ignore[union-attr]
+        assert n >= len(gcs.messages()) > 0  # every frame the ground station got: not logged
