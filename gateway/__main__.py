@@ -11,8 +11,6 @@ import os
 import signal
 import sys
 
-EXIT_INTERRUPTED = 130  # 128 + SIGINT, as gateway.exits.INTERRUPTED
-
 
 def _terminated(signum: int, frame: object) -> None:
     """SIGTERM before a command installs its own stop (gateway.commands.cli.Stopper): leave
@@ -25,12 +23,15 @@ def main() -> None:
     signal.signal(signal.SIGTERM, _terminated)
     try:
         from gateway.commands.cli import console_main
-    except KeyboardInterrupt:
+    except BaseException as exc:
+        # a Ctrl-C or SIGTERM during the imports, maybe wrapped by the class being created
+        from gateway.exits import signalled
+
+        status = signalled(exc)
+        if status is None:
+            raise
         sys.stderr.flush()
-        os._exit(EXIT_INTERRUPTED)
-    except SystemExit as exc:
-        sys.stderr.flush()
-        os._exit(exc.code if isinstance(exc.code, int) else 0)
+        os._exit(status)
     console_main()
 
 

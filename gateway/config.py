@@ -47,9 +47,9 @@ class GatewayOptions(Options):
         3.0, "silence after which a source's link is down", minimum=0.05,
         flag=Flag("--link-timeout", "silence after which a source's link is reported down "
                   "(default 3)", metavar="S"))
-    record: str = option("", "append every received frame, every vehicle's, to this "
-                         "recording file",
-                         flag=Flag("--record", "append every received frame (every "
+    record: str = option("", "append every message received (wire frames as they came), "
+                         "every vehicle's, to this recording file",
+                         flag=Flag("--record", "append every message received (every "
                                    "vehicle's) to FILE", metavar="FILE"))
     record_dir: str = option(
         "", "record into a new file in this directory per vehicle and flight, named "

@@ -45,3 +45,21 @@ def after_stop(signum: int | None) -> int:
     """The status of a command that ran until it was stopped: :data:`INTERRUPTED` when
     ``signum`` is SIGINT, else :data:`OK` (SIGTERM, or no signal: it ended by itself)."""
     return INTERRUPTED if signum == signal.SIGINT else OK
+
+
+def signalled(exc: BaseException) -> int | None:
+    """The status of a Ctrl-C or a SIGTERM that surfaced as ``exc``: a
+    :class:`KeyboardInterrupt` (130) or a :class:`SystemExit` (its code) that is ``exc`` or
+    in its chain of causes — a signal handler's exception raised inside a class's creation
+    reaches the caller wrapped ("RuntimeError: Error calling __set_name__ …"); None when no
+    signal is behind it."""
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            return INTERRUPTED
+        if isinstance(e, SystemExit):
+            return e.code if isinstance(e.code, int) else OK
+        e = e.__cause__ or e.__context__
+    return None

@@ -3,12 +3,14 @@ messages pass.
 
 The gateway records off its hot path: :meth:`Recorder.submit` only puts the message on a
 bounded queue (a full queue drops it, counted) and the recorder's writer thread writes it and
-fsyncs the file on a timer, idle or not.  What is recorded is the wire frame: the one a
-message arrived in (``raw``), else the frame :func:`gateway.wire.encode` makes of it (an
-``SmUpdate``/``Status``/``RawFrame`` from a MAVLink or Zenoh-JSON source), with the message's
-``vehicle`` and ``origin``.  Messages with no Aurora wire form (vehicle state, position,
-battery from a MAVLink vehicle) cannot be recorded: they are counted per kind
-(``not_recordable``) and named once in a warning.  :class:`DirectoryRecorder` (``record_dir``)
+fsyncs the file on a timer, idle or not.  An Aurora message is recorded as its wire frame:
+the one it arrived in (``raw``), else the frame :func:`gateway.wire.encode` makes of it (an
+``SmUpdate``/``Status``/``RawFrame`` from a MAVLink or Zenoh-JSON source); every other kind
+the gateway has (position, battery, vehicle state, RC channels, link statistics, link
+events) as a message record of its fields (:func:`gateway.recording.message_payload`); each
+with the message's ``vehicle`` and ``origin``.  A kind the format has no record for (one a
+backend package defines) is counted per kind (``not_recordable``) and named once in a
+warning.  :class:`DirectoryRecorder` (``record_dir``)
 writes one file per vehicle per flight, created and closed by its writer thread.
 """
 
@@ -28,12 +30,15 @@ from typing import Any
 from gateway.model import kind
 from gateway.recording import (
     DISK_FULL,
+    FRAME,
     MAX_FRAME,
+    MESSAGE_TYPES,
     WRITE_ERROR,
     RecordingError,
     RecordingFile,
     WriteFailure,
     encode_record,
+    message_payload,
 )
 from gateway.wire import encode
 
@@ -161,7 +166,7 @@ class Recorder:
             self._write_locked(time.time() if t is None else t, frame, vehicle, source, False)
 
     def _write_locked(self, t: float, frame: Frame, vehicle: str, source: str,
-                      new_flight: bool) -> None:
+                      new_flight: bool, rtype: int = FRAME) -> None:
         f = self._file_for(vehicle or source, t, new_flight)
         if f is None:
             return
@@ -170,7 +175,7 @@ class Recorder:
             self._drop(failure.reason)
             failure.lost += 1
             return
-        rec = f.encode(t, frame, vehicle, source)
+        rec = f.encode(t, frame, vehicle, source, rtype)
         try:
             written = f.append(rec)
         except (OSError, RecordingError) as exc:
@@ -236,16 +241,21 @@ class Recorder:
                         "" if f.size else "; nothing was written: no file",
                         extra=_fields(f, failure.reason, failure.lost))
 
-    def _frame_of(self, msg: Any) -> Frame | None:
+    def _payload_of(self, msg: Any) -> tuple[int, Frame] | None:
+        """(record type, frame or message payload) of ``msg``; None: not recordable
+        (counted)."""
         if isinstance(msg, bytes | bytearray):
-            return bytes(msg)
+            return FRAME, bytes(msg)
         raw = getattr(msg, "raw", b"")
         if raw:
-            return bytes(raw)
+            return FRAME, bytes(raw)
         try:
-            return encode(msg)
+            if type(msg) in MESSAGE_TYPES:
+                return message_payload(msg)
+            return FRAME, encode(msg)
         except (TypeError, ValueError) as exc:
-            name = kind(msg)
+            name = "too_long" if isinstance(exc, ValueError) and type(msg) in MESSAGE_TYPES \
+                else kind(msg)
             self.not_recordable[name] += 1
             if self.not_recordable[name] == 1:
                 log.warning("%s: %s messages are not recorded (%s); counting them",
@@ -253,15 +263,16 @@ class Recorder:
             return None
 
     def _record(self, t: float, msg: Any, new_flight: bool) -> None:
-        frame = self._frame_of(msg)
-        if frame is None:
+        got = self._payload_of(msg)
+        if got is None:
             return
-        if len(frame) > MAX_FRAME:
+        rtype, payload = got
+        if rtype == FRAME and len(payload) > MAX_FRAME:
             self.not_recordable["too_long"] += 1
             return
         with self._lock:
-            self._write_locked(t, frame, getattr(msg, "vehicle", ""),
-                               getattr(msg, "origin", ""), new_flight)
+            self._write_locked(t, payload, getattr(msg, "vehicle", ""),
+                               getattr(msg, "origin", ""), new_flight, rtype)
 
     def _sync_file(self, f: RecordingFile) -> None:
         if f.fd < 0 or not f.dirty:

@@ -1,5 +1,5 @@
-"""The recording format: every received frame, untouched, with its receive time, its vehicle
-and its source.
+"""The recording format: every received message, with its receive time, its vehicle and its
+source; Aurora wire frames untouched.
 
 File layout, version 2 (all integers little-endian)::
 
@@ -20,10 +20,27 @@ File layout, version 2 (all integers little-endian)::
     type 2, name    2 bytes   index (0 … FFFE)
                     K bytes   the name, UTF-8, 1 ≤ K ≤ 255; binds the index to it for the
                               rest of the file; the time is when it was written
+    types 3 … 8     2 bytes   vehicle, as in a frame record
+    (a message)     2 bytes   source, as in a frame record
+                    J bytes   the message's own fields (:func:`gateway.model.own_fields`)
+                              as one JSON object, UTF-8, named as in :mod:`gateway.model`;
+                              the time is its receive time.  By type:
+                              3 position (``Position``: lat_deg, lon_deg, alt_amsl_m,
+                              relative_alt_m, ground_speed_mps, course_deg, satellites,
+                              fix_type), 4 battery (``Battery``), 5 vehicle state
+                              (``VehicleState``), 6 RC channels (``RcChannels``:
+                              channels_us a list), 7 link statistics (``LinkStats``),
+                              8 link event (``LinkEvent``)
 
-Every record type that carries a message (only frames today) starts its body with those two
-indexes (:func:`encode_message`): more kinds of message (each with its vehicle and source)
-become more record types of this layout.
+Every record type that carries a message starts its body with those two indexes
+(:func:`encode_message`).  SmUpdate, Status and RawFrame are recorded as the wire frame they
+arrived in (type 1: byte-exact, so a replay reproduces the frames that arrived); every other
+kind as a message record.  In its JSON, ``null`` is a field not known (``None``), NaN and
+the infinities are the tokens ``NaN``, ``Infinity``, ``-Infinity`` (Python's :mod:`json`),
+floats are written in their shortest round-trip form: a message reads back equal to the one
+recorded.  A reader takes the fields it knows (a later version may add some: the others
+are ignored; one missing takes the field's default) and skips, counted (``bad_messages``),
+a message record whose body is not such an object or whose fields have the wrong types.
 
 A name (a vehicle's or a source's: one table for both) is bound before the first frame that
 uses it, in the same ``write``; an index is bound to one name per file (appending continues
@@ -55,6 +72,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import re
@@ -64,9 +82,18 @@ import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple, get_type_hints
 
 from gateway.counters import Counters
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RcChannels,
+    VehicleState,
+    own_fields,
+)
 from gateway.vehicles import derive_name
 
 log = logging.getLogger(__name__)
@@ -87,6 +114,15 @@ NO_NAME = 0xFFFF
 NAME_REPEAT = 1000
 #: record types
 FRAME, NAME = 1, 2
+POSITION, BATTERY, VEHICLE_STATE, RC_CHANNELS, LINK_STATS, LINK_EVENT = range(3, 9)
+#: the message record type of each message kind recorded as its fields (not as a frame)
+MESSAGE_TYPES: dict[type, int] = {
+    Position: POSITION, Battery: BATTERY, VehicleState: VEHICLE_STATE,
+    RcChannels: RC_CHANNELS, LinkStats: LINK_STATS, LinkEvent: LINK_EVENT,
+}
+_MESSAGE_CLASSES = {rtype: cls for cls, rtype in MESSAGE_TYPES.items()}
+#: the most RC channels a record holds (CRSF has 16, MAVLink 18)
+MAX_CHANNELS = 32
 
 _REC_HEAD = struct.Struct("<BdH")
 _FRAME_HEAD = struct.Struct("<HH")
@@ -113,11 +149,23 @@ class Record(NamedTuple):
     source: str = ""
 
 
+class MessageRecord(NamedTuple):
+    """One message record (a kind with no wire frame): its receive time, the message (its
+    ``vehicle`` and ``origin`` those of the record), its vehicle and its source.  The same
+    shape as :class:`Record`, the message in place of the frame."""
+
+    t: float
+    message: Any
+    vehicle: str = ""
+    source: str = ""
+
+
 @dataclass
 class ReadStats(Counters):
     """What reading a recording met: frame records returned, a torn last record, corrupt
-    stretches skipped (and their bytes), records of an unknown type skipped, frames whose
-    name record was lost (read with no name)."""
+    stretches skipped (and their bytes), records of an unknown type skipped, frames (and
+    messages) whose name record was lost (read with no name), message records read and
+    the ones skipped as malformed."""
 
     records: int = 0
     torn_tail_bytes: int = 0
@@ -125,6 +173,10 @@ class ReadStats(Counters):
     bytes_skipped: int = 0
     unknown_records: int = 0
     unnamed: int = 0
+    #: message records read (returned only when asked for: :func:`records`)
+    messages: int = 0
+    #: message records of a known type whose body did not make a message (skipped)
+    bad_messages: int = 0
 
 
 def _record(rtype: int, t: float, body: bytes) -> bytes:
@@ -149,6 +201,90 @@ def encode_record(t: float, frame: bytes, vehicle: int = NO_NAME, source: int = 
         raise ValueError(f"a {len(frame)}-byte frame is longer than a wire frame "
                          f"({MAX_FRAME} bytes)")
     return encode_message(FRAME, t, frame, vehicle, source)
+
+
+def _json_default(v: Any) -> Any:
+    if isinstance(v, tuple):
+        return list(v)
+    raise TypeError(f"{type(v).__name__} is not recordable")
+
+
+def message_payload(msg: Any) -> tuple[int, bytes]:
+    """(record type, payload) of a message recorded as its fields (a kind in
+    :data:`MESSAGE_TYPES`); TypeError for any other kind, ValueError when it is too long
+    for a record."""
+    rtype = MESSAGE_TYPES.get(type(msg))
+    if rtype is None:
+        raise TypeError(f"{type(msg).__name__} has no message record type")
+    payload = json.dumps(own_fields(msg), separators=(",", ":"), ensure_ascii=False,
+                         default=_json_default).encode("utf-8")
+    if len(payload) + _FRAME_HEAD.size > MAX_BODY:
+        raise ValueError(f"a {len(payload)}-byte message is longer than a record body holds")
+    return rtype, payload
+
+
+def _field_checks(cls: type) -> dict[str, tuple[Any, Any]]:
+    """Per field of a message class: (the types a recorded value may have, its default or
+    :data:`_REQUIRED`)."""
+    hints = get_type_hints(cls)
+    defaults = getattr(cls, "_field_defaults", {})
+    return {name: (str(hints[name]), defaults.get(name, _REQUIRED))
+            for name in getattr(cls, "_fields", ()) if name not in _PROVENANCE}
+
+
+_REQUIRED = object()
+_PROVENANCE = ("raw", "origin", "via", "vehicle")
+
+
+def _value_ok(spec: str, v: Any) -> Any:
+    """``v`` (from JSON) checked against a field's type hint ``spec``; returns the value
+    to use (an int where a float is meant becomes a float); raises ValueError."""
+    if v is None:
+        if "None" in spec:
+            return None
+        raise ValueError("null")
+    if isinstance(v, bool):
+        if "bool" in spec:
+            return v
+        raise ValueError("bool")
+    if spec.startswith("tuple"):
+        if not isinstance(v, list) or len(v) > MAX_CHANNELS or \
+                not all(c is None or (type(c) is int) for c in v):
+            raise ValueError("channels")
+        return tuple(v)
+    if isinstance(v, int) and ("int" in spec or "float" in spec):
+        return float(v) if "int" not in spec else v
+    if isinstance(v, float) and "float" in spec:
+        return v
+    if isinstance(v, str) and "str" in spec:
+        return v
+    raise ValueError(type(v).__name__)
+
+
+_CHECKS: dict[int, dict[str, tuple[Any, Any]]] = {}
+
+
+def decode_message(rtype: int, payload: bytes, vehicle: str = "", source: str = "") -> Any:
+    """The message of a message record (type ``rtype``, its JSON ``payload``), with
+    ``vehicle`` and ``source`` (as ``origin``); ValueError when the payload does not make
+    one (KeyError: not a message record type)."""
+    cls = _MESSAGE_CLASSES[rtype]
+    checks = _CHECKS.get(rtype)
+    if checks is None:
+        checks = _CHECKS[rtype] = _field_checks(cls)
+    try:
+        body = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ValueError(f"not JSON: {exc}") from None
+    if not isinstance(body, dict):
+        raise ValueError("not a JSON object")
+    values: dict[str, Any] = {}
+    for name, (spec, default) in checks.items():
+        if name in body:
+            values[name] = _value_ok(spec, body[name])
+        elif default is _REQUIRED:
+            raise ValueError(f"no {name}")
+    return cls(**values, origin=source, vehicle=vehicle)
 
 
 def encode_name(t: float, index: int, name: str) -> bytes:
@@ -258,10 +394,11 @@ def _name_of(data: bytes, body: int, body_end: int) -> tuple[int, str]:
     return index, data[body + _INDEX.size:body_end].decode("utf-8", "replace")
 
 
-def _records(data: bytes, stats: ReadStats, start: int,
-             names: dict[int, str] | None = None) -> Iterator[tuple[int, int, Record]]:
-    """(offset, end, record) of every frame record, names resolved through the file's
-    table (``names``, filled as name records pass)."""
+def _records(data: bytes, stats: ReadStats, start: int, names: dict[int, str] | None = None,
+             messages: bool = False) -> Iterator[tuple[int, int, Record | MessageRecord]]:
+    """(offset, end, record) of every frame record (and, ``messages``, every message
+    record), names resolved through the file's table (``names``, filled as name records
+    pass)."""
     version = _version_of(data)
     table: dict[int, str] = {} if names is None else names
     lookup = {**table, NO_NAME: ""}  # the table, and "no name" for NO_NAME
@@ -283,16 +420,33 @@ def _records(data: bytes, stats: ReadStats, start: int,
             index, name = _name_of(data, body, body_end)
             if index != NO_NAME:
                 table[index] = lookup[index] = name
+        elif rtype in _MESSAGE_CLASSES and body_end - body > frame_head:
+            stats.messages += 1
+            if not messages:
+                continue
+            vi, si = unpack_head(data, body)
+            vehicle, source = lookup.get(vi), lookup.get(si)
+            if vehicle is None or source is None:
+                stats.unnamed += 1
+            try:
+                msg = decode_message(rtype, data[body + frame_head:body_end], vehicle or "",
+                                     source or "")
+            except ValueError:
+                stats.bad_messages += 1
+                continue
+            yield pos, end, MessageRecord(t, msg, vehicle or "", source or "")
         else:
             stats.unknown_records += 1
 
 
-def records(data: bytes, stats: ReadStats | None = None,
-            start: int = len(HEADER)) -> Iterator[Record]:
+def records(data: bytes, stats: ReadStats | None = None, start: int = len(HEADER),
+            messages: bool = False) -> Iterator[Record | MessageRecord]:
     """Every intact frame record in ``data`` (a whole recording, header first) from
-    ``start``, with its vehicle and source."""
+    ``start``, with its vehicle and source; with ``messages``, every message record too
+    (a :class:`MessageRecord`), in file order.  (Without, message records are counted in
+    ``stats.messages`` and passed over: callers that handle frames only see frames.)"""
     st = stats if stats is not None else ReadStats()
-    for _, _, rec in _records(data, st, start):
+    for _, _, rec in _records(data, st, start, messages=messages):
         yield rec
 
 
@@ -302,35 +456,48 @@ def scan(data: bytes, stats: ReadStats | None = None,
     recording, header first; the version is the header's) from ``start``."""
     st = stats if stats is not None else ReadStats()
     for pos, _, rec in _records(data, st, start):
+        assert isinstance(rec, Record)
         yield pos, rec.t, rec.frame
 
 
-def read_records(path: str | Path, stats: ReadStats | None = None) -> Iterator[Record]:
-    """Every intact frame record of the recording at ``path``."""
+def read_records(path: str | Path, stats: ReadStats | None = None,
+                 messages: bool = False) -> Iterator[Record | MessageRecord]:
+    """Every intact frame record of the recording at ``path`` (and, ``messages``, every
+    message record: :func:`records`)."""
     data = Path(path).read_bytes()
     check_header(data, path)
-    yield from records(data, stats)
+    yield from records(data, stats, messages=messages)
 
 
 def read(path: str | Path, stats: ReadStats | None = None) -> Iterator[tuple[float, bytes]]:
     """Yield (receive time, frame) for every intact record of the recording at ``path``."""
     for rec in read_records(path, stats):
+        assert isinstance(rec, Record)
         yield rec.t, rec.frame
 
 
-def vehicles_in(recs: Iterable[Record]) -> list[str]:
+AnyRecord = Record | MessageRecord
+
+
+def vehicles_in(recs: Iterable[AnyRecord]) -> list[str]:
     """The vehicles of ``recs`` in the order they first appear."""
     return list(dict.fromkeys(r.vehicle for r in recs))
 
 
-def name_unnamed(recs: Iterable[Record], vehicle: str) -> list[Record]:
+def _named(r: AnyRecord, vehicle: str) -> AnyRecord:
+    if isinstance(r, MessageRecord):
+        return r._replace(vehicle=vehicle, message=r.message._replace(vehicle=vehicle))
+    return r._replace(vehicle=vehicle)
+
+
+def name_unnamed(recs: Iterable[AnyRecord], vehicle: str) -> list[AnyRecord]:
     """``recs`` with ``vehicle`` as the vehicle of those that name none (a version 1
     recording's: :func:`file_vehicle`)."""
-    return [r if r.vehicle else r._replace(vehicle=vehicle) for r in recs]
+    return [r if r.vehicle else _named(r, vehicle) for r in recs]
 
 
-def only_vehicle(recs: list[Record], vehicle: str | None, path: object = "the recording",
-                 flag: str = "--vehicle") -> list[Record]:
+def only_vehicle(recs: list[AnyRecord], vehicle: str | None, path: object = "the recording",
+                 flag: str = "--vehicle") -> list[AnyRecord]:
     """The records of ``vehicle`` (None: all); ValueError naming ``flag`` and the vehicles
     present when none is that vehicle's."""
     if vehicle is None:
@@ -459,10 +626,12 @@ class RecordingFile:
             self._bound.add(name)
         return index
 
-    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "") -> bytes:
-        """A frame record with the name records it needs first (and the header, when the file
-        holds nothing yet); ValueError: too long."""
-        if len(frame) > MAX_FRAME:
+    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "",
+               rtype: int = FRAME) -> bytes:
+        """A frame record (``rtype`` another type: a message record, ``frame`` its payload:
+        :func:`message_payload`) with the name records it needs first (and the header, when
+        the file holds nothing yet); ValueError: too long."""
+        if rtype == FRAME and len(frame) > MAX_FRAME:
             encode_record(t, frame)  # raises
         self._since_repeat += 1
         if self._since_repeat >= NAME_REPEAT:
@@ -471,7 +640,8 @@ class RecordingFile:
         out: list[bytes] = [HEADER] if self.size == 0 else []
         vi = self._name(vehicle, t, out)
         si = self._name(source, t, out)
-        out.append(encode_record(t, frame, vi, si))
+        out.append(encode_record(t, frame, vi, si) if rtype == FRAME else
+                   encode_message(rtype, t, frame, vi, si))
         return b"".join(out) if len(out) > 1 else out[0]
 
     def append(self, data: bytes) -> int:

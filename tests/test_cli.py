@@ -30,7 +30,7 @@ from gateway import config, recording
 from gateway.app import STOP_BUDGET_S, Gateway
 from gateway.commands import cli
 from gateway.flight import FlightModel, FlightProfile
-from gateway.model import SmUpdate
+from gateway.model import SmUpdate, VehicleState
 from gateway.recorder import Recorder
 from gateway.sources.sim import flight_frames
 from gateway.wire import decode_all, frame, to_wire_dict
@@ -527,7 +527,7 @@ def test_record_from_a_mavlink_vehicle_records_its_sm_updates_and_reports_the_re
         tmp_path: Path) -> None:
     """A MAVLink source delivers AURORA_SM_UPDATEs (no wire frame: built from MAVLink
     fields) and vehicle states (no wire form).  The first are recorded as the frames they
-    encode to; the others are counted and named in the stop report (once an empty file)."""
+    encode to; the others as message records (issue 24)."""
     from dialects import aurora_mavlink as mav
 
     port = _free_udp_port()
@@ -542,7 +542,8 @@ def test_record_from_a_mavlink_vehicle_records_its_sm_updates_and_reports_the_re
 
     def recorded(ln: str) -> bool:
         m = re.search(r"\| rec (\d+)$", ln)
-        return m is not None and int(m.group(1)) >= 5
+        # (records: the frames and, since issue 24, the vehicle states' message records)
+        return m is not None and int(m.group(1)) >= 10
 
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
@@ -570,8 +571,11 @@ def test_record_from_a_mavlink_vehicle_records_its_sm_updates_and_reports_the_re
                         reserved=reserved)
         assert m.fields() == want.fields()
     err = p.text("stderr")
-    assert re.search(r"\d+ frames recorded, \d+ messages with no wire frame not recorded "
-                     r"\(.*vehicle_state \d+", err), err[-2000:]
+    # (issue 24: the vehicle states are recorded too now, as message records)
+    states = [r.message for r in recording.read_records(out, messages=True)
+              if isinstance(r, recording.MessageRecord)]
+    assert states and all(isinstance(m, VehicleState) and m.armed for m in states)
+    assert "not recorded" not in err, err[-2000:]
     assert "Traceback" not in err
 
 

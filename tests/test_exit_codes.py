@@ -304,3 +304,21 @@ def test_sigterm_at_any_moment_is_a_quiet_0() -> None:
     for at, (status, err, sent) in zip(MOMENTS_S, results, strict=True):
         assert status == exits.OK, (at, sent, status, err[-2000:])
         assert not any(n in err for n in NOISE), (at, sent, err[-2000:])
+
+
+@pytest.mark.parametrize(("raised", "status"), [
+    (KeyboardInterrupt(), exits.INTERRUPTED), (SystemExit(0), exits.OK),
+    (SystemExit(3), 3), (ValueError("x"), None)])
+def test_a_signal_raised_while_a_class_is_created_is_still_the_signal(
+        raised: BaseException, status: int | None) -> None:
+    """A signal handler's exception raised inside ``__set_name__`` (a dataclass being
+    created while the command line imports, as SIGTERM at 0.2 s once did) reaches the caller
+    wrapped in a RuntimeError on Python 3.11: still a quiet 0 or 130, not a traceback."""
+
+    class Trips:
+        def __set_name__(self, owner: type, name: str) -> None:
+            raise raised
+
+    with pytest.raises(BaseException) as info:
+        type("Options", (), {"field": Trips()})
+    assert exits.signalled(info.value) == status

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 from gateway import config, recording
 from gateway.app import Gateway
 from gateway.flight import FlightModel, FlightProfile
-from gateway.model import Position, RawFrame, SmUpdate, Status, VehicleState
+from gateway.model import GatewayStats, Position, RawFrame, SmUpdate, Status, VehicleState
 from gateway.recorder import Recorder
 from gateway.recording import RecordingError
 from gateway.sources import Source
@@ -513,25 +513,31 @@ def test_close_writes_everything_queued_before_it(tmp_path: Path) -> None:
     assert read_all(path)[0] == items
 
 
-def test_messages_without_a_frame_are_encoded_or_counted_as_not_recordable(
+def test_messages_without_a_frame_are_encoded_recorded_as_fields_or_counted(
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """(Issue 24 changed this: vehicle states and positions were counted not_recordable;
+    they are message records now.  A kind the format has no record for still is.)"""
     path = tmp_path / "mixed.agrec"
     sm = _sm_update(1234, 56.5)
     st = Status(1240, 3, 0, 1)
     relay = RawFrame(0x42, b"relay me")
     decoded = decode_all(encode(_sm_update(99, 1.0)))[0]  # carries its raw frame
     others = [VehicleState(True, "AUTO"), Position(47.1, 8.5), VehicleState(False, "RTL")]
+    foreign = GatewayStats("gw2", {}, {})
     with caplog.at_level(logging.WARNING, logger="gateway.recorder"):
         rec = Recorder(path)
-        for i, m in enumerate([sm, others[0], st, others[1], relay, decoded, others[2]]):
+        for i, m in enumerate([sm, others[0], st, others[1], relay, decoded, others[2],
+                               foreign, foreign]):
             rec.submit(m, t=10.0 + i)
         rec.close()
     got = [f for _, f in read_all(path)[0]]
     assert got == [encode(sm), encode(st), encode(relay), decoded.raw]
     assert decode_all(b"".join(got))[0].fields() == sm.fields()
-    assert rec.not_recordable == {"vehicle_state": 2, "position": 1}
+    assert [r.message for r in recording.read_records(path, messages=True)
+            if isinstance(r, recording.MessageRecord)] == others
+    assert rec.not_recordable == {"gatewaystats": 2}
     warned = [r.getMessage() for r in caplog.records if "not recorded" in r.getMessage()]
-    assert len(warned) == 2 and any("vehicle_state" in w for w in warned), warned  # once a kind
+    assert len(warned) == 1 and "gatewaystats" in warned[0], warned  # once a kind
 
 
 KILLED_SUBMITTER = r"""
@@ -635,5 +641,9 @@ def test_the_gateway_records_encodable_messages_and_reports_the_rest(tmp_path: P
         summary = gw.stop()
     got = [f for _, f in read_all(path)[0]]
     assert got == [encode(_sm_update(1000 + i, float(i))) for i in range(30)]
-    assert summary["recorded"] == 30
-    assert summary["recorder"]["not_recordable"] == {"vehicle_state": 30, "position": 10}
+    # (issue 24: the vehicle states and positions are recorded too, as message records)
+    kinds = [type(r.message).__name__ for r in recording.read_records(path, messages=True)
+             if isinstance(r, recording.MessageRecord)]
+    assert kinds.count("VehicleState") == 30 and kinds.count("Position") == 10
+    assert summary["recorded"] == 70
+    assert summary["recorder"]["not_recordable"] == {}

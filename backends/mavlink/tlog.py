@@ -52,8 +52,9 @@ class TlogFile(RecordingFile):
             raise RecordingError(f"{self.path}: not appending to an existing telemetry log")
         return fd
 
-    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "") -> bytes:
-        return stamp(t) + frame
+    def encode(self, t: float, frame: bytes, vehicle: str = "", source: str = "",
+               rtype: int = 0) -> bytes:
+        return stamp(t) + frame  # (a frame is all a telemetry log holds)
 
     def append(self, data: bytes) -> int:
         first = self.size == 0

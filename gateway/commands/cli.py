@@ -261,8 +261,8 @@ def build_parser(backend_flags: bool = True,
                          "backend, loopback)")
     _add_gateway_options(run, backend_flags=backend_flags)
 
-    dec = sub.add_parser("decode", help="print the frames of a capture or recording as JSON "
-                         "lines")
+    dec = sub.add_parser("decode", help="print the frames of a capture or recording (and its "
+                         "other messages: positions, batteries …) as JSON lines")
     dec.add_argument("file", nargs="?", default="-", help="raw capture or recording; - = stdin")
     dec.add_argument("--vehicle", metavar="NAME",
                      help="a recording's frames of this vehicle only (default: every vehicle)")
@@ -285,11 +285,11 @@ def build_parser(backend_flags: bool = True,
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
                          description="Record what the sources receive, with no backends, every "
                          "vehicle into FILE with its vehicle and source names. "
-                         "Each message is recorded as its wire frame: the one it arrived in, "
-                         "else the frame it encodes to (SM_UPDATE, STATUS and relayed frames "
-                         "from a MAVLink or Zenoh source). Messages with no wire form (a "
-                         "MAVLink vehicle's state, position, battery) are counted, named in a "
-                         "warning and in the stop report, and not recorded.")
+                         "An Aurora message is recorded as its wire frame: the one it arrived "
+                         "in, else the frame it encodes to (SM_UPDATE, STATUS and relayed "
+                         "frames from a MAVLink or Zenoh source); every other kind (a MAVLink "
+                         "vehicle's state, position, battery, RC channels, link statistics) as "
+                         "a record of its fields.")
     rec.add_argument("file", help="recording to append to")
     add_source_options(rec)
     _add_common_options(rec)
@@ -622,6 +622,7 @@ def _json_safe(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from gateway.model import kind
     from gateway.wire import Decoder, to_wire_dict
 
     dec = Decoder()
@@ -645,16 +646,25 @@ def cmd_decode(args: argparse.Namespace) -> int:
             try:
                 recording.check_header(data, args.file)
                 recs = recording.name_unnamed(
-                    recording.records(data, stats),
+                    recording.records(data, stats, messages=True),
                     recording.file_vehicle(args.file) if args.file != "-" else "")
                 recs = recording.only_vehicle(recs, args.vehicle, args.file)
             except ValueError as exc:  # RecordingError included
                 print(f"aurora-gateway: decode: {exc}", file=sys.stderr)
                 return EXIT_USAGE
-            for t, frame, vehicle, source in recs:
-                for msg in dec.feed(frame):
-                    out.write(json.dumps({"rx_time": t, "vehicle": vehicle, "source": source,
-                                          **_json_safe(to_wire_dict(msg))}) + "\n")
+            for t, item, vehicle, source in recs:
+                head = {"rx_time": t, "vehicle": vehicle, "source": source}
+                if not isinstance(item, bytes):  # a message record: its kind and fields
+                    out.write(json.dumps({**head, "kind": kind(item),
+                                          **_json_safe(item.fields())}) + "\n")
+                    continue
+                for msg in dec.feed(item):
+                    out.write(json.dumps({**head, **_json_safe(to_wire_dict(msg))}) + "\n")
+            if stats.messages:
+                bad = stats.bad_messages
+                print(f"recording: {stats.messages} message records (position, battery, "
+                      f"vehicle state …)" + (f", {bad} malformed skipped" if bad else ""),
+                      file=sys.stderr)
             if stats.torn_tail_bytes or stats.corrupt_skips:
                 print(f"recording: {stats.records} records, torn tail {stats.torn_tail_bytes} "
                       f"bytes, {stats.corrupt_skips} corrupt stretches skipped", file=sys.stderr)
@@ -800,8 +810,12 @@ def console_main() -> NoReturn:
             print(exc.code, file=sys.stderr)
     except KeyboardInterrupt:  # between main's own handler and here: still quiet
         code = EXIT_INTERRUPTED
-    except BaseException:
-        traceback.print_exc()  # os._exit below would otherwise swallow it
+    except BaseException as exc:
+        status = exits.signalled(exc)  # a signal's exception, wrapped on its way here
+        if status is not None:
+            code = status
+        else:
+            traceback.print_exc()  # os._exit below would otherwise swallow it
     finally:
         for stream in (sys.stdout, sys.stderr):
             with contextlib.suppress(OSError, ValueError):  # a closed pipe

@@ -1,7 +1,8 @@
-"""``aurora-gateway export RECORDING``: a recording's state-machine updates as a table, or
-the whole flight as an MCAP file.
+"""``aurora-gateway export RECORDING``: a recording's messages as a table, or the whole flight
+as an MCAP file.
 
-One row per SM_UPDATE in the recording, in recording order, for spreadsheets and pandas::
+One row per SM_UPDATE in the recording, in recording order, for spreadsheets and pandas (and
+one per position, battery, vehicle state … when the recording holds any: below)::
 
     aurora-gateway export flight.aur > flight.csv
     aurora-gateway export flight.aur --format jsonl -o flight.jsonl
@@ -46,8 +47,37 @@ Columns (the same names, in this order, in both formats):
 =====================  =============================================================
 
 The four health flags are empty (CSV) or ``null`` (JSONL) until the vehicle's first
-STATUS.  Floats are written in Python's shortest round-trip form, so reading a cell back
-gives exactly the value the gateway decoded (degrees excepted: they are converted).
+STATUS.
+
+**Every other kind.**  A recording that holds positions, batteries, vehicle states, RC
+channels, link statistics or link events (a MAVLink vehicle's, see
+:mod:`gateway.recording`) gives one row per such message too, in recording order, in the same
+table: its columns are then ``t_s``, ``rx_time``, ``vehicle``, ``kind`` (``sm_update``,
+``position``, ``battery``, ``vehicle_state``, ``rc_channels``, ``link_stats``, ``link``),
+``source`` (the gateway source it came from), the SM_UPDATE columns above when there are
+SM updates, then the columns of each kind present, in this order (a row leaves the columns
+of other kinds empty; ``armed``, the attitude and ``altitude_m`` are shared)::
+
+    position       lat, lon (WGS-84 degrees), alt_amsl (m above mean sea level),
+                   relative_alt (m above home), ground_speed (m/s), course (degrees),
+                   satellites, fix_type
+    battery        voltage (V), current (A), consumed (mAh), remaining (%), battery_id
+    vehicle_state  armed, mode (the autopilot's mode name), custom_mode, roll_deg,
+                   pitch_deg, yaw_deg, altitude_m, climb (m/s, up positive)
+    rc_channels    channels (µs; CSV: space-separated, ``-`` for a channel not sent; JSONL:
+                   a list with null), seq
+    link_stats     rssi_dbm, link_quality_pct, snr_db, tx_power_mw, downlink_rssi_dbm,
+                   downlink_link_quality_pct, downlink_snr_db, rf_mode, antenna
+    link           link_source, up, silence_s
+
+A recording of SM updates only (every recording of earlier versions) exports exactly the
+columns of the table above, as before.  ``--kind KIND`` (repeatable) keeps the rows of those
+kinds (one CSV per kind: ``--kind position -o positions.csv``); a kind no row has gives the
+header alone.  A recorded frame of an unknown type (a RawFrame) has no row: it is counted on
+stderr as skipped, never silently.
+
+Floats are written in Python's shortest round-trip form, so reading a cell back gives
+exactly the value the gateway decoded (degrees excepted: they are converted).
 
 CSV: a header row, then one row per update, ``\\n`` line ends; booleans as ``1``/``0``;
 non-finite floats as ``nan``/``inf``/``-inf`` (which ``float()`` and pandas read back).
@@ -71,13 +101,24 @@ import json
 import math
 import os
 import sys
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
 from gateway import exits, recording
-from gateway.model import SmUpdate, Status
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RcChannels,
+    SmUpdate,
+    Status,
+    VehicleState,
+    kind,
+)
 from gateway.wire import Decoder
 
 EXIT_FAILURE = exits.FAILED
@@ -92,6 +133,23 @@ COLUMNS: tuple[str, ...] = (
 )
 #: The columns taken from the latest STATUS (None before the first one).
 HEALTH_COLUMNS: tuple[str, ...] = ("imu_ok", "baro_ok", "calibrated", "log_ready")
+#: The columns every row has when the export holds other kinds than SM updates.
+COMMON_COLUMNS: tuple[str, ...] = ("t_s", "rx_time", "vehicle", "kind", "source")
+#: The columns of each kind besides SM_UPDATE (the module docstring says what they hold).
+KIND_COLUMNS: dict[str, tuple[str, ...]] = {
+    "position": ("lat", "lon", "alt_amsl", "relative_alt", "ground_speed", "course",
+                 "satellites", "fix_type"),
+    "battery": ("voltage", "current", "consumed", "remaining", "battery_id"),
+    "vehicle_state": ("armed", "mode", "custom_mode", "roll_deg", "pitch_deg", "yaw_deg",
+                      "altitude_m", "climb"),
+    "rc_channels": ("channels", "seq"),
+    "link_stats": ("rssi_dbm", "link_quality_pct", "snr_db", "tx_power_mw",
+                   "downlink_rssi_dbm", "downlink_link_quality_pct", "downlink_snr_db",
+                   "rf_mode", "antenna"),
+    "link": ("link_source", "up", "silence_s"),
+}
+#: The kinds ``--kind`` takes: the ones with rows.
+ROW_KINDS: tuple[str, ...] = ("sm_update", *KIND_COLUMNS)
 FORMATS = ("csv", "jsonl", "mcap", "tlog")
 _JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
 _MCAP_SUFFIXES = (".mcap",)
@@ -117,10 +175,13 @@ class Flight:
     """What :func:`load` found in a recording: the rows and the counts behind them."""
 
     rows: list[dict[str, Any]] = field(default_factory=list)
-    #: every decoded message (RawFrame included) with its receive time, in recording order
+    #: every decoded message (RawFrame included) and every message record's message, with
+    #: its receive time, in recording order
     messages: list[tuple[float, Any]] = field(default_factory=list)
     statuses: int = 0
     other_frames: int = 0
+    #: the rows of each kind (``sm_update``, ``position`` …)
+    kinds: Counter[str] = field(default_factory=Counter)
     #: the vehicles exported, in the order they first appear
     vehicles: list[str] = field(default_factory=list)
     read_stats: recording.ReadStats = field(default_factory=recording.ReadStats)
@@ -159,19 +220,68 @@ def row_of(t_s: float, rx_time: float, msg: SmUpdate,
     }
 
 
+def _deg(v: float | None) -> float | None:
+    return None if v is None else math.degrees(v)
+
+
+def message_row(t_s: float, rx_time: float, msg: Any, source: str) -> dict[str, Any] | None:
+    """The export row of a message of a kind besides SM_UPDATE (see :data:`KIND_COLUMNS`),
+    None for a kind with no row."""
+    row: dict[str, Any] = {"t_s": t_s, "rx_time": rx_time, "vehicle": msg.vehicle,
+                           "kind": kind(msg), "source": source}
+    if isinstance(msg, Position):
+        row.update(lat=msg.lat_deg, lon=msg.lon_deg, alt_amsl=msg.alt_amsl_m,
+                   relative_alt=msg.relative_alt_m, ground_speed=msg.ground_speed_mps,
+                   course=msg.course_deg, satellites=msg.satellites, fix_type=msg.fix_type)
+    elif isinstance(msg, Battery):
+        row.update(voltage=msg.voltage_v, current=msg.current_a, consumed=msg.consumed_mah,
+                   remaining=msg.remaining_pct, battery_id=msg.battery_id)
+    elif isinstance(msg, VehicleState):
+        row.update(armed=bool(msg.armed), mode=msg.mode, custom_mode=msg.custom_mode,
+                   roll_deg=_deg(msg.roll_rad), pitch_deg=_deg(msg.pitch_rad),
+                   yaw_deg=_deg(msg.yaw_rad), altitude_m=msg.altitude_m, climb=msg.climb_mps)
+    elif isinstance(msg, RcChannels):
+        row.update(channels=list(msg.channels_us), seq=msg.seq)
+    elif isinstance(msg, LinkStats):
+        row.update(msg.fields())
+    elif isinstance(msg, LinkEvent):
+        row.update(link_source=msg.source, up=msg.up, silence_s=msg.silence_s)
+    else:
+        return None
+    return row
+
+
+def columns_of(rows: list[dict[str, Any]], only: list[str] | None = None) -> tuple[str, ...]:
+    """The columns of an export of ``rows`` (of the kinds ``only``, when given: ``--kind``):
+    :data:`COLUMNS` when they are SM updates only (or none), else :data:`COMMON_COLUMNS`,
+    the SM_UPDATE columns if any, and the columns of each kind present."""
+    kinds = set(only) if only else {r.get("kind", "sm_update") for r in rows}
+    if kinds <= {"sm_update"}:
+        return COLUMNS
+    cols = dict.fromkeys(COMMON_COLUMNS)
+    if "sm_update" in kinds:
+        cols.update(dict.fromkeys(COLUMNS))
+    for k, kcols in KIND_COLUMNS.items():
+        if k in kinds:
+            cols.update(dict.fromkeys(kcols))
+    return tuple(cols)
+
+
 class UnknownVehicle(ExportError):
     """``--vehicle`` names a vehicle the recording does not have (a usage error)."""
 
 
 def load(path: str | Path, vehicle: str | None = None) -> Flight:
-    """Read the recording at ``path`` into export rows, of ``vehicle`` only if given.
+    """Read the recording at ``path`` into export rows (every kind's), of ``vehicle`` only
+    if given.
     :class:`ExportError` (one line) when it is missing, unreadable or not a recording of a
     version this gateway reads; :class:`UnknownVehicle` when it has no such vehicle."""
     try:
         recording.check_file(path)
         flight = Flight()
-        records = recording.name_unnamed(recording.read_records(path, flight.read_stats),
-                                         recording.file_vehicle(path))
+        records = recording.name_unnamed(
+            recording.read_records(path, flight.read_stats, messages=True),
+            recording.file_vehicle(path))
     except ValueError as exc:  # RecordingError included
         raise ExportError(str(exc)) from None
     except OSError as exc:
@@ -184,20 +294,39 @@ def load(path: str | Path, vehicle: str | None = None) -> Flight:
     flight.vehicles = recording.vehicles_in(records)
     decoder = Decoder()
     health: dict[str, dict[str, bool]] = {}  # per vehicle: its latest STATUS's flags
-    for t, frame, name, source in records:
+    for rec in records:
+        t, name, source = rec.t, rec.vehicle, rec.source
+        if isinstance(rec, recording.MessageRecord):
+            flight.messages.append((t, rec.message))
+            row = message_row(round(t - t0, 6), t, rec.message, source)
+            if row is not None:
+                flight.rows.append(row)
+                flight.kinds[row["kind"]] += 1
+            continue
         decoder.vehicle = name
-        for msg in decoder.feed(frame):
+        for msg in decoder.feed(rec.frame):
             if source:
                 msg = msg._replace(origin=source)
             flight.messages.append((t, msg))
             if isinstance(msg, SmUpdate):
-                flight.rows.append(row_of(round(t - t0, 6), t, msg, health.get(name)))
+                row = row_of(round(t - t0, 6), t, msg, health.get(name))
+                row["kind"], row["source"] = "sm_update", source  # (for a mixed export)
+                flight.rows.append(row)
+                flight.kinds["sm_update"] += 1
             elif isinstance(msg, Status):
                 flight.statuses += 1
                 health[name] = msg.health()
             else:
                 flight.other_frames += 1
     return flight
+
+
+def only_kinds(rows: list[dict[str, Any]], kinds: list[str] | None) -> list[dict[str, Any]]:
+    """The rows of ``kinds`` (None: all)."""
+    if not kinds:
+        return rows
+    wanted = set(kinds)
+    return [r for r in rows if r.get("kind", "sm_update") in wanted]
 
 
 # -- writers -------------------------------------------------------------------------------------
@@ -212,26 +341,39 @@ def _csv_cell(v: Any) -> Any:
     return v
 
 
-def write_csv(rows: list[dict[str, Any]], out: TextIO) -> None:
-    """The rows as CSV with a header row."""
+def _csv_value(v: Any) -> Any:
+    if isinstance(v, list):  # RC channels
+        return " ".join("-" if c is None else str(c) for c in v)
+    return _csv_cell(v)
+
+
+def write_csv(rows: list[dict[str, Any]], out: TextIO,
+              columns: tuple[str, ...] | None = None) -> None:
+    """The rows as CSV with a header row (``columns``: default :func:`columns_of`)."""
+    cols = columns_of(rows) if columns is None else columns
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(COLUMNS)
+    w.writerow(cols)
     for row in rows:
-        w.writerow([_csv_cell(row[c]) for c in COLUMNS])
+        w.writerow([_csv_value(row.get(c)) for c in cols])
 
 
 def _json_value(v: Any) -> Any:
+    if isinstance(v, list):
+        return [_json_value(c) for c in v]
     return None if isinstance(v, float) and not math.isfinite(v) else v
 
 
-def write_jsonl(rows: list[dict[str, Any]], out: TextIO) -> None:
-    """The rows as JSON lines (non-finite floats as null: strict JSON)."""
+def write_jsonl(rows: list[dict[str, Any]], out: TextIO,
+                columns: tuple[str, ...] | None = None) -> None:
+    """The rows as JSON lines (non-finite floats as null: strict JSON; ``columns``: default
+    :func:`columns_of`)."""
+    cols = columns_of(rows) if columns is None else columns
     for row in rows:
-        out.write(json.dumps({c: _json_value(row[c]) for c in COLUMNS}, allow_nan=False))
+        out.write(json.dumps({c: _json_value(row.get(c)) for c in cols}, allow_nan=False))
         out.write("\n")
 
 
-WRITERS: dict[str, Callable[[list[dict[str, Any]], TextIO], None]] = {
+WRITERS: dict[str, Callable[[list[dict[str, Any]], TextIO, tuple[str, ...] | None], None]] = {
     "csv": write_csv, "jsonl": write_jsonl}
 
 
@@ -252,6 +394,9 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                    help="file to write; - = stdout (default)")
     p.add_argument("--vehicle", metavar="NAME",
                    help="this vehicle's rows only (default: every vehicle's)")
+    p.add_argument("--kind", action="append", choices=ROW_KINDS, metavar="KIND",
+                   help="csv/jsonl: this kind's rows only (repeatable; "
+                        f"{', '.join(ROW_KINDS)}; default: every kind's)")
     p.set_defaults(handler=run_export)
     return p
 
@@ -299,13 +444,16 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return _run_tlog(args, flight)
     to_stdout = args.output == "-"
     stream = out if out is not None else sys.stdout
+    kinds = getattr(args, "kind", None)
+    rows = only_kinds(flight.rows, kinds)
+    columns = columns_of(rows, kinds)
     try:
         if to_stdout:
-            WRITERS[fmt](flight.rows, stream)
+            WRITERS[fmt](rows, stream, columns)
             stream.flush()
         else:
             with open(args.output, "w", encoding="utf-8", newline="") as f:
-                WRITERS[fmt](flight.rows, f)
+                WRITERS[fmt](rows, f, columns)
     except BrokenPipeError:
         if to_stdout and out is None:
             _quiet_stdout()
@@ -316,10 +464,25 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return EXIT_FAILURE
     where = "stdout" if to_stdout else args.output
     notes = flight.notes()
-    print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
-          f"of {_vehicles(flight)} as {fmt} to {where}" + (f"; {notes}" if notes else ""),
-          file=err)
+    print(f"aurora-gateway export: {flight.kinds['sm_update']} SM updates ({flight.statuses} "
+          f"STATUS){_other_kinds(flight, rows)} of {_vehicles(flight)} as {fmt} to {where}"
+          + _skipped(flight) + (f"; {notes}" if notes else ""), file=err)
     return 0
+
+
+def _other_kinds(flight: Flight, rows: list[dict[str, Any]]) -> str:
+    """``, position 40, battery 4`` (the rows of other kinds), and the rows a ``--kind``
+    left out."""
+    text = "".join(f", {k} {n}" for k, n in flight.kinds.items() if k != "sm_update")
+    if len(rows) != len(flight.rows):
+        text += f" ({len(flight.rows) - len(rows)} rows of other kinds left out: --kind)"
+    return text
+
+
+def _skipped(flight: Flight) -> str:
+    """What the table cannot show, counted: frames of no known type."""
+    return (f"; skipped {flight.other_frames} frames of no known type (raw)"
+            if flight.other_frames else "")
 
 
 
@@ -348,8 +511,10 @@ def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
         return EXIT_FAILURE
     topics = ", ".join(f"{t} {n}" for t, n in written.counts.items())
     notes = flight.notes()
-    print(f"aurora-gateway export: {len(flight.rows)} SM updates ({flight.statuses} STATUS) "
-          f"of {_vehicles(flight)} as mcap to {args.output}: {topics or 'no messages'}"
+    skipped = ", ".join(f"{k} {n}" for k, n in written.skipped.items())
+    print(f"aurora-gateway export: {flight.kinds['sm_update']} SM updates ({flight.statuses} "
+          f"STATUS) of {_vehicles(flight)} as mcap to {args.output}: "
+          f"{topics or 'no messages'}" + (f"; skipped (no channel): {skipped}" if skipped else "")
           + (f"; {notes}" if notes else ""), file=sys.stderr)
     return 0
 

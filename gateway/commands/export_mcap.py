@@ -33,10 +33,18 @@ channel                 from              fields
 ``/aurora/…/link``      each LinkStats    only when present: its fields and origin
 ``/aurora/…/position``  each Position     only when present: foxglove.LocationFix
 ``/aurora/…/battery``   each Battery      only when present: a battery's fields
+``/aurora/…/vehicle``   each VehicleState only when present: armed, mode, custom_mode,
+                                          roll/pitch/yaw_rad, altitude_m, climb_mps; and
+                                          ``…/attitude`` too when it has an attitude
+``/aurora/…/rc``        each RcChannels   only when present: channels_us, seq
 ======================  ================  ==============================================
 
-A recording holds the wire frames only, so today's exports have the first five channels
-(the first four per vehicle).  ``/aurora/link_events`` replays the gateway's link rule
+Every channel's messages come from the recording's records: the first five channels (the
+first four per vehicle) are in every export; the others when the recording holds such
+messages (a MAVLink vehicle's positions, batteries and states, :mod:`gateway.recording`).
+A recorded frame of no known type (a RawFrame) has no channel: it is skipped, counted in
+``skipped`` (the command prints the count).  A recorded link event is written on
+``/aurora/link_events`` as it was.  ``/aurora/link_events`` also replays the gateway's link rule
 (:class:`gateway.link_monitor.LinkMonitor`) per recorded source on the receive times: up at
 the first valid frame, down ``timeout_s`` after the last one when the next comes later than
 that (``silence_s`` = the timeout), up again at the next frame.  Each message's log time and
@@ -57,7 +65,16 @@ from mcap.writer import Writer
 from gateway import __version__
 from gateway.attitude import quaternion_xyzw
 from gateway.link_monitor import DEFAULT_LINK_TIMEOUT_S, LinkMonitor
-from gateway.model import Battery, LinkEvent, LinkStats, Position, SmUpdate, Status
+from gateway.model import (
+    Battery,
+    LinkEvent,
+    LinkStats,
+    Position,
+    RcChannels,
+    SmUpdate,
+    Status,
+    VehicleState,
+)
 
 STATE = "/aurora/state"
 ALTITUDE = "/aurora/altitude"
@@ -67,6 +84,8 @@ LINK = "/aurora/link"
 LINK_EVENTS = "/aurora/link_events"
 POSITION = "/aurora/position"
 BATTERY = "/aurora/battery"
+VEHICLE = "/aurora/vehicle"
+RC = "/aurora/rc"
 
 _NUM = {"type": "number"}
 _NUM_OR_NULL = {"type": ["number", "null"]}
@@ -140,6 +159,15 @@ SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {
         {"voltage_v": _NUM_OR_NULL, "current_a": _NUM_OR_NULL,
          "consumed_mah": _NUM_OR_NULL, "remaining_pct": _INT_OR_NULL,
          "battery_id": _INT})),
+    VEHICLE: ("aurora.VehicleState", _object(
+        "aurora.VehicleState", "A vehicle's state as its autopilot reports it (e.g. MAVLink "
+        "HEARTBEAT, ATTITUDE); null = not reported",
+        {"armed": _BOOL, "mode": _STR, "custom_mode": _INT_OR_NULL, "roll_rad": _NUM_OR_NULL,
+         "pitch_rad": _NUM_OR_NULL, "yaw_rad": _NUM_OR_NULL, "altitude_m": _NUM_OR_NULL,
+         "climb_mps": _NUM_OR_NULL})),
+    RC: ("aurora.RcChannels", _object(
+        "aurora.RcChannels", "Pilot or servo commands, pulse widths in µs; null = not sent",
+        {"channels_us": {"type": "array", "items": _INT_OR_NULL}, "seq": _INT_OR_NULL})),
 }
 #: The channels every export has, even with no message on them (all but the link events
 #: per vehicle).
@@ -245,6 +273,7 @@ class McapExport:
         self._routes: dict[type, Callable[[int, Any], None]] = {
             SmUpdate: self._sm_update, Status: self._status, Position: self._position,
             Battery: self._battery, LinkEvent: self._link_message, LinkStats: self._link_stats,
+            VehicleState: self._vehicle_state, RcChannels: self._rc,
         }
 
     def _channel(self, topic: str, base: str) -> int:
@@ -306,6 +335,19 @@ class McapExport:
 
     def _battery(self, ns: int, m: Battery) -> None:
         self._write(BATTERY, ns, m.fields(), m.vehicle)
+
+    def _vehicle_state(self, ns: int, m: VehicleState) -> None:
+        self._write(VEHICLE, ns, m.fields(), m.vehicle)
+        if m.roll_rad is not None and m.pitch_rad is not None and m.yaw_rad is not None:
+            x, y, z, w = quaternion(m.roll_rad, m.pitch_rad, m.yaw_rad)
+            self._write(ATTITUDE, ns, {
+                "timestamp": _stamp(ns), "parent_frame_id": PARENT_FRAME,
+                "child_frame_id": child_frame(m.vehicle),
+                "translation": {"x": 0.0, "y": 0.0, "z": m.altitude_m or 0.0},
+                "rotation": {"x": x, "y": y, "z": z, "w": w}}, m.vehicle)
+
+    def _rc(self, ns: int, m: RcChannels) -> None:
+        self._write(RC, ns, {"channels_us": list(m.channels_us), "seq": m.seq}, m.vehicle)
 
     def _link_message(self, ns: int, ev: LinkEvent) -> None:
         self._write(LINK_EVENTS, ns,

@@ -17,6 +17,9 @@ over the union of their flights; ``--vehicle NAME`` draws that vehicle alone, as
 name the recording does not have: one line naming the ones it has, exit status 2).  A
 missing, empty or foreign file, a recording with no SM update, or no matplotlib: one line,
 exit status 2; a picture that cannot be written: exit status 1 (:mod:`gateway.exits`).
+The picture draws SM updates: a recording's other messages (a MAVLink vehicle's positions,
+batteries, states …, and frames of no known type) are left out, counted on stderr
+(``not drawn: position 40, battery 4``); ``export`` shows them.
 
 matplotlib (the ``plot`` extra: ``pip install 'aurora-gateway[plot]'``) is imported only
 when the command runs, and draws with its Agg canvas: no display needed.  The picture is
@@ -35,7 +38,7 @@ from typing import TYPE_CHECKING, Any
 
 from dialects.states import is_in_flight
 from gateway import exits
-from gateway.commands.export import ExportError, load
+from gateway.commands.export import ExportError, Flight, load
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -282,17 +285,20 @@ def run_plot(args: argparse.Namespace) -> int:
     except ExportError as exc:
         print(f"aurora-gateway plot: {exc}", file=err)
         return EXIT_USAGE  # a missing, empty or foreign file, or a vehicle it does not have
-    rows = flight.rows
+    rows = [r for r in flight.rows if r.get("kind", "sm_update") == "sm_update"]
+    not_drawn = _not_drawn(flight)
     if not rows:
-        print(f"aurora-gateway plot: {args.recording}: no SM updates to plot", file=err)
+        print(f"aurora-gateway plot: {args.recording}: no SM updates to plot"
+              + (f" ({not_drawn})" if not_drawn else ""), file=err)
         return EXIT_USAGE
     # without matplotlib: the command line names the extra, exit 2 (gateway.registry)
     import matplotlib  # noqa: F401
     title = args.title if args.title is not None else _default_title(args.recording,
                                                                       rows[0]["rx_time"])
     series = by_vehicle(rows)
+    notes = "; ".join(n for n in (not_drawn, flight.notes()) if n)
     if len(series) > 1:
-        return _plot_vehicles(args, series, title, flight.notes())
+        return _plot_vehicles(args, series, title, notes)
     if not args.all:
         start, end = flight_window(rows)
         rows = [r for r in rows if start <= r["t_s"] <= end]
@@ -301,11 +307,19 @@ def run_plot(args: argparse.Namespace) -> int:
         return failed
     where = (f"apogee {apogee.altitude_m:.1f} m at t = {apogee.t_s:.2f} s"
              if apogee is not None else "no altitude")
-    notes = flight.notes()
     print(f"aurora-gateway plot: {args.output} ({args.size[0]}×{args.size[1]} px): "
           f"{len(rows)} SM updates of {rows[0]['vehicle']}, t = {rows[0]['t_s']:.2f} … "
           f"{rows[-1]['t_s']:.2f} s; {where}" + (f"; {notes}" if notes else ""), file=err)
     return 0
+
+
+def _not_drawn(flight: Flight) -> str:
+    """What the picture leaves out, counted: the recording's messages of other kinds than
+    SM_UPDATE (STATUS aside: its flags are no curve either way)."""
+    other = [f"{k} {n}" for k, n in flight.kinds.items() if k != "sm_update"]
+    if flight.other_frames:
+        other.append(f"raw {flight.other_frames}")
+    return f"not drawn: {', '.join(other)}" if other else ""
 
 
 def _save(fig: Figure, args: argparse.Namespace) -> int:

@@ -5,7 +5,13 @@ read once on the loop's blocking calls, then paced on the source's I/O loop
 Each frame replays as the vehicle it was recorded from (a version 2 recording of several
 vehicles gives several vehicles again, each under its recorded name); a frame recorded
 without a vehicle (every frame of a version 1 recording), or with a name that is not a
-vehicle name, replays as the source's own vehicle."""
+vehicle name, replays as the source's own vehicle.
+
+A message record (a kind with no wire frame: position, battery, vehicle state, RC
+channels, link statistics) replays as that message of its vehicle, from this source.
+Recorded link events are not replayed (counted, ``link_events_skipped``): the replaying
+gateway's own link monitor makes them again from the replayed traffic, for the replay
+source; re-emitting the recorded ones would report links this gateway does not have."""
 
 from __future__ import annotations
 
@@ -15,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from gateway import recording, vehicles
+from gateway.model import LinkEvent
 from gateway.sources.options import ReplayOptions
 from gateway.sources.paced import PacedFrameSource
 
@@ -51,6 +58,7 @@ class ReplaySource(PacedFrameSource):
         self.loop = options.loop
         self.read_stats = recording.ReadStats()
         self._names: dict[str, str] = {}  # a recorded vehicle name -> the one replayed
+        self.link_events_skipped = 0
 
     def begin(self) -> None:
         loop = self.io_loop
@@ -73,12 +81,12 @@ class ReplaySource(PacedFrameSource):
             return
         self.pace(self._passes(data), self.speed)
 
-    def _passes(self, data: bytes) -> Iterator[tuple[float, recording.Record]]:
+    def _passes(self, data: bytes) -> Iterator[tuple[float, recording.AnyRecord]]:
         """The recording's records, once or (``loop``) again and again; each pass is paced
         from its own first record."""
         while not self.stop_requested:
             self.read_stats = recording.ReadStats()
-            for rec in recording.records(data, self.read_stats):
+            for rec in recording.records(data, self.read_stats, messages=True):
                 yield rec.t, rec
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
@@ -100,12 +108,22 @@ class ReplaySource(PacedFrameSource):
         if isinstance(item, bytes):
             super()._deliver(t, item)
             return
+        if isinstance(item, recording.MessageRecord):
+            msg = item.message
+            if isinstance(msg, LinkEvent):
+                self.link_events_skipped += 1
+                return
+            self.sent += 1
+            self.emit(msg._replace(origin=self.name,
+                                   vehicle=self._replayed_vehicle(item.vehicle)))
+            return
         self.decoder.vehicle = self._replayed_vehicle(item.vehicle)
         super()._deliver(t, item.frame)
 
     def stats(self) -> dict[str, Any]:
         st = self.read_stats
-        return {"frames": self.sent, "records": st.records,
+        return {"frames": self.sent, "records": st.records, "messages": st.messages,
+                "link_events_skipped": self.link_events_skipped,
                 "torn_tail_bytes": st.torn_tail_bytes, "corrupt_skips": st.corrupt_skips,
                 "vehicles": len(set(self._names.values())),
                 "crc_failures": self.decoder.stats.crc_failures}
