@@ -167,6 +167,7 @@ def test_export_tlog_of_a_simulated_flight(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "as tlog" in r.stderr
+    assert "faster than real time" in r.stderr  # (8 times: said, with the figures)
 
     from gateway import recording
     rx = [rec_.t for rec_ in recording.read_records(rec)]

@@ -136,6 +136,26 @@ class TlogExport:
             self._write(node, out)
 
 
+def time_compression(messages: Iterable[tuple[float, Any]]) -> tuple[float, float] | None:
+    """(receive-time span, flight-computer span) in s of the first vehicle's SM updates when
+    the recording was made much faster than real time (a simulator at ``--sim-speed 0``, a
+    replay sped up): its rate-limited streams then hold only what the live backend would have
+    let through in that short receive time.  None for a recording made in real time."""
+    first: tuple[float, int] | None = None
+    last: tuple[float, int] | None = None
+    vehicle: str | None = None
+    for t, msg in messages:
+        if type(msg) is SmUpdate and vehicle in (None, msg.vehicle):
+            vehicle = msg.vehicle
+            if first is None:
+                first = (t, msg.timestamp_ms)
+            last = (t, msg.timestamp_ms)
+    if first is None or last is None:
+        return None
+    rx, fc = last[0] - first[0], (last[1] - first[1]) / 1000.0
+    return (rx, fc) if fc > 2 * rx + 1.0 else None
+
+
 def write(messages: Iterable[tuple[float, Any]], out: BinaryIO, vehicles: Iterable[str] = (),
           options: MavlinkOptions | None = None) -> TlogExport:
     """Write the MAVLink stream of ``messages`` ((receive time, message), in recording order)
