@@ -190,30 +190,32 @@ def safe_name(name: str) -> str:
     return _UNSAFE.sub("_", name).strip("_.") or "gateway"
 
 
-def recording_name(started: float, name: str) -> str:
+def recording_name(started: float, name: str, suffix: str = RECORDING_SUFFIX) -> str:
     """``<UTC start, 2026-11-23T14-02-11>-<name>.aur`` (a replayed recording's name loses its
-    own ``.aur``: ``replay:a.aur`` → ``…-replay_a.aur``)."""
+    own ``.aur``: ``replay:a.aur`` → ``…-replay_a.aur``); ``suffix``: another kind of file
+    (``.tlog``)."""
     stamp = datetime.fromtimestamp(started, tz=UTC).strftime("%Y-%m-%dT%H-%M-%S")
     base = safe_name(name)
     if base.endswith(RECORDING_SUFFIX) and len(base) > len(RECORDING_SUFFIX):
         base = base[: -len(RECORDING_SUFFIX)]
-    return f"{stamp}-{base}{RECORDING_SUFFIX}"
+    return f"{stamp}-{base}{suffix}"
 
 
-def new_recording(directory: str | Path, started: float, name: str) -> Path:
+def new_recording(directory: str | Path, started: float, name: str,
+                  suffix: str = RECORDING_SUFFIX) -> Path:
     """Create ``directory`` (and its parents) and an empty, new recording file in it named by
     :func:`recording_name`; a name already taken (two runs in one second) gets ``-2``,
     ``-3`` … before the suffix.  The file is created exclusively, so no run appends to
     another's."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    base = recording_name(started, name)[: -len(RECORDING_SUFFIX)]
+    base = recording_name(started, name, suffix)[: -len(suffix)]
     for n in range(1, 1000):
-        path = d / (base + (f"-{n}" if n > 1 else "") + RECORDING_SUFFIX)
+        path = d / (base + (f"-{n}" if n > 1 else "") + suffix)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             continue
         os.close(fd)
         return path
-    raise FileExistsError(f"{d}: every name for {base}{RECORDING_SUFFIX} is taken")
+    raise FileExistsError(f"{d}: every name for {base}{suffix} is taken")

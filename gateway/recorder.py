@@ -435,10 +435,8 @@ class DirectoryRecorder(Recorder):
     def _next_file(self, name: str, t: float, old: RecordingFile | None) -> RecordingFile | None:
         """Open ``name``'s next file (closing ``old``); on failure keep ``old`` and try
         again :data:`OPEN_RETRY_S` later."""
-        from gateway.flight_summary import new_recording
-
         try:
-            new = RecordingFile(new_recording(self.path, t, name), new=True)
+            new = self._new_file(t, name)
         except (OSError, RecordingError) as exc:
             self.open_errors += 1
             now = time.monotonic()
@@ -471,6 +469,14 @@ class DirectoryRecorder(Recorder):
         self._open[name] = new
         self.files.append(new)
         return new
+
+    def _new_file(self, t: float, name: str) -> RecordingFile:
+        """A new, empty file for ``name`` from ``t`` on, named by
+        :func:`~gateway.flight_summary.new_recording` (a subclass writing another format
+        makes its own file here)."""
+        from gateway.flight_summary import new_recording
+
+        return RecordingFile(new_recording(self.path, t, name), new=True)
 
     def _drop_unopened(self, name: str) -> None:
         """A message of ``name``, whose file could not be made: disk full, or else."""

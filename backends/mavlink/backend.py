@@ -18,9 +18,11 @@ from backends.mavlink.endpoints import (
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.options import QGC_UDP, MavlinkOptions
 from backends.mavlink.router import LAST_ID, Router
+from backends.mavlink.tlog import TlogWriter
 from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__, vehicles
 from gateway.backend import Backend, BackendError, Outcome, Routes
+from gateway.flight_summary import FlightSummary
 from gateway.handover import Handover
 from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import KINDS, list_validator
@@ -112,11 +114,16 @@ class MavlinkBackend(Backend):
         # (what came from a MAVLink system on our router is skipped in the dispatcher's thread)
         self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out,
                                  skip=self._repeats)
-        self._out: list[tuple[AuroraVehicle, list[Any]]] = []
+        #: (None, []): a vehicle starts a new flight there (``tlog``)
+        self._out: list[tuple[AuroraVehicle | None, list[Any]]] = []
         self._ticker: Timer | None = None
         self._started_at = 0.0
         self._next_expiry = 0.0
         self.not_repeated = 0
+        #: ``tlog``: the telemetry log's writer (the router's tap), and the flights that
+        #: start its next file (a vehicle arming on the pad after a flight)
+        self.tlog: TlogWriter | None = None
+        self._flights = FlightSummary()
 
     @property
     def vehicle(self) -> AuroraVehicle | None:
@@ -188,6 +195,15 @@ class MavlinkBackend(Backend):
                 self._vacant[source] = node
             if planned and "" not in self.nodes:
                 self.nodes[""] = self._node_list[0]  # what comes without a vehicle name
+        if self.options.tlog:
+            try:
+                self.tlog = TlogWriter(self.options.tlog, self.name)
+            except OSError as exc:
+                self._leave(hub)
+                raise BackendError(f"tlog: cannot write telemetry logs into "
+                                   f"{self.options.tlog}: {exc.strerror or exc}") from None
+            with router.lock:
+                router.tap = self.tlog.frame
         try:
             endpoints = hub.open(self.specs, GCS, self.serial_queue_depth, self.limits)
         except OSError as exc:
@@ -210,6 +226,14 @@ class MavlinkBackend(Backend):
             for node in self._node_list:
                 hub.remove(node)
         hub.leave(None, endpoints or [])
+        tlog = self.tlog  # (kept: its figures are the stop report's)
+        if tlog is not None and not tlog.closed:
+            with hub.router.lock:
+                if hub.router.tap == tlog.frame:
+                    hub.router.tap = None
+            tlog.close()
+            for path in tlog.paths:
+                log.info("%s: telemetry log %s", self.name, path)
 
     def close(self) -> None:
         hub, self.hub = self.hub, None
@@ -309,7 +333,10 @@ class MavlinkBackend(Backend):
         if router is None:
             return
         for node, msgs in out:
-            if self._may_speak(node):
+            if node is None:  # a vehicle's new flight: the telemetry log's next file
+                if self.tlog is not None:
+                    self.tlog.new_flight()
+            elif self._may_speak(node):
                 router.broadcast(msgs, node)
 
     def _repeats(self, msg: Any) -> bool:
@@ -351,6 +378,10 @@ class MavlinkBackend(Backend):
         self.emit(RcChannels(channels, origin=self.name, vehicle=vehicle))
 
     def send_sm_update(self, msg: SmUpdate) -> None:
+        if self.tlog is not None and self._flights.feed(msg):
+            # the telemetry log's next file, from this update's frames on (in the order
+            # the frames go out: after the batch's earlier messages')
+            self._out.append((None, []))
         node = self.nodes.get(msg.vehicle) or self._node(msg)
         if node is not None:
             self._add(node, node.on_sm_update(msg))
@@ -428,4 +459,12 @@ class MavlinkBackend(Backend):
                 d["signing"] = self.router.verifier.stats.as_dict()
         d["vehicle"] = dict(first.stats.__dict__) if first is not None else {}
         d["systems"] = systems
+        tlog = self.tlog
+        if tlog is not None:
+            # what the telemetry log lost, by reason (disk_full as dropped_disk_full: the
+            # stop report's dropped line), also in the backend's total
+            for reason, n in tlog.dropped.items():
+                d["dropped_disk_full" if reason == "disk_full" else f"dropped_tlog_{reason}"] = n
+            d["dropped"] += sum(tlog.dropped.values())
+            d["tlog"] = {**tlog.stats(), "files": [str(p) for p in tlog.paths]}
         return d

@@ -83,6 +83,14 @@ class MavlinkOptions(ListenerOptions):
                                      "as MAVProxy and QGroundControl derive it)", secret=True)
     serial_queue_depth: int = option(256, "frames queued per link (every endpoint kind)",
                                      minimum=1)
+    tlog: str = option(
+        "", "directory for MAVLink telemetry logs (.tlog): every frame the gateway routes or "
+        "sends, both directions, once; one file per run and a new one when a vehicle starts "
+        "a new flight (\"\" = none)",
+        flag=Flag("--tlog", "write every MAVLink frame the gateway routes or sends, both "
+                  "directions, as telemetry logs (.tlog, for QGroundControl, MAVExplorer, "
+                  "mavlogdump.py) into DIR: one per run, a new one per flight",
+                  metavar="DIR"))
     heartbeat_hz: float = _rate("heartbeat_hz", "HEARTBEAT")
     sys_status_hz: float = _rate("sys_status_hz", "SYS_STATUS")
     extended_sys_state_hz: float = _rate("extended_sys_state_hz", "EXTENDED_SYS_STATE")

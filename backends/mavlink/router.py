@@ -57,7 +57,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -221,6 +221,11 @@ class Router:
         self.system_timeout_s = SYSTEM_TIMEOUT_S
         self._now = time.monotonic()
         self._logs: dict[str, BurstLog] = {}
+        #: called with every frame that crosses the router, once (under the lock, so in the
+        #: order they crossed): each frame read from a link and kept (not our own echo, not
+        #: an impostor), each of our nodes' messages as first sent; a telemetry log's
+        #: writer (:mod:`.tlog`), or None
+        self.tap: Callable[[bytes], Any] | None = None
         if signing_key is not None:
             self.set_signing_key(signing_key)
         if node is not None:
@@ -467,6 +472,9 @@ class Router:
                               f"{link.name}, {verdict.value}")
                     return
             self._move(slot, link, f)
+        tap = self.tap
+        if tap is not None:
+            tap(raw)
         last_seq = link.last_seq
         last = last_seq.get(key)
         if last is not None:
@@ -605,6 +613,9 @@ class Router:
         ok = link.send(buf)
         if ok:
             self.stats.sent_own += 1
+            tap = self.tap
+            if tap is not None:
+                tap(buf)
         return ok
 
     def _slot(self, node: LocalNode | None) -> _Slot:
@@ -629,8 +640,10 @@ class Router:
                 self.claim(slot.node)
             groups = slot.groups
             links = [lk for lk in self.links if groups is None or lk.group in groups]
+            tap = self.tap
             for msg in msgs:
                 mid = msg.get_msgId()
+                logged = tap is None  # each message once in a telemetry log: as first sent
                 for link in links:
                     if not link.up:
                         link.counters.tx_not_up += 1
@@ -643,6 +656,9 @@ class Router:
                     slot.sent_ids.add(mid)
                     if link.send(buf):
                         self.stats.sent_own += 1
+                        if not logged:
+                            logged = True
+                            tap(buf)  # type: ignore[misc]
 
     def _encode_failed(self, msg: Any) -> None:
         self.stats.encode_errors += 1

@@ -150,9 +150,10 @@ KIND_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 #: The kinds ``--kind`` takes: the ones with rows.
 ROW_KINDS: tuple[str, ...] = ("sm_update", *KIND_COLUMNS)
-FORMATS = ("csv", "jsonl", "mcap")
+FORMATS = ("csv", "jsonl", "mcap", "tlog")
 _JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
 _MCAP_SUFFIXES = (".mcap",)
+_TLOG_SUFFIXES = (".tlog",)
 
 _COLUMN_HELP = (
     "columns: t_s (s since the first record), rx_time (Unix s), vehicle, timestamp_ms, "
@@ -386,8 +387,9 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                     "pandas, or the flight as an MCAP file for Foxglove. " + _COLUMN_HELP)
     p.add_argument("recording", metavar="RECORDING", help="the recording (.aur)")
     p.add_argument("--format", "-f", choices=FORMATS, default=None,
-                   help="csv, jsonl or mcap (default: jsonl for a .jsonl/.ndjson/.json -o "
-                        "file, mcap for a .mcap one, else csv)")
+                   help="csv, jsonl, mcap or tlog (a MAVLink telemetry log; default: jsonl "
+                        "for a .jsonl/.ndjson/.json -o file, mcap for .mcap, tlog for .tlog, "
+                        "else csv)")
     p.add_argument("-o", "--output", metavar="FILE", default="-",
                    help="file to write; - = stdout (default)")
     p.add_argument("--vehicle", metavar="NAME",
@@ -407,6 +409,8 @@ def _format_of(args: argparse.Namespace) -> str:
         return "jsonl"
     if suffix in _MCAP_SUFFIXES:
         return "mcap"
+    if suffix in _TLOG_SUFFIXES:
+        return "tlog"
     return "csv"
 
 
@@ -425,9 +429,9 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
     """The ``export`` handler; returns the exit status.  ``out`` replaces stdout (tests)."""
     err = sys.stderr
     fmt = _format_of(args)
-    if fmt == "mcap" and args.output == "-":
-        print("aurora-gateway export: an MCAP file is written with -o FILE, not to stdout",
-              file=err)
+    if fmt in ("mcap", "tlog") and args.output == "-":
+        print(f"aurora-gateway export: {'an MCAP file' if fmt == 'mcap' else 'a telemetry log'}"
+              " is written with -o FILE, not to stdout", file=err)
         return EXIT_USAGE
     try:
         flight = load(args.recording, args.vehicle)
@@ -436,6 +440,8 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return EXIT_USAGE  # a missing, empty or foreign file, or a vehicle it does not have
     if fmt == "mcap":
         return _run_mcap(args, flight)
+    if fmt == "tlog":
+        return _run_tlog(args, flight)
     to_stdout = args.output == "-"
     stream = out if out is not None else sys.stdout
     kinds = getattr(args, "kind", None)
@@ -510,4 +516,31 @@ def _run_mcap(args: argparse.Namespace, flight: Flight) -> int:
           f"STATUS) of {_vehicles(flight)} as mcap to {args.output}: "
           f"{topics or 'no messages'}" + (f"; skipped (no channel): {skipped}" if skipped else "")
           + (f"; {notes}" if notes else ""), file=sys.stderr)
+    return 0
+
+
+def _run_tlog(args: argparse.Namespace, flight: Flight) -> int:
+    """Write ``flight`` as a MAVLink telemetry log to ``args.output`` (what the MAVLink
+    backend would have sent live: :mod:`backends.mavlink.tlog_export`); the exit status."""
+    from backends.mavlink import tlog_export
+    try:
+        with open(args.output, "wb") as f:
+            written = tlog_export.write(flight.messages, f, flight.vehicles)
+    except OSError as exc:
+        print(f"aurora-gateway export: cannot write {args.output}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return EXIT_FAILURE
+    kinds = ", ".join(f"{k} {n}" for k, n in sorted(written.counts.items()))
+    notes = flight.notes()
+    fast = tlog_export.time_compression(flight.messages)
+    if fast is not None:
+        print(f"aurora-gateway export: note: this recording was made faster than real time "
+              f"({fast[1]:.1f} s of flight received in {fast[0]:.1f} s): its rate-limited "
+              "streams (ATTITUDE, ALTITUDE …) hold what the backend would have sent in that "
+              "time; a recording made in real time (--sim-speed 1, a real flight) gives "
+              "every update",
+              file=sys.stderr)
+    print(f"aurora-gateway export: {written.frames} MAVLink frames of {_vehicles(flight)} "
+          f"as tlog to {args.output}: {kinds or 'none'}" + (f"; {notes}" if notes else ""),
+          file=sys.stderr)
     return 0
