@@ -66,10 +66,16 @@ class TlogExport:
     """Writes one recording's MAVLink stream to ``out``; see the module docstring."""
 
     def __init__(self, out: BinaryIO, vehicles: Iterable[str] = (),
-                 options: MavlinkOptions | None = None) -> None:
+                 options: MavlinkOptions | None = None, stretch: float = 1.0) -> None:
         self.out = out
         self.options = options or MavlinkOptions()
+        #: the translator's clock: the recording's receive time, or for a recording made
+        #: faster than real time that time stretched ``stretch`` times from its first message
+        #: (the flight's own pace), so its rate-limited streams hold what the backend sends
+        #: of a flight received in real time; frames stay stamped with receive times
         self.now = 0.0
+        self.stretch = stretch
+        self._t0: float | None = None
         self.nodes: dict[str, AuroraVehicle] = {}
         self._order: list[AuroraVehicle] = []
         self._encoders: dict[int, Any] = {}
@@ -93,8 +99,13 @@ class TlogExport:
             self._order.append(node)
         return node
 
+    def _received(self, now: float) -> float:
+        """The receive time of the translator's time ``now``."""
+        t0 = self._t0
+        return now if t0 is None or self.stretch == 1.0 else t0 + (now - t0) / self.stretch
+
     def _write(self, node: AuroraVehicle, msgs: list[Any]) -> None:
-        head = stamp(self.now)
+        head = stamp(self._received(self.now))
         for msg in msgs:
             compid = node.component_of(msg)
             key = (node.sysid << 8) | compid
@@ -127,6 +138,9 @@ class TlogExport:
 
     def feed(self, t: float, msg: Any) -> None:
         """One message of the recording, received at UNIX time ``t`` (in recording order)."""
+        if self._t0 is None:
+            self._t0 = t
+        t = self._t0 + (t - self._t0) * self.stretch
         t = max(t, self.now)  # (a recording's times never go back; a file's never do)
         self._poll_until(t)
         self.now = t
@@ -159,9 +173,14 @@ def time_compression(messages: Iterable[tuple[float, Any]]) -> tuple[float, floa
 def write(messages: Iterable[tuple[float, Any]], out: BinaryIO, vehicles: Iterable[str] = (),
           options: MavlinkOptions | None = None) -> TlogExport:
     """Write the MAVLink stream of ``messages`` ((receive time, message), in recording order)
-    to ``out``; ``vehicles``: the recording's, in order (their system ids).  Returns the
+    to ``out``; ``vehicles``: the recording's, in order (their system ids).  A recording made
+    faster than real time (:func:`time_compression`) is translated at the flight's own pace
+    (``TlogExport.stretch``), its frames stamped with their receive times.  Returns the
     exporter (its ``counts``)."""
-    export = TlogExport(out, vehicles, options)
+    messages = list(messages)
+    fast = time_compression(messages)
+    export = TlogExport(out, vehicles, options,
+                        stretch=fast[1] / max(fast[0], 1e-3) if fast is not None else 1.0)
     for t, msg in messages:
         export.feed(t, msg)
     return export

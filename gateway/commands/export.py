@@ -535,11 +535,10 @@ def _run_tlog(args: argparse.Namespace, flight: Flight) -> int:
     fast = tlog_export.time_compression(flight.messages)
     if fast is not None:
         print(f"aurora-gateway export: note: this recording was made faster than real time "
-              f"({fast[1]:.1f} s of flight received in {fast[0]:.1f} s): its rate-limited "
-              "streams (ATTITUDE, ALTITUDE …) hold what the backend would have sent in that "
-              "time; a recording made in real time (--sim-speed 1, a real flight) gives "
-              "every update",
-              file=sys.stderr)
+              f"({fast[1]:.1f} s of flight received in {fast[0]:.1f} s): translated at the "
+              "flight's own pace (its rate-limited streams, ATTITUDE, ALTITUDE …, as the "
+              "backend sends a flight received in real time), frames stamped with their "
+              "receive times", file=sys.stderr)
     print(f"aurora-gateway export: {written.frames} MAVLink frames of {_vehicles(flight)} "
           f"as tlog to {args.output}: {kinds or 'none'}" + (f"; {notes}" if notes else ""),
           file=sys.stderr)
