@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import itertools
 import logging
 import os
 import socket
@@ -522,6 +523,19 @@ def test_replay_loop_repeats_until_stopped(tmp_path: Path) -> None:
         took = stop_in_time(src)
     assert took < 1.0
     assert [m.raw for m in sink.msgs[:15]] == frames * 3
+
+
+def test_replay_loop_paces_every_pass_on_one_clock(tmp_path: Path) -> None:
+    """Each pass's times carry on from the last one's end, one record interval later: the
+    pacer's clock never goes back (every pass after the first used to play flat out)."""
+    frames = sample_frames()[:5]
+    make_recording(tmp_path / "l.agrec", frames, span_s=0.4)
+    src = ReplaySource(ReplayOptions(path=str(tmp_path / "l.agrec"), speed=1.0, loop=True))
+    data = (tmp_path / "l.agrec").read_bytes()
+    times = [t for t, _ in itertools.islice(src._passes(data), 15)]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert all(g > 0 for g in gaps), gaps
+    assert times[-1] - times[0] == pytest.approx(3 * 0.4 + 2 * 0.1)  # 3 passes, 2 joins
 
 
 def test_replay_of_a_missing_or_foreign_file_is_a_config_error_naming_the_key(

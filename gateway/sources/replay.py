@@ -83,11 +83,23 @@ class ReplaySource(PacedFrameSource):
 
     def _passes(self, data: bytes) -> Iterator[tuple[float, recording.AnyRecord]]:
         """The recording's records, once or (``loop``) again and again; each pass is paced
-        from its own first record."""
+        from its own first record: its times carry on from the last pass's end (one mean
+        record interval later), so the pacer's clock never goes back (it played every pass
+        after the first flat out)."""
+        base: float | None = None  # where this pass's first record goes on the pacer's clock
         while not self.stop_requested:
             self.read_stats = recording.ReadStats()
+            first = last = None
+            n = 0
             for rec in recording.records(data, self.read_stats, messages=True):
-                yield rec.t, rec
+                if first is None:
+                    first = rec.t
+                last, n = rec.t, n + 1
+                yield (rec.t if base is None else base + (rec.t - first)), rec
+            if first is not None and last is not None:
+                span = last - first
+                start = first if base is None else base
+                base = start + span + (span / (n - 1) if n > 1 else 0.0)
             if self.read_stats.torn_tail_bytes:
                 log.info("replay %s: skipped a torn last record (%d bytes)", self.path,
                          self.read_stats.torn_tail_bytes)
