@@ -162,6 +162,24 @@ def make_source(type_name: str, options: dict[str, Any], name: str | None,
     return part
 
 
+def unique_source_names(parts: list[Part], given: list[bool],
+                        where: Callable[[int], str]) -> None:
+    """Source names as given (one given twice: an error led by ``where(i)``); unnamed sources
+    of one type or URL told apart as ``sim``, ``sim-2`` … (and their derived vehicles with
+    them)."""
+    seen: set[str] = set()
+    for i, p in enumerate(parts):
+        if given[i] and p.name in seen:
+            raise ConfigError(f"{where(i)} {p.name!r} is used twice")
+        seen.add(p.name)
+    unique = vehicles.unique_names(zip((p.name for p in parts), given, strict=True))
+    for p, name in zip(parts, unique, strict=True):
+        if name != p.name:
+            old, p.name = p.name, name
+            if not p.vehicle_given and p.vehicle == vehicles.derive_name(old, fallback=p.type):
+                p.vehicle = vehicles.derive_name(name, fallback=p.type)
+
+
 def name_vehicles(sources: list[Part]) -> None:
     """Check the sources' vehicles: a given name or MAVLink system id used twice is an error
     naming the key; derived names get ``-2``, ``-3`` … until unique."""
@@ -215,7 +233,7 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
     sources = data.get("sources", [])
     if not isinstance(sources, list):
         raise ConfigError("sources: expected an array of tables ([[sources]])")
-    names: set[str] = set()
+    given: list[bool] = []
     for i, table in enumerate(sources):
         where = f"sources[{i}]"
         if not isinstance(table, dict):
@@ -228,10 +246,9 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
         if name is not None and not isinstance(name, str):
             raise ConfigError(f"{where}.name: expected a string, got {name!r}")
         part = make_source(type_name, table, name, where)
-        if part.name in names:
-            raise ConfigError(f"{where}.name: {part.name!r} is used twice; give each a name")
-        names.add(part.name)
+        given.append(name is not None)
         cfg.sources.append(part)
+    unique_source_names(cfg.sources, given, lambda i: f"sources[{i}].name:")
     name_vehicles(cfg.sources)
     backends = data.get("backends", {})
     if not isinstance(backends, dict):

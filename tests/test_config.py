@@ -149,8 +149,9 @@ def test_float_keys_accept_integers_as_floats() -> None:
                      ["sim"], id="source-without-type"),
         pytest.param('[[sources]]\ntype = "sim"\n\n[[sources]]\ntype = "serial"\n',
                      "sources[1].url: required", ["a string"], id="required-key-missing"),
-        pytest.param('[[sources]]\ntype = "sim"\n\n[[sources]]\ntype = "sim"\n',
-                     "sources[1].name:", ["'sim'", "twice"], id="duplicate-source-names"),
+        pytest.param('[[sources]]\ntype = "sim"\nname = "a"\n\n[[sources]]\ntype = "sim"\n'
+                     'name = "a"\n', "sources[1].name:", ["'a'", "twice"],
+                     id="duplicate-source-names"),
         pytest.param('[[sources]]\ntype = "sim"\nname = 7\n', "sources[0].name:",
                      ["a string"], id="source-name-not-a-string"),
         pytest.param('[[sources]]\ntype = "sim"\nwarp = 9\n', "sources[0].warp: unknown key",

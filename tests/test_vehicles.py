@@ -250,3 +250,12 @@ def test_an_unnamed_replay_is_named_after_its_file_as_decode_names_it(tmp_path: 
                                     {"type": "replay", "path": str(path), "name": "again"}]})
     assert [p.vehicle for p in cfg.sources] == ["rocket7", "again"]
     assert recording.file_vehicle(path) == "rocket7"
+
+
+def test_unnamed_sources_of_one_type_in_a_file_are_told_apart_as_on_the_command_line() -> None:
+    cfg = config.parse({"sources": [{"type": "sim"}, {"type": "sim"},
+                                    {"type": "sim", "vehicle": "x"}]})
+    assert [(p.name, p.vehicle) for p in cfg.sources] == [
+        ("sim", "sim"), ("sim-2", "sim-2"), ("sim-3", "x")]
+    with pytest.raises(ConfigError, match=r"^sources\[1\]\.name: 'a' is used twice"):
+        config.parse({"sources": [{"type": "sim", "name": "a"}, {"type": "sim", "name": "a"}]})

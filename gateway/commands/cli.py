@@ -336,17 +336,7 @@ def _sources_from_urls(urls: Sequence[str]) -> list[config.Part]:
         if name is not None:
             opts = {**opts, "vehicle": name}
         parts.append(config.make_source(kind, opts, name, f"--source[{i}]"))
-    seen: dict[str, int] = {}
-    for i, p in enumerate(parts):
-        if given[i] and p.name in seen:
-            raise ConfigError(f"--source {urls[i]!r}: the name {p.name!r} is used twice")
-        seen[p.name] = i
-    # unnamed sources of one URL are told apart as before: sim, sim-2 …
-    unique = vehicles.unique_names(zip((p.name for p in parts), given, strict=True))
-    for p, name in zip(parts, unique, strict=True):
-        if name != p.name:
-            p.name = name
-            p.vehicle = vehicles.derive_name(name, fallback=p.type)
+    config.unique_source_names(parts, given, lambda i: f"--source {urls[i]!r}: the name")
     config.name_vehicles(parts)
     return parts
 
