@@ -31,22 +31,12 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from bench_fprime import _cpu_s, _free_port  # (this directory: the script's own)
+
 ROOT = Path(__file__).resolve().parents[2]
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 SCID = 0x44  # the backend's default spacecraft id
 BATCH_S = 0.01  # commands go out in one write per this interval
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK_TCK  # utime + stime
 
 
 def _rss_mib(pid: int) -> float:
