@@ -16,7 +16,7 @@ timer polls them live, so a silence in the recording shows as the backend showed
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any, BinaryIO
 
 from backends.mavlink.backend import POLL_S
@@ -40,26 +40,21 @@ from gateway.model import (
 LONG_GAP_S = 10.0
 
 
+#: What the MAVLink backend's routes hand each message type to, on the vehicle's node.
+HANDLERS: dict[type, Callable[[AuroraVehicle, Any], list[Any]]] = {
+    SmUpdate: AuroraVehicle.on_sm_update, Status: AuroraVehicle.on_status,
+    Position: AuroraVehicle.on_position, Battery: AuroraVehicle.on_battery,
+    VehicleState: AuroraVehicle.on_vehicle_state, LinkStats: AuroraVehicle.on_link_stats,
+    RcChannels: AuroraVehicle.on_rc_channels,
+}
+
+
 def translate(node: AuroraVehicle, msg: Any) -> list[Any]:
     """What the MAVLink backend's handler for ``msg``'s type makes of it (its routes)."""
     if getattr(msg, "via", "").startswith(VIA_MAVLINK):
         return []  # a MAVLink system's own: routed live, not repeated (the backend's skip)
-    t = type(msg)
-    if t is SmUpdate:
-        return node.on_sm_update(msg)
-    if t is Status:
-        return node.on_status(msg)
-    if t is Position:
-        return node.on_position(msg)
-    if t is Battery:
-        return node.on_battery(msg)
-    if t is VehicleState:
-        return node.on_vehicle_state(msg)
-    if t is LinkStats:
-        return node.on_link_stats(msg)
-    if t is RcChannels:
-        return node.on_rc_channels(msg)
-    return []
+    handler = HANDLERS.get(type(msg))
+    return handler(node, msg) if handler is not None else []
 
 
 class TlogExport:
