@@ -28,12 +28,16 @@ class MavPeer:
     """One MAVLink system/component speaking through a UDP socket bound to ``bind``.
 
     Replies go to ``dest`` (set it, or it becomes the address of the first datagram
-    received).  Every received message is kept with its arrival time; :meth:`wait_for` waits
-    on a condition with a deadline."""
+    received).  With ``announce`` it says who it is as a ground station does: one GCS
+    HEARTBEAT as soon as it has a destination (QGroundControl sends one every second; the
+    gateway sends some messages only where a ground station was heard).  Every received
+    message is kept with its arrival time; :meth:`wait_for` waits on a condition with a
+    deadline."""
 
     def __init__(self, sysid: int = 255, compid: int = 190, *, dialect: ModuleType | None = None,
                  bind: tuple[str, int] = ("127.0.0.1", 0), dest: Any = None,
-                 signing_key: bytes | None = None, link_id: int = 0) -> None:
+                 signing_key: bytes | None = None, link_id: int = 0,
+                 announce: bool = False) -> None:
         self.dialect = dialect or upstream_dialect()
         self.mav = self.dialect.MAVLink(None, sysid, compid)
         self.mav.robust_parsing = True
@@ -53,8 +57,18 @@ class MavPeer:
         self.bad = 0
         self._cond = threading.Condition()
         self._stop = threading.Event()
+        self._announce = announce
         self._thread = threading.Thread(target=self._rx, name="mavpeer", daemon=True)
         self._thread.start()
+        if announce and dest is not None:
+            self.announce()
+
+    def announce(self) -> None:
+        """Send one HEARTBEAT as a ground station (QGroundControl's fields)."""
+        d = self.dialect
+        self.send(d.MAVLink_heartbeat_message(
+            d.MAV_TYPE_GCS, d.MAV_AUTOPILOT_INVALID, d.MAV_MODE_FLAG_SAFETY_ARMED
+            | d.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED, 0, d.MAV_STATE_ACTIVE, 3))
 
     @property
     def port(self) -> int:
@@ -76,6 +90,8 @@ class MavPeer:
                 continue
             if self.dest is None:
                 self.dest = addr
+                if self._announce:
+                    self.announce()
             try:
                 msgs = self.mav.parse_buffer(data) or []
             except Exception:

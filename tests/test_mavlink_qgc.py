@@ -33,7 +33,7 @@ from gateway.backend import Backend, GatewayContext, Routes
 from gateway.commands import cli
 from gateway.config import ConfigError
 from gateway.dispatcher import Dispatcher
-from gateway.model import RcChannels, SmUpdate, Status
+from gateway.model import Battery, RcChannels, SmUpdate, Status
 from gateway.sources.options import SimOptions
 from gateway.sources.sim import SimSource
 from gateway.wire import decode_all, encode
@@ -44,7 +44,7 @@ US = (1, 1)  # the rocket: sysid 1, compid 1
 
 @pytest.fixture
 def gcs() -> Iterator[MavPeer]:
-    with MavPeer(255, 190) as p:
+    with MavPeer(255, 190, announce=True) as p:  # QGC says who it is
         yield p
 
 
@@ -344,6 +344,43 @@ def test_sys_status_reports_the_status_flags(gcs: MavPeer, flags: int, healthy: 
     assert s.onboard_control_sensors_health == not_failed & ~failed
 
 
+def test_sys_status_without_a_battery_goes_where_it_reads_right() -> None:
+    """MAVSDK reads SYS_STATUS's "not sent" voltage (65535) as a 65.535 V battery: while the
+    rocket has no battery, its SYS_STATUS goes only where a ground station other than MAVSDK
+    (known by its default identity 245/190) was heard — QGC gets the sensors' health, MAVSDK
+    and a peer that never spoke get none; once a battery is known, every link gets it."""
+    from backends.mavlink.ground_stations import MAVSDK_DEFAULT
+
+    with MavPeer(255, 190, announce=True) as qgc, MavPeer(245, 190, announce=True) as mavsdk, \
+            MavPeer(255, 191) as silent:
+        b = MavlinkBackend(MavlinkOptions(
+            endpoints=[f"udpout:127.0.0.1:{p.port}" for p in (qgc, mavsdk, silent)],
+            sys_status_hz=5))
+        d = Dispatcher([b])
+        assert d.start() == []
+        try:
+            d.dispatch(Status(5000, S.IDLE, 0, Status.make_flags(
+                imu_ok=True, baro_ok=True, calibrated=True, log_ready=True), origin="test"))
+            router = b.router
+            assert router is not None
+            assert qgc.wait_until(lambda: any(MAVSDK_DEFAULT in lk.seen for lk in router.links),
+                                  timeout=WAIT)  # the gateway has heard MAVSDK say who it is
+            n = len(qgc.messages("SYS_STATUS"))
+            assert len(qgc.wait_for("SYS_STATUS", count=n + 3, timeout=WAIT)) == n + 3
+            assert mavsdk.messages("HEARTBEAT") and silent.messages("HEARTBEAT")  # on the air
+            assert mavsdk.messages("SYS_STATUS") == [] and silent.messages("SYS_STATUS") == []
+            assert all(m.voltage_battery == 65535 for m in qgc.messages("SYS_STATUS"))
+
+            d.dispatch(Battery(7.9, battery_id=0, origin="test"))
+            for peer in (qgc, mavsdk, silent):
+                got = peer.wait_for("SYS_STATUS", lambda m: m.voltage_battery == 7900,
+                                    timeout=WAIT)
+                assert got, peer.mav.srcSystem
+            assert all(m.voltage_battery == 7900 for m in mavsdk.messages("SYS_STATUS"))
+        finally:
+            d.close()
+
+
 def test_error_state_and_stale_updates_have_defined_statuses(gcs: MavPeer) -> None:
     with running(gcs.port, heartbeat_hz=10, stale_after_s=0.5) as (_, d):
         d.dispatch(sm(S.ERROR, t=1000, armed=True))
@@ -372,7 +409,7 @@ def test_dialect_messages_carry_both_revisions_losslessly() -> None:
     unknown = SmUpdate(99, 17, False, 5, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, payload_len=64)
     nan = SmUpdate(100, S.MAIN, True, 0, math.nan, math.inf, -math.inf, 1.0, 2.0, 3.0, 4.0)
     st = Status(0xDEADBEEF, S.LANDED, 0, 0x1F, reserved=0xAB)
-    with MavPeer(255, 190, dialect=aurora) as gcs, \
+    with MavPeer(255, 190, dialect=aurora, announce=True) as gcs, \
             running(gcs.port, aurora_sm_update_hz=1000) as (_, d):
         for m in (f64, f32, unknown, nan):
             d.dispatch(m._replace(origin="test"))
@@ -439,7 +476,7 @@ def test_run_flags_set_the_endpoints_sysid_and_key() -> None:
 def test_the_default_run_shows_the_rocket_to_a_qgc_on_this_machine() -> None:
     """``aurora-gateway run`` with no configuration streams to 127.0.0.1:14550."""
     try:
-        qgc = MavPeer(255, 190, bind=("127.0.0.1", 14550))
+        qgc = MavPeer(255, 190, bind=("127.0.0.1", 14550), announce=True)
     except OSError as exc:  # pragma: no cover - another program holds QGC's port
         pytest.skip(f"UDP 127.0.0.1:14550 is in use here ({exc})")
     others = [n for n in registry.backend_names() if n != "mavlink"]

@@ -26,7 +26,8 @@ are addressed to it or broadcast — and only those are decoded:
 With signing on, those frames are verified first (see :mod:`.signing`).  A node's own messages
 go to the links of its *groups* (the rocket to the ground-station side, the listener to the
 vehicle side), packed per link and per source component, so each has its own sequence numbers
-(and signing stream).
+(and signing stream).  A SYS_STATUS without a battery goes only to links whose ground
+stations read it right (:mod:`.ground_stations`).
 
 **System ids.**  A node's messages never use a system id anybody routed through it uses:
 when a node first speaks (:meth:`Router.claim`) an id already seen on a link is skipped, and a
@@ -64,6 +65,7 @@ from typing import Any, Protocol
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
 from backends.mavlink.frames import Frame, FramerStats, StreamFramer, split_datagram
+from backends.mavlink.ground_stations import NO_VOLTAGE, shows_no_battery
 from backends.mavlink.signing import Verdict
 from gateway.counters import Counters
 from gateway.io.burstlog import BurstLog
@@ -72,6 +74,7 @@ from gateway.io.ioloop import IoLoop
 log = logging.getLogger(__name__)
 
 MSG_HEARTBEAT = 0
+SYS_STATUS = 1  # sent only where it reads right (see ground_stations)
 HEARTBEAT_TYPE_OFS = 4  # payload: custom_mode (u32), then type (u8)
 _NO_IDS: frozenset[int] = frozenset()
 #: A system silent for this long is forgotten (its id is free again); the backend's
@@ -644,7 +647,10 @@ class Router:
             for msg in msgs:
                 mid = msg.get_msgId()
                 logged = tap is None  # each message once in a telemetry log: as first sent
-                for link in links:
+                targets = links
+                if mid == SYS_STATUS and msg.voltage_battery == NO_VOLTAGE:
+                    targets = [lk for lk in links if shows_no_battery(lk)]
+                for link in targets:
                     if not link.up:
                         link.counters.tx_not_up += 1
                         continue
