@@ -504,7 +504,7 @@ def test_replay_command_replays_into_a_new_recording(tmp_path: Path) -> None:
            "--record", str(out))
     assert r.returncode == 0, r.stderr
     assert [f for _, f in recording.read(out)] == [f for _, f in items]
-    assert f"{len(items)} frames recorded" in r.stderr
+    assert f"{len(items)} messages recorded" in r.stderr
 
 
 def test_record_command_records_what_its_source_receives(tmp_path: Path) -> None:

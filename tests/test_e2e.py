@@ -159,7 +159,7 @@ def test_simulate_into_run_records_exactly_the_frames_sent(
         sim_in.close()
 
     err = gateway.text("stderr")
-    assert f"{len(expected)} frames recorded" in err, err[-2000:]
+    assert f"{len(expected)} messages recorded" in err, err[-2000:]
     assert "Traceback" not in err
     out = gateway.text("stdout")
     assert f"*** link {url} UP" in out and "state LANDED" in out, out[-2000:]

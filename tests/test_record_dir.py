@@ -229,7 +229,7 @@ def test_run_record_dir_writes_a_named_readable_recording_and_reports_the_flight
     assert "crc errors: 0 (sim 0)" in lines
     assert f"recording: {files[0]}" in lines
     stopped = [ln for ln in lines if ln.startswith("stopped after ")]
-    assert len(stopped) == 1 and f"{len(msgs)} frames recorded" in stopped[0]
+    assert len(stopped) == 1 and f"{len(msgs)} messages recorded" in stopped[0]
     assert "dropped: nothing" in lines
 
 

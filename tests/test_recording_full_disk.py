@@ -290,11 +290,11 @@ def test_another_write_error_is_counted_as_such(tmp_path: Path) -> None:
 
 # -- the command line ---------------------------------------------------------------------------
 
-_STOPPED = re.compile(r"stopped after [\d.]+ s: (\d+) messages in .*; (\d+) frames recorded")
+_STOPPED = re.compile(r"stopped after [\d.]+ s: (\d+) messages in .*; (\d+) messages recorded")
 
 
 def _report_counts(stderr: str) -> tuple[int, int, dict[str, int]]:
-    """(messages in, frames recorded, the recorder's drops) from a stop report."""
+    """(messages in, messages recorded, the recorder's drops) from a stop report."""
     (m,) = [m for ln in stderr.splitlines() if (m := _STOPPED.match(ln))]
     (dropped,) = [ln for ln in stderr.splitlines() if ln.startswith("dropped: ")]
     drops = {k: int(v) for k, v in re.findall(r"\bdropped_(\w+)=(\d+)", dropped.split(";")[0])}

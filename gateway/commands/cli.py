@@ -520,7 +520,7 @@ def _report(summary: dict[str, Any]) -> None:
     line = (f"stopped after {summary['uptime_s']:.1f} s: {sum(ins.values())} messages in "
             f"({', '.join(f'{k} {v}' for k, v in sorted(ins.items())) or 'none'})")
     if summary.get("recorded") is not None:
-        line += f"; {summary['recorded']} frames recorded"
+        line += f"; {summary['recorded']} messages recorded"
         unrecordable = rec.get("not_recordable") or {}
         if unrecordable:
             line += (f", {sum(unrecordable.values())} messages with no wire frame not recorded ("
