@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import select
 import socket
@@ -92,7 +93,7 @@ class FlightSim:
                 conn, _ = self.listener.accept()
             except TimeoutError:
                 continue
-            with conn:
+            with conn, contextlib.suppress(ConnectionError):  # the gateway hung up: normal
                 self._serve(conn)
             self.state = DISCONNECTED
 
