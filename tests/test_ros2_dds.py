@@ -257,3 +257,17 @@ def test_messages_naming_no_vehicle_go_to_their_source_s(domain: int, peers: lis
         assert backend.topics.vehicles == ["rocket2", "rocket1"]
     finally:
         backend.close()
+
+
+def test_a_configuration_cyclone_refuses_is_named(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    from backends.ros2.backend import Ros2Backend
+    from gateway.backend import BackendError
+
+    missing = (tmp_path / "missing.xml").as_uri()
+    monkeypatch.setenv("CYCLONEDDS_URI", missing)
+    backend = Ros2Backend()
+    with pytest.raises(BackendError, match=f"CYCLONEDDS_URI='{missing}'"):
+        backend.init()
+    backend.close()
+    assert backend.stats()["link"] == 0

@@ -32,6 +32,7 @@ topics first appear: at most ``MAX_VEHICLES`` vehicles (``dropped_vehicle_limit`
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from typing import Any, ClassVar
 
@@ -69,6 +70,7 @@ MAX_VEHICLES = 64
 #: How long a reliable write may wait for a slow reader's acknowledgements.
 MAX_BLOCKING_S = 0.05
 CLOSE_TIMEOUT_S = 0.5
+URI_ENV = "CYCLONEDDS_URI"
 #: ROS 2's default history depth (rmw_qos_profile_default).
 DEPTH = 10
 #: A latched topic's history for the readers already there: every state change reaches them
@@ -156,9 +158,12 @@ class Ros2Backend(Backend):
         try:
             self._participant = DomainParticipant(
                 self.domain_id, qos=Qos(Policy.Userdata(PARTICIPANT_USER_DATA)))
-        except DDSException as exc:
-            raise BackendError(f"{self.name}: cannot join DDS domain {self.domain_id} "
-                               f"(CYCLONEDDS_URI?): {exc}") from None
+        except DDSException:
+            uri = os.environ.get(URI_ENV)
+            raise BackendError(
+                f"{self.name}: cannot join DDS domain {self.domain_id}"
+                + (f" with {URI_ENV}={uri!r}" if uri else "")
+                + ": Cyclone DDS refused (its reason is the line it wrote before)") from None
         for vehicle in dict.fromkeys(self._source_vehicle.values()):
             for topic, ros_type in vehicle_topics(vehicle):
                 self._writer(topic, ros_type, topic.rsplit("/", 1)[-1] in ("state", "armed"))
