@@ -105,11 +105,9 @@ def dds_topic(ros_name: str) -> str:
     return "rt" + ros_name if ros_name.startswith("/") else "rt/" + ros_name
 
 
-#: Every (topic, type) of one vehicle's, in the table's order (with the shared /tf and
-#: /diagnostics): what a writer set or a bag declares up front.
 def vehicle_topics(vehicle: str) -> list[tuple[str, RosType]]:
     """The topics of ``vehicle`` and their types, the shared ``/tf`` and ``/diagnostics``
-    included."""
+    included, in the table's order: what a set of writers or a bag declares up front."""
     return [(vehicle_topic(vehicle, "altitude"), FLOAT64), (TF, TF_MESSAGE),
             (vehicle_topic(vehicle, "imu"), IMU), (vehicle_topic(vehicle, "state"), STRING),
             (vehicle_topic(vehicle, "armed"), BOOL), (vehicle_topic(vehicle, "fix"), NAV_SAT_FIX),
