@@ -2,14 +2,14 @@
 ROS 2 node on a DDS RMW would declare, written independently of the gateway (its own IDL
 classes, named as ROS 2's DDS IDL names them; Cyclone DDS's own deserializer).
 
-    python tests/ros2_dds_peer.py DOMAIN SECONDS
+    python tests/ros2_dds_peer.py DOMAIN SECONDS [VEHICLE]
 
 Prints one JSON object per line on stdout: ``{"ready": true}`` once its readers exist, then
-each sample of ``rt/aurora/rocket1/altitude``, ``…/state`` (reliable, transient local: a late
-joiner gets the current one) and ``rt/tf``, and each publication discovered on ``rt/…`` with
-its type name, USER_DATA and durability (the DCPSPublication builtin topic), and each
-participant's announcement of its nodes on ``ros_discovery_info`` (the ROS 2 graph).  Ends after
-SECONDS (or when terminated).
+each sample of ``rt/aurora/<VEHICLE>/altitude`` (default ``rocket1``), ``…/state``
+(reliable, transient local: a late joiner gets the current one) and ``rt/tf``, each
+publication discovered on ``rt/…`` with its type name, USER_DATA and durability (the
+DCPSPublication builtin topic), and each participant's announcement of its nodes on
+``ros_discovery_info`` (the ROS 2 graph).  Ends after SECONDS (or when terminated).
 """
 
 import json
@@ -123,11 +123,12 @@ def emit(obj: dict) -> None:
 
 def main() -> None:
     domain, seconds = int(sys.argv[1]), float(sys.argv[2])
+    vehicle = sys.argv[3] if len(sys.argv) > 3 else "rocket1"
     dp = DomainParticipant(domain)
     reliable = Policy.Reliability.Reliable(duration(seconds=1))
-    altitude = DataReader(dp, Topic(dp, "rt/aurora/rocket1/altitude", Float64),
+    altitude = DataReader(dp, Topic(dp, f"rt/aurora/{vehicle}/altitude", Float64),
                           Qos(reliable, Policy.History.KeepLast(1000)))
-    state = DataReader(dp, Topic(dp, "rt/aurora/rocket1/state", String),
+    state = DataReader(dp, Topic(dp, f"rt/aurora/{vehicle}/state", String),
                        Qos(reliable, Policy.Durability.TransientLocal,
                            Policy.History.KeepLast(100)))
     tf = DataReader(dp, Topic(dp, "rt/tf", TFMessage), Qos(reliable, Policy.History.KeepLast(1000)))

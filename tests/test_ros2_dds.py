@@ -55,8 +55,8 @@ def domain(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> int:
 class Peer:
     """The subscriber process: its JSON lines, parsed."""
 
-    def __init__(self, domain: int) -> None:
-        self.proc = Running(str(domain), str(FLIGHT_S), cmd=PEER, timeout=FLIGHT_S)
+    def __init__(self, domain: int, vehicle: str = "rocket1") -> None:
+        self.proc = Running(str(domain), str(FLIGHT_S), vehicle, cmd=PEER, timeout=FLIGHT_S)
         assert self.proc.wait_line("stdout", lambda ln: '"ready"' in ln, DEADLINE_S), \
             self.proc.text("stderr")
 
@@ -247,30 +247,30 @@ def test_an_empty_ros2_table_enables_the_backend(domain: int, peers: list[Peer],
 
 
 def test_messages_naming_no_vehicle_go_to_their_source_s(domain: int, peers: list[Peer]) -> None:
-    """A message without a vehicle (a radio backend's link stats, a link event) is its
-    source's vehicle's; the configured vehicle's writers exist from the start."""
+    """A message without a vehicle (a radio backend's, a link event) is its source's
+    vehicle's; the configured vehicles' writers exist from the start; a vehicle name that is
+    no ROS name token (``sim-2``) is one in the topics (``sim_2``)."""
     from backends.ros2.backend import Ros2Backend
     from gateway.backend import GatewayContext
-    from gateway.model import LinkEvent
     from gateway.vehicles import SERVICE, SourceVehicle
 
     backend = Ros2Backend()
     backend.attach(GatewayContext(services={SERVICE: [SourceVehicle("radio", "rocket1"),
-                                                      SourceVehicle("other", "rocket2")]}))
-    peers.append(Peer(domain))
+                                                      SourceVehicle("other", "sim-2")]}))
+    peers += [Peer(domain), Peer(domain, "sim_2")]
     backend.init()
     try:
         assert backend.stats()["writers"] == 2 + 2 * 6  # /tf, /diagnostics; 6 per vehicle
         assert backend.stats()["announcements"] == 1  # the node, with every writer so far
         handover = backend.handover
         routes = dict(backend.routes())
-        handover.post(routes[LinkEvent], LinkEvent("other", up=True))
         handover.post(routes[SmUpdate], SmUpdate(1, 3, True, 0, 5.0, 0, 0, 0, 0, 0, 0,
                                                  origin="radio"))
-        # the state is latched: it arrives even if written before the reader matched
+        handover.post(routes[Status], Status(1, 1, 0, 0, origin="other"))
+        # the states are latched: they arrive even if written before the readers matched
         assert peers[0].wait_state("BURNOUT", DEADLINE_S)
-        assert handover.barrier(DEADLINE_S)
-        assert backend.topics.vehicles == ["rocket2", "rocket1"]
+        assert peers[1].wait_state("ARMED", DEADLINE_S)
+        assert [r["data"] for r in peers[1].values("state")] == ["ARMED"]
     finally:
         backend.close()
 

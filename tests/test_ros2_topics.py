@@ -15,6 +15,7 @@ from backends.ros2.topics import (
     RosTopics,
     Sample,
     dds_topic,
+    ros_token,
     vehicle_topics,
 )
 from gateway.attitude import quaternion_xyzw
@@ -100,6 +101,20 @@ def test_vehicles_are_kept_apart() -> None:
     assert "/aurora/beta/state" in b  # beta's first state, although alpha's is the same
     assert decode(b["/tf"]).transforms[0].child_frame_id == "beta"
     assert topics.vehicles == ["alpha", "beta"]
+
+
+def test_vehicle_names_become_ros_name_tokens() -> None:
+    topics = RosTopics()
+    got = by_topic(topics.samples(update(vehicle="drone-1"), NS))
+    assert "/aurora/drone_1/altitude" in got
+    assert decode(got["/tf"]).transforms[0].child_frame_id == "drone-1"  # the frame: its name
+    assert decode(got["/aurora/drone_1/imu"]).header.frame_id == "drone-1"
+    # another vehicle of the same token is told apart
+    assert "/aurora/drone_1_2/altitude" in by_topic(topics.samples(update(vehicle="drone_1"),
+                                                                   NS))
+    assert dict(topics.topics_of("drone_1"))["/aurora/drone_1_2/state"] is types.STRING
+    assert ros_token("a--b__c") == "a_b_c"
+    assert dict(vehicle_topics("sim-2"))["/aurora/sim_2/armed"] is types.BOOL
 
 
 def test_a_message_naming_no_vehicle_is_the_default_vehicle_s() -> None:

@@ -48,7 +48,7 @@ from cyclonedds.util import duration
 
 from backends.ros2 import idl
 from backends.ros2.options import Ros2Options
-from backends.ros2.topics import LATCHED_LEAVES, RosTopics, Sample, dds_topic, vehicle_topics
+from backends.ros2.topics import LATCHED_LEAVES, RosTopics, Sample, dds_topic
 from backends.ros2.types import PARTICIPANT_ENTITIES_INFO, RosType
 from gateway.backend import Backend, BackendError, GatewayContext, Routes
 from gateway.config import ConfigError
@@ -188,7 +188,7 @@ class Ros2Backend(Backend):
                 log.warning("ros2 %s: cannot announce node %s: %s", self.name,
                             self.options.node, exc)
         for vehicle in dict.fromkeys(self._source_vehicle.values()):
-            for topic, ros_type in vehicle_topics(vehicle):
+            for topic, ros_type in self.topics.topics_of(vehicle):
                 self._writer(topic, ros_type, topic.rsplit("/", 1)[-1] in LATCHED_LEAVES,
                              announce=False)
         self._announce()

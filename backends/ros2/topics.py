@@ -21,6 +21,9 @@ topic                                type                             from
                                      DiagnosticArray``                event, link stats (≤ 1/s)
 ===================================  ===============================  =========================
 
+``<vehicle>`` in a topic name is the vehicle's name as a ROS name token (:func:`ros_token`:
+``sim-2`` → ``sim_2``); frame ids are the vehicle's own name.
+
 "Latched" samples (:attr:`Sample.latched`) are for reliable, transient-local writers: a late
 joiner gets the current state and armed at once.  A MAVLink autopilot's
 :class:`~gateway.model.VehicleState` gives the same topics: its mode is its state, its
@@ -43,6 +46,7 @@ is not measured.
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -95,9 +99,21 @@ class Sample(NamedTuple):
     latched: bool = False
 
 
+_NOT_IN_A_ROS_NAME = re.compile(r"[^A-Za-z0-9_]+|_{2,}")
+
+
+def ros_token(vehicle: str) -> str:
+    """``vehicle`` as a token of a ROS name: a ROS name holds letters, digits and single
+    underscores only, so a vehicle's ``-`` (``sim-2``, a MAVLink source's ``drone-1``) becomes
+    ``_`` (``sim_2``); the frame ids keep the vehicle's own name."""
+    token = _NOT_IN_A_ROS_NAME.sub("_", vehicle)
+    return token if token[:1].isalpha() else "v" + token
+
+
 def vehicle_topic(vehicle: str, leaf: str) -> str:
-    """``/aurora/<vehicle>/<leaf>``."""
-    return f"/aurora/{vehicle}/{leaf}"
+    """``/aurora/<vehicle>/<leaf>``, the vehicle's name as a ROS name token
+    (:func:`ros_token`)."""
+    return f"/aurora/{ros_token(vehicle)}/{leaf}"
 
 
 def dds_topic(ros_name: str) -> str:
@@ -107,7 +123,8 @@ def dds_topic(ros_name: str) -> str:
 
 def vehicle_topics(vehicle: str) -> list[tuple[str, RosType]]:
     """The topics of ``vehicle`` and their types, the shared ``/tf`` and ``/diagnostics``
-    included, in the table's order: what a set of writers or a bag declares up front."""
+    included, in the table's order: what a set of writers or a bag declares up front
+    (:meth:`RosTopics.topics_of` also tells apart two vehicles of one token)."""
     return [(vehicle_topic(vehicle, "altitude"), FLOAT64), (TF, TF_MESSAGE),
             (vehicle_topic(vehicle, "imu"), IMU), (vehicle_topic(vehicle, "state"), STRING),
             (vehicle_topic(vehicle, "armed"), BOOL), (vehicle_topic(vehicle, "fix"), NAV_SAT_FIX),
@@ -122,16 +139,17 @@ class _Vehicle:
     """One vehicle's topic names and the last state, armed and health it published."""
 
     __slots__ = ("altitude", "armed", "armed_topic", "battery", "fix", "flags", "imu",
-                 "last_link_diag_ns", "link", "name", "state", "state_topic")
+                 "last_link_diag_ns", "link", "name", "state", "state_topic", "token")
 
-    def __init__(self, name: str) -> None:
-        self.name = name
-        self.altitude = vehicle_topic(name, "altitude")
-        self.imu = vehicle_topic(name, "imu")
-        self.state_topic = vehicle_topic(name, "state")
-        self.armed_topic = vehicle_topic(name, "armed")
-        self.fix = vehicle_topic(name, "fix")
-        self.battery = vehicle_topic(name, "battery")
+    def __init__(self, name: str, token: str) -> None:
+        self.name = name  # the frame id
+        self.token = token  # the ROS name's
+        self.altitude = f"/aurora/{token}/altitude"
+        self.imu = f"/aurora/{token}/imu"
+        self.state_topic = f"/aurora/{token}/state"
+        self.armed_topic = f"/aurora/{token}/armed"
+        self.fix = f"/aurora/{token}/fix"
+        self.battery = f"/aurora/{token}/battery"
         self.state: object = None       # (sm_type, state) of an SM update, or a mode string
         self.armed: bool | None = None
         self.flags: Status | None = None
@@ -150,6 +168,7 @@ class RosTopics:
         self.default_vehicle = default_vehicle
         self.max_vehicles = max_vehicles
         self._vehicles: dict[str, _Vehicle] = {}
+        self._tokens: set[str] = set()
         #: messages of a vehicle past ``max_vehicles``: no samples
         self.dropped_vehicle_limit = 0
         self._handlers: dict[type, Callable[[Any, _Vehicle, int], list[Sample]]] = {
@@ -170,13 +189,35 @@ class RosTopics:
         if handler is None:
             return []
         name = getattr(msg, "vehicle", "") or self.default_vehicle
-        v = self._vehicles.get(name)
+        v = self._vehicles.get(name) or self._vehicle(name)
         if v is None:
-            if len(self._vehicles) >= self.max_vehicles:
-                self.dropped_vehicle_limit += 1
-                return []
-            v = self._vehicles[name] = _Vehicle(name)
+            self.dropped_vehicle_limit += 1
+            return []
         return handler(msg, v, time.time_ns() if stamp_ns is None else stamp_ns)
+
+    def topics_of(self, vehicle: str) -> list[tuple[str, RosType]]:
+        """:func:`vehicle_topics` of ``vehicle`` as :meth:`samples` names them (a vehicle
+        whose token another one has already gets ``_2``, ``_3`` …); empty past
+        ``max_vehicles``."""
+        v = self._vehicles.get(vehicle) or self._vehicle(vehicle)
+        if v is None:
+            return []
+        return [(v.altitude, FLOAT64), (TF, TF_MESSAGE), (v.imu, IMU), (v.state_topic, STRING),
+                (v.armed_topic, BOOL), (v.fix, NAV_SAT_FIX), (v.battery, BATTERY_STATE),
+                (DIAGNOSTICS, DIAGNOSTIC_ARRAY)]
+
+    def _vehicle(self, name: str) -> _Vehicle | None:
+        """A vehicle seen for the first time (None past ``max_vehicles``)."""
+        if len(self._vehicles) >= self.max_vehicles:
+            return None
+        token = base = ros_token(name)
+        n = 1
+        while token in self._tokens:
+            n += 1
+            token = f"{base}_{n}"
+        self._tokens.add(token)
+        v = self._vehicles[name] = _Vehicle(name, token)
+        return v
 
     # -- the state machine ------------------------------------------------------------------
 
