@@ -1,0 +1,244 @@
+"""The ROS 2 topics on Zenoh as rmw_zenoh carries them (backends/ros2/rmw_zenoh.py,
+docs/rmw-zenoh.md): the wire conventions against the facts, then the zenoh backend's session
+carrying them to a real Zenoh subscriber — keys, CDR payloads (decoded by ``rosbags``),
+attachments (decoded by Zenoh's own deserializer), liveliness tokens, and the latched state a
+late joiner gets from the publisher's cache."""
+
+from __future__ import annotations
+
+import re
+import threading
+from typing import Any
+
+import pytest
+import zenoh
+from helpers import post
+from zenoh.ext import (
+    HistoryConfig,
+    Int64,
+    declare_advanced_subscriber,
+    z_deserialize,
+    z_serialize,
+)
+from zenoh_peer import free_endpoint, peer_config, serving, wait_for_gateway, wait_until
+
+xxhash = pytest.importorskip("xxhash")  # (the ros2 extra)
+typesys = pytest.importorskip("rosbags.typesys")
+
+from backends.ros2 import rmw_zenoh  # noqa: E402
+from backends.ros2.types import FLOAT64, STRING  # noqa: E402
+from backends.zenoh.backend import ZenohBackend  # noqa: E402
+from backends.zenoh.keys import DEFAULT_PREFIX  # noqa: E402
+from backends.zenoh.options import ZenohOptions  # noqa: E402
+from gateway import wire  # noqa: E402
+from gateway.flight import FlightModel  # noqa: E402
+from gateway.model import SmUpdate  # noqa: E402
+from gateway.sources.sim import flight_messages  # noqa: E402
+
+VEHICLE = "rocket1"
+TYPESTORE = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+
+
+# -- the wire conventions ------------------------------------------------------------------------
+
+def test_a_topic_key_is_domain_topic_type_and_hash() -> None:
+    assert rmw_zenoh.topic_key(0, "/aurora/rocket1/altitude", FLOAT64.dds_name,
+                               FLOAT64.rihs01) == (
+        "0/aurora/rocket1/altitude/std_msgs::msg::dds_::Float64_/" + FLOAT64.rihs01)
+    assert rmw_zenoh.topic_key(7, "/tf", "tf2_msgs::msg::dds_::TFMessage_", "RIHS01_x") == \
+        "7/tf/tf2_msgs::msg::dds_::TFMessage_/RIHS01_x"
+
+
+def test_qos_chunks_leave_rmw_zenohs_defaults_empty() -> None:
+    assert rmw_zenoh.qos_text(rmw_zenoh.Qos()) == "::,10:,:,:,,"
+    assert rmw_zenoh.qos_text(rmw_zenoh.LATCHED) == ":1:,1:,:,:,,"
+    assert rmw_zenoh.qos_text(rmw_zenoh.Qos(reliable=False, depth=5)) == "2::,5:,:,:,,"
+    assert rmw_zenoh.qos_text(rmw_zenoh.Qos(depth=42)) == "::,:,:,:,,"
+
+
+def test_tokens_name_the_node_and_each_publisher_with_slashes_mangled() -> None:
+    zid = "1f2e3d4c5b6a"
+    assert rmw_zenoh.node_token(0, zid, 0) == f"@ros2_lv/0/{zid}/0/0/NN/%/%/aurora_gateway"
+    assert rmw_zenoh.publisher_token(0, zid, 0, 3, "/aurora/rocket1/state", STRING.dds_name,
+                                     STRING.rihs01, rmw_zenoh.LATCHED) == (
+        f"@ros2_lv/0/{zid}/0/3/MP/%/%/aurora_gateway/%aurora%rocket1%state/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/:1:,1:,:,:,,")
+    # every chunk is non-empty and one chunk (rmw_zenoh splits the token on '/')
+    token = rmw_zenoh.publisher_token(5, zid, 0, 1, "/tf", "a::b", "RIHS01_y", rmw_zenoh.Qos())
+    assert len(token.split("/")) == 13 and all(token.split("/"))
+
+
+def test_the_gid_is_xxh3_128_low_half_first() -> None:
+    """XXH3-128 of the empty input is 0x99aa06d3014798d8_6001c324468d497f (xxHash's test
+    vector): the GID holds the low 64 bits then the high, each little endian."""
+    assert rmw_zenoh.entity_gid("") == bytes.fromhex("7f498d4624c30160d8984701d306aa99")
+    assert len(rmw_zenoh.entity_gid("@ros2_lv/0/x/0/0/NN/%/%/n")) == 16
+
+
+def test_the_attachment_is_what_zenohs_serializer_reads_as_int64_int64_16_bytes() -> None:
+    gid = bytes(range(16))
+    att = rmw_zenoh.attachment(7, 1_790_000_000_123_456_789, gid)
+    assert z_deserialize(tuple[Int64, Int64, bytes],
+                                   zenoh.ZBytes(att)) == (7, 1_790_000_000_123_456_789, gid)
+    # and what Zenoh's serializer writes for those three values, byte for byte
+    assert z_serialize((Int64(7), Int64(1_790_000_000_123_456_789),
+                                  gid)).to_bytes() == att
+    assert rmw_zenoh.parse_attachment(att) == (7, 1_790_000_000_123_456_789, gid)
+    with pytest.raises(ValueError):
+        rmw_zenoh.parse_attachment(att[:-1])
+    with pytest.raises(ValueError):
+        rmw_zenoh.attachment(1, 2, b"short")
+
+
+# -- through the zenoh backend's session ----------------------------------------------------------
+
+def _flight(n: int) -> list[Any]:
+    """The first ``n`` messages of the simulated flight as the gateway decodes them."""
+    out = []
+    for _, m in flight_messages(FlightModel(), 10.0, 1.0, 1):
+        out.append(wire.decode_all(wire.encode(m), origin="sim", vehicle=VEHICLE)[0])
+        if len(out) == n:
+            break
+    return out
+
+
+class _Samples:
+    """What a subscriber got: (key, payload, attachment), with a condition to wait on."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, bytes, bytes]] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, sample: Any) -> None:
+        att = sample.attachment
+        with self.cond:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes(),
+                               b"" if att is None else att.to_bytes()))
+            self.cond.notify_all()
+
+    def wait(self, n: int, timeout: float = 20.0) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: len(self.items) >= n, timeout)
+
+
+@pytest.fixture
+def endpoint() -> str:
+    return free_endpoint()
+
+
+def _backend(endpoint: str, ros: bool = True) -> ZenohBackend:
+    b = serving(ZenohBackend(ZenohOptions(listen=[endpoint], gateway_id="gw-ros")), VEHICLE,
+                source="sim")
+    if ros:
+        rmw_zenoh.request(b.context, 0)  # what the ros2 backend does in its attach
+    b.init()
+    assert b.wait_ready(20), "the session did not open"
+    return b
+
+
+@pytest.fixture
+def session(endpoint: str) -> Any:
+    s = zenoh.open(peer_config(connect=[endpoint]))
+    yield s
+    s.close()
+
+
+def _post_all(backend: ZenohBackend, msgs: list[Any]) -> None:
+    """Hand every message over, a batch at a time so the bounded hand-over never drops."""
+    for i in range(0, len(msgs), 50):
+        for m in msgs[i:i + 50]:
+            post(backend, m)
+        assert backend.wait_idle(20)
+
+
+def test_a_flight_reaches_an_rmw_zenoh_subscriber_with_its_attachments_and_tokens(
+        endpoint: str, session: Any) -> None:
+    backend = _backend(endpoint)
+    try:
+        got = _Samples()
+        key = f"0/aurora/{VEHICLE}/altitude/std_msgs::msg::dds_::Float64_/RIHS01_$*"
+        sub = session.declare_subscriber(key, got)
+        wait_for_gateway(session, DEFAULT_PREFIX, VEHICLE)
+        msgs = _flight(300)
+        updates = [m for m in msgs if isinstance(m, SmUpdate)]
+        _post_all(backend, msgs)
+        assert got.wait(len(updates)), f"{len(got.items)} of {len(updates)} altitudes"
+        sub.undeclare()
+
+        keys = {k for k, _, _ in got.items}
+        assert keys == {f"0/aurora/{VEHICLE}/altitude/std_msgs::msg::dds_::Float64_/"
+                        + FLOAT64.rihs01}
+        altitudes = [TYPESTORE.deserialize_cdr(p, "std_msgs/msg/Float64").data
+                     for _, p, _ in got.items]
+        assert altitudes == [u.altitude_m for u in updates]
+        decoded = [z_deserialize(
+            tuple[Int64, Int64, bytes], zenoh.ZBytes(a))
+            for _, _, a in got.items]
+        assert [seq for seq, _, _ in decoded] == list(range(1, len(updates) + 1))
+        assert all(ts > 1_600_000_000 * 10**9 for _, ts, _ in decoded)
+        gids = {gid for _, _, gid in decoded}
+        assert len(gids) == 1
+
+        # the graph: the node's token and the altitude publisher's, whose hash is the GID
+        tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**",
+                                                                          timeout=10)]
+        zid = str(backend._session.info.zid())
+        assert f"@ros2_lv/0/{zid}/0/0/NN/%/%/aurora_gateway" in tokens, tokens
+        altitude_tokens = [t for t in tokens if re.fullmatch(
+            rf"@ros2_lv/0/{zid}/0/\d+/MP/%/%/aurora_gateway/%aurora%{VEHICLE}%altitude/"
+            rf"std_msgs::msg::dds_::Float64_/{FLOAT64.rihs01}/::,10:,:,:,,", t)]
+        assert len(altitude_tokens) == 1, tokens
+        assert rmw_zenoh.entity_gid(altitude_tokens[0]) == gids.pop()
+        assert any("/MP/%/%/aurora_gateway/%tf/tf2_msgs::msg::dds_::TFMessage_/" in t
+                   for t in tokens)
+        assert any(f"/%aurora%{VEHICLE}%state/std_msgs::msg::dds_::String_/{STRING_HASH}/"
+                   ":1:,1:,:,:,," in t for t in tokens)
+        stats = backend.stats()
+        assert stats["ros2_puts"] >= 3 * len(updates)
+        assert stats["ros2_sample_errors"] == stats["ros2_put_errors"] == 0
+    finally:
+        backend.close()
+    # closed: its tokens are gone
+    assert wait_until(lambda: not list(session.liveliness().get("@ros2_lv/0/**", timeout=5)))
+
+
+def test_a_late_joiner_gets_the_current_state_from_the_publishers_cache(
+        endpoint: str, session: Any) -> None:
+    """A transient-local subscription on rmw_zenoh is an advanced subscriber that queries
+    the caches of the publishers it detects: the state topic's last value arrives at once."""
+    backend = _backend(endpoint)
+    try:
+        wait_for_gateway(session, DEFAULT_PREFIX, VEHICLE)
+        msgs = _flight(400)
+        _post_all(backend, msgs)
+        last_state = [m.state_name for m in msgs if isinstance(m, SmUpdate)][-1]
+        got = _Samples()
+        key = f"0/aurora/{VEHICLE}/state/std_msgs::msg::dds_::String_/{STRING_HASH}"
+        sub = declare_advanced_subscriber(
+            session, key, got,
+            history=HistoryConfig(detect_late_publishers=True))
+        assert got.wait(1), "no state from the cache"
+        sub.undeclare()
+        assert TYPESTORE.deserialize_cdr(got.items[-1][1], "std_msgs/msg/String").data == \
+            last_state
+        seq, _, _ = rmw_zenoh.parse_attachment(got.items[-1][2])
+        assert seq >= 1
+    finally:
+        backend.close()
+
+
+def test_without_the_ros2_backend_the_zenoh_backend_puts_no_ros_topic(
+        endpoint: str, session: Any) -> None:
+    backend = _backend(endpoint, ros=False)
+    try:
+        got = _Samples()
+        sub = session.declare_subscriber("0/**", got)
+        wait_for_gateway(session, DEFAULT_PREFIX, VEHICLE)
+        _post_all(backend, _flight(20))
+        assert not list(session.liveliness().get("@ros2_lv/**", timeout=2))
+        sub.undeclare()
+        assert got.items == []
+        assert not any(k.startswith("ros2_") for k in backend.stats())
+    finally:
+        backend.close()
