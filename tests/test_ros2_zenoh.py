@@ -242,3 +242,21 @@ def test_without_the_ros2_backend_the_zenoh_backend_puts_no_ros_topic(
         assert not any(k.startswith("ros2_") for k in backend.stats())
     finally:
         backend.close()
+
+
+def test_a_message_naming_no_vehicle_is_the_first_configured_sources() -> None:
+    """As on DDS: the request found in a context whose first source is vehicle ``alpha``."""
+    from gateway import vehicles
+    from gateway.backend import GatewayContext
+
+    context = GatewayContext()
+    assert rmw_zenoh.bridge_for(context) is None  # the ros2 backend asked for nothing
+    context.services[vehicles.SERVICE] = [vehicles.SourceVehicle("sim", "alpha"),
+                                          vehicles.SourceVehicle("sim-2", "beta")]
+    rmw_zenoh.request(context, 3)
+    bridge = rmw_zenoh.bridge_for(context)
+    assert bridge is not None and bridge.domain_id == 3
+    update = next(m for m in _flight(5) if isinstance(m, SmUpdate))._replace(vehicle="")
+    assert {s.topic for s in bridge._samples(update)} >= {"/aurora/alpha/altitude", "/tf"}
+    bridge.handle(update)  # no session yet: counted, not raised
+    assert bridge.stats()["ros2_dropped_no_session"] >= 1

@@ -160,11 +160,20 @@ def request(context: Any, domain_id: int) -> None:
 
 
 def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
-    """The publisher the ros2 backend asked for (None: it runs not, or found no request)."""
+    """The publisher the ros2 backend asked for (None: it runs not, or found no request).
+    A message naming no vehicle is the first configured source's vehicle's, as on DDS."""
     req = context.services.get(SERVICE)
     if req is None:
         return None
-    return RmwZenoh(req.domain_id, name=backend)
+    from backends.ros2.topics import RosTopics
+    from gateway.vehicles import SERVICE as VEHICLES_SERVICE
+
+    topics = RosTopics()
+    configured = [sv.vehicle for sv in context.services.get(VEHICLES_SERVICE) or []
+                  if sv.vehicle and not sv.systems]
+    if configured:
+        topics.default_vehicle = configured[0]
+    return RmwZenoh(req.domain_id, name=backend, samples=topics.samples)
 
 
 # -- the publisher ------------------------------------------------------------------------------
