@@ -20,6 +20,12 @@ whose); ``--vehicle NAME`` keeps one (a name the recording does not have: one li
 the vehicles it has, exit status 2).  A version 1 recording's frames name no vehicle: their
 vehicle is named after the file (:func:`gateway.recording.file_vehicle`).
 
+Or the flight as a rosbag2 bag for ``ros2 bag play`` — a new directory with ``metadata.yaml``
+and MCAP storage, the live ``ros2`` backend's topics and CDR (:mod:`backends.ros2.rosbag2`;
+the ``ros2`` extra)::
+
+    aurora-gateway export flight.aur --format rosbag2 -o flight_bag
+
 The recording itself stays the lossless format (every frame as received); the MCAP is a view.
 
 Columns (the same names, in this order, in both formats):
