@@ -26,6 +26,7 @@ xxhash = pytest.importorskip("xxhash")  # (the ros2 extra)
 typesys = pytest.importorskip("rosbags.typesys")
 
 from backends.ros2 import rmw_zenoh  # noqa: E402
+from backends.ros2.topics import RosTopics  # noqa: E402
 from backends.ros2.types import FLOAT64, STRING  # noqa: E402
 from backends.zenoh.backend import ZenohBackend  # noqa: E402
 from backends.zenoh.keys import DEFAULT_PREFIX  # noqa: E402
@@ -260,3 +261,27 @@ def test_a_message_naming_no_vehicle_is_the_first_configured_sources() -> None:
     assert {s.topic for s in bridge._samples(update)} >= {"/aurora/alpha/altitude", "/tf"}
     bridge.handle(update)  # no session yet: counted, not raised
     assert bridge.stats()["ros2_dropped_no_session"] >= 1
+
+
+def test_topics_beyond_the_limit_are_counted_not_published(
+        endpoint: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(rmw_zenoh, "MAX_TOPICS", 2)
+    s = zenoh.open(peer_config(listen=[endpoint]))
+    bridge = rmw_zenoh.RmwZenoh(0)
+    try:
+        bridge.declare(s)
+        updates = [m for m in _flight(30) if isinstance(m, SmUpdate)][:4]
+        topics = RosTopics()
+        samples = [s.topic for m in updates for s in topics.samples(m)]
+        first_two = list(dict.fromkeys(samples))[:2]
+        for m in updates:
+            bridge.handle(m)
+        stats = bridge.stats()
+        assert stats["ros2_topics"] == 2
+        assert stats["ros2_puts"] == sum(t in first_two for t in samples)
+        assert stats["ros2_dropped_topic_limit"] == sum(t not in first_two for t in samples) > 0
+        tokens = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/0/**", timeout=5)]
+        assert sum("/MP/" in t for t in tokens) == 2 and sum("/NN/" in t for t in tokens) == 1
+    finally:
+        bridge.undeclare()
+        s.close()

@@ -21,6 +21,7 @@ nothing here: without the ``zenoh`` backend the ROS topics are on DDS only.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import struct
 import time
@@ -306,6 +307,7 @@ class RmwZenoh:
         self._next_id += 1
         token_key = publisher_token(self.domain_id, self._zid, self.node_id, entity_id,
                                     sample.topic, rtype.dds_name, rtype.rihs01, qos)
+        publisher = None
         try:
             if qos.transient_local:
                 publisher = zenoh.ext.declare_advanced_publisher(
@@ -320,6 +322,9 @@ class RmwZenoh:
                     reliability=zenoh.Reliability.RELIABLE)
             token = session.liveliness().declare_token(token_key)
         except Exception as exc:
+            if publisher is not None:  # (its token failed)
+                with contextlib.suppress(Exception):
+                    publisher.undeclare()
             self.declare_errors += 1
             if self.declare_errors == 1:
                 log.warning("zenoh %s: cannot declare the ROS topic %s: %s", self.name,
