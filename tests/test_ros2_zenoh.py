@@ -123,6 +123,15 @@ class _Samples:
             return self.cond.wait_for(lambda: len(self.items) >= n, timeout)
 
 
+def _tokens(session: Any) -> list[str]:
+    """The ROS graph's liveliness tokens on domain 0 that ``session`` reaches."""
+    out = []
+    for reply in session.liveliness().get("@ros2_lv/0/**", timeout=10):
+        assert reply.ok is not None
+        out.append(str(reply.ok.key_expr))
+    return out
+
+
 @pytest.fixture
 def endpoint() -> str:
     return free_endpoint()
@@ -182,8 +191,7 @@ def test_a_flight_reaches_an_rmw_zenoh_subscriber_with_its_attachments_and_token
         assert len(gids) == 1
 
         # the graph: the node's token and the altitude publisher's, whose hash is the GID
-        tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**",
-                                                                          timeout=10)]
+        tokens = _tokens(session)
         zid = str(backend._session.info.zid())
         assert f"@ros2_lv/0/{zid}/0/0/NN/%/%/aurora_gateway" in tokens, tokens
         altitude_tokens = [t for t in tokens if re.fullmatch(
@@ -280,7 +288,7 @@ def test_topics_beyond_the_limit_are_counted_not_published(
         assert stats["ros2_topics"] == 2
         assert stats["ros2_puts"] == sum(t in first_two for t in samples)
         assert stats["ros2_dropped_topic_limit"] == sum(t not in first_two for t in samples) > 0
-        tokens = [str(r.ok.key_expr) for r in s.liveliness().get("@ros2_lv/0/**", timeout=5)]
+        tokens = _tokens(s)
         assert sum("/MP/" in t for t in tokens) == 2 and sum("/NN/" in t for t in tokens) == 1
     finally:
         bridge.undeclare()
