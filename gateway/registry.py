@@ -44,6 +44,7 @@ EXTRA_OF_MODULE = {
     "mcap": "mcap",                      # export --format mcap
     "matplotlib": "plot",                # plot
     "gpiod": "gpio",                     # the HC-12 SET line on a Linux GPIO
+    "cyclonedds": "ros2",                # backends/ros2's DDS writers (Cyclone DDS)
     "rosbags": "ros2",                   # export --format rosbag2
     "xxhash": "ros2",                    # the rmw_zenoh topics' publisher GIDs
 }
