@@ -6,13 +6,18 @@ late joiner gets from the publisher's cache."""
 
 from __future__ import annotations
 
+import os
+import random
 import re
+import subprocess
+import sys
 import threading
+from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
-from helpers import post
+from helpers import ROOT, post
 from zenoh.ext import (
     HistoryConfig,
     Int64,
@@ -292,4 +297,62 @@ def test_topics_beyond_the_limit_are_counted_not_published(
         assert sum("/MP/" in t for t in tokens) == 2 and sum("/NN/" in t for t in tokens) == 1
     finally:
         bridge.undeclare()
+        s.close()
+
+
+# -- the command line, as a user runs it ----------------------------------------------------------
+
+LOOPBACK_DDS = """<CycloneDDS><Domain id="any">
+  <General><Interfaces><NetworkInterface name="lo"/></Interfaces>
+    <AllowMulticast>false</AllowMulticast></General>
+  <Discovery><Peers><Peer address="127.0.0.1"/></Peers></Discovery>
+</Domain></CycloneDDS>"""
+STATES = ["IDLE", "ARMED", "BOOST", "BURNOUT", "APOGEE", "MAIN", "REDUNDANT", "LANDED"]
+
+
+def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoints(
+        tmp_path: Path) -> None:
+    """``run --source rocket1=sim --ros2 --zenoh-connect …`` with ``ROS_DOMAIN_ID`` set: a
+    Zenoh peer the gateway connects to gets the altitudes to the apogee, the states in order
+    (as a transient-local subscription: an advanced subscriber), the graph's tokens."""
+    pytest.importorskip("cyclonedds")
+    domain = random.SystemRandom().randrange(1, 230)
+    dds = tmp_path / "cyclonedds.xml"
+    dds.write_text(LOOPBACK_DDS)
+    endpoint = free_endpoint()
+    s = zenoh.open(peer_config(listen=[endpoint]))
+    altitudes = _Samples()
+    states = _Samples()
+    tokens = _Samples()
+    try:
+        s.declare_subscriber(
+            f"{domain}/aurora/rocket1/altitude/std_msgs::msg::dds_::Float64_/RIHS01_$*",
+            altitudes)
+        declare_advanced_subscriber(
+            s, f"{domain}/aurora/rocket1/state/std_msgs::msg::dds_::String_/{STRING_HASH}",
+            states, history=HistoryConfig(detect_late_publishers=True))
+        s.liveliness().declare_subscriber(f"@ros2_lv/{domain}/**", tokens)
+        env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "CYCLONEDDS_URI": dds.as_uri(),
+               "PYTHONPATH": str(ROOT)}
+        proc = subprocess.run(
+            [sys.executable, "-m", "gateway", "run", "--source", "rocket1=sim",
+             "--sim-speed", "20", "--ros2", "--zenoh-connect", endpoint, "--only", "zenoh",
+             "--only", "ros2", "--duration", "8", "--status-interval", "0"],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        apogee = float(re.search(r"max altitude (\S+) m", proc.stderr)[1])  # type: ignore[index]
+        got = [TYPESTORE.deserialize_cdr(p, "std_msgs/msg/Float64").data
+               for _, p, _ in altitudes.items]
+        assert got and round(max(got), 1) == apogee
+        top = got.index(max(got))
+        assert got[0] < 1.0 and got[top // 2] < got[top]  # from the pad, rising to the apogee
+        names = [TYPESTORE.deserialize_cdr(p, "std_msgs/msg/String").data
+                 for _, p, _ in states.items]
+        assert names[:len(STATES)] == STATES, names
+        keys = {k for k, _, _ in tokens.items}
+        assert any(k.startswith(f"@ros2_lv/{domain}/") and "/MP/%/%/aurora_gateway/"
+                   "%aurora%rocket1%altitude/std_msgs::msg::dds_::Float64_/RIHS01_" in k
+                   for k in keys), keys
+        assert any("/NN/%/%/aurora_gateway" in k for k in keys), keys
+    finally:
         s.close()

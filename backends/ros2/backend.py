@@ -41,7 +41,7 @@ from cyclonedds.qos import Policy, Qos
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from backends.ros2 import idl
+from backends.ros2 import idl, rmw_zenoh
 from backends.ros2.options import Ros2Options
 from backends.ros2.topics import RosTopics, Sample, dds_topic, vehicle_topics
 from backends.ros2.types import RosType
@@ -134,6 +134,8 @@ class Ros2Backend(Backend):
         self._source_vehicle = {sv.source: sv.vehicle for sv in configured}
         if configured:
             self.topics.default_vehicle = configured[0].vehicle
+        # the same topics on rmw_zenoh, through the zenoh backend's session if it runs
+        rmw_zenoh.request(context, self.options.domain)
 
     def init(self) -> None:
         """Join the domain, declare the configured vehicles' writers, start the loop."""

@@ -150,14 +150,16 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 
 @dataclass(frozen=True)
 class Request:
-    """What the ros2 backend asks of the zenoh backend's session: its domain."""
+    """What the ros2 backend asks of the zenoh backend's session: its domain (read when the
+    zenoh backend starts: ``domain_id``, else ``ROS_DOMAIN_ID``, as the DDS side reads it)."""
 
-    domain_id: int = 0
+    domain: Callable[[], int]
 
 
-def request(context: Any, domain_id: int) -> None:
-    """Ask for the rmw_zenoh topics on ``domain_id`` (the ros2 backend's ``attach``)."""
-    context.services[SERVICE] = Request(domain_id)
+def request(context: Any, domain: int | Callable[[], int]) -> None:
+    """Ask for the rmw_zenoh topics on ``domain`` (the ros2 backend's ``attach``: its options'
+    ``domain``)."""
+    context.services[SERVICE] = Request(domain if callable(domain) else lambda: domain)
 
 
 def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
@@ -165,6 +167,11 @@ def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
     A message naming no vehicle is the first configured source's vehicle's, as on DDS."""
     req = context.services.get(SERVICE)
     if req is None:
+        return None
+    try:
+        domain_id = req.domain()
+    except ValueError as exc:  # (ConfigError: a bad ROS_DOMAIN_ID, which the ros2 backend says)
+        log.warning("zenoh %s: no ROS 2 topics on rmw_zenoh: %s", backend, exc)
         return None
     from backends.ros2.topics import RosTopics
     from gateway.vehicles import SERVICE as VEHICLES_SERVICE
@@ -174,7 +181,7 @@ def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
                   if sv.vehicle and not sv.systems]
     if configured:
         topics.default_vehicle = configured[0]
-    return RmwZenoh(req.domain_id, name=backend, samples=topics.samples)
+    return RmwZenoh(domain_id, name=backend, samples=topics.samples)
 
 
 # -- the publisher ------------------------------------------------------------------------------
