@@ -136,3 +136,25 @@ def test_without_rosbags_one_line_names_the_extra(tmp_path: Path) -> None:
     assert proc.stderr.splitlines() == [
         "aurora-gateway: export needs the 'ros2' extra: pip install 'aurora-gateway[ros2]'"]
     assert not out.exists()
+
+
+def test_fix_and_battery_when_the_recording_has_them(tmp_path: Path) -> None:
+    from backends.ros2 import rosbag2
+    from gateway.model import Battery, Position
+
+    t0 = 1_790_000_000.25
+    messages = [(t0, Position(52.5, 13.25, 40.0, 1.5, None, None, 9, 3, vehicle="gps1")),
+                (t0 + 1, Battery(7.4, 1.25, None, 80, vehicle="gps1"))]
+    written = rosbag2.write(messages, tmp_path / "bag", ["gps1"])
+    assert written.types == {"/aurora/gps1/fix": "sensor_msgs/msg/NavSatFix",
+                             "/aurora/gps1/battery": "sensor_msgs/msg/BatteryState"}
+    types, got = _read(tmp_path / "bag")
+    assert types == written.types
+    (t, fix), = got["/aurora/gps1/fix"]
+    assert t == _ns(t0)
+    assert (fix.latitude, fix.longitude, fix.altitude) == (52.5, 13.25, 40.0)
+    assert fix.header.frame_id == "gps1"
+    (t, battery), = got["/aurora/gps1/battery"]
+    assert t == _ns(t0 + 1)
+    assert battery.voltage == pytest.approx(7.4)  # (float32)
+    assert battery.current == pytest.approx(-1.25)  # ROS: negative while discharging
