@@ -15,11 +15,11 @@ runs:
   ``examples/gateway.toml`` (a copy);
   ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap``, ``export --format
   rosbag2`` and ``plot`` of the recording;
-* without extras: ``record`` a flight; ``--foxglove``, ``--http``, ``plot``, ``export
-  --format mcap`` and ``export --format rosbag2`` of it each one line on stderr naming the
-  extra, exit 2; ``check-config examples/gateway.toml`` exit 0 (its optional backends are
-  disabled, so checked by their options alone); the embedded default runs (it leaves out the
-  backends whose extra is missing).
+* without extras: ``record`` a flight; ``--foxglove``, ``--http``, ``--ros2``, ``plot``,
+  ``export --format mcap`` and ``export --format rosbag2`` of it each one line on stderr
+  naming the extra, exit 2; ``check-config examples/gateway.toml`` exit 0 (its optional
+  backends are disabled, so checked by their options alone); the embedded default runs (it
+  leaves out the backends whose extra is missing).
 
 Standard library only (it runs before any environment exists).  Prints one line per check
 with its duration; exit status 0 when every check passed, 1 otherwise.  ``--keep`` leaves the
@@ -161,6 +161,22 @@ def make_venv(where: Path, wheel: Path, extras: str) -> Path:
     return where / "bin" / "aurora-gateway"
 
 
+#: Cyclone DDS on loopback only, no multicast: the ros2 backend's run here (never the network)
+LOOPBACK_DDS = ("<CycloneDDS><Domain id='any'><General><Interfaces><NetworkInterface name='lo'/>"
+                "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
+                "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>20"
+                "</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
+                "</Discovery></Domain></CycloneDDS>")
+
+
+def loopback_dds_env(work: Path) -> dict[str, str]:
+    """The environment with DDS (the ros2 backend) on loopback, on a domain of its own."""
+    cfg = work / "cyclonedds.xml"
+    cfg.write_text(LOOPBACK_DDS)
+    return {**os.environ, "CYCLONEDDS_URI": cfg.as_uri(),
+            "ROS_DOMAIN_ID": str(100 + os.getpid() % 100)}
+
+
 def run_all(exe: Path, work: Path) -> None:
     """Every backend's flag at once, for 2 s, recording; then the commands around it."""
     recording = work / "flight.aur"
@@ -175,10 +191,11 @@ def run_all(exe: Path, work: Path) -> None:
                 "--uavtalk", f"tcpin:127.0.0.1:{free_port()}",
                 "--fprime", f"tcpin:127.0.0.1:{free_port()}",
                 "--foxglove", f"127.0.0.1:{free_port()}",
-                "--http", f"127.0.0.1:{free_port()}"], cwd=work)
+                "--http", f"127.0.0.1:{free_port()}", "--ros2"], cwd=work,
+               env=loopback_dds_env(work))
     started_line = next((ln for ln in r.stderr.splitlines() if ": sources " in ln), "")
     want = ("console", "mavlink", "crsf", "zenoh", "hc12", "uavtalk", "fprime", "xbee",
-            "foxglove", "http")
+            "foxglove", "http", "ros2")
     missing = [b for b in want if b not in started_line]
     bad = [ln for ln in r.stderr.splitlines() if any(m in ln for m in FAILURE_MARKS)]
     check("run --duration 2 with every backend's flag: exit 0, every backend started",
@@ -256,6 +273,7 @@ def run_base(exe: Path, work: Path) -> None:
         ("run --foxglove", ["run", "--duration", "1", "--foxglove", f"127.0.0.1:{free_port()}"],
          "foxglove"),
         ("run --http", ["run", "--duration", "1", "--http", f"127.0.0.1:{free_port()}"], "http"),
+        ("run --ros2", ["run", "--duration", "1", "--ros2"], "ros2"),
         ("plot", ["plot", str(recording), "-o", "flight.png"], "plot"),
         ("export --format mcap", ["export", str(recording), "--format", "mcap", "-o",
                                   "flight.mcap"], "mcap"),

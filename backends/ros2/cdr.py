@@ -16,6 +16,7 @@ Independent check: ``tests/test_ros2_cdr.py`` decodes every encoder's output wit
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Sequence
@@ -29,9 +30,9 @@ _U32 = struct.Struct("<I")
 _F64 = struct.Struct("<d")
 _TIME = struct.Struct("<iI")
 _TRANSFORM = struct.Struct("<7d")
-# Imu after its header: orientation (4), its covariance (9), angular velocity (3), its
-# covariance (9), linear acceleration (3), its covariance (9).
-_IMU_BODY = struct.Struct("<37d")
+_D3 = struct.Struct("<3d")
+_D4 = struct.Struct("<4d")
+_D9 = struct.Struct("<9d")
 _I8 = struct.Struct("<b")
 _U16 = struct.Struct("<H")
 _NAV_SAT_BODY = struct.Struct("<12dB")   # latitude, longitude, altitude, covariance[9], type
@@ -46,6 +47,8 @@ UNKNOWN_COVARIANCE: tuple[float, ...] = (0.0,) * 9
 NOT_PROVIDED: tuple[float, ...] = (-1.0,) + (0.0,) * 8
 _ZERO3 = (0.0, 0.0, 0.0)
 _NAN = math.nan
+_PACKED_COVARIANCE = {UNKNOWN_COVARIANCE: _D9.pack(*UNKNOWN_COVARIANCE),
+                      NOT_PROVIDED: _D9.pack(*NOT_PROVIDED)}
 
 
 class Transform(NamedTuple):
@@ -88,6 +91,23 @@ def _string(buf: bytearray, s: str) -> None:
     buf += _NUL
 
 
+@functools.lru_cache(maxsize=1024)
+def _strings_at(strings: tuple[str, ...], offset: int, align: int) -> bytes:
+    """``strings`` serialized from ``offset`` (mod 8; a multiple of 4) on, then the padding
+    to the next multiple of ``align``: the part of a message that depends only on its frame
+    names, made once per name (the hot path's headers)."""
+    buf = bytearray(ENCAPSULATION + bytes(offset))
+    for s in strings:
+        _string(buf, s)
+    _align(buf, align)
+    return bytes(buf[_HEADER_LEN + offset:])
+
+
+def _covariance(values: Sequence[float]) -> bytes:
+    packed = _PACKED_COVARIANCE.get(values) if isinstance(values, tuple) else None
+    return packed if packed is not None else _D9.pack(*values)
+
+
 def _header(buf: bytearray, stamp_ns: int, frame_id: str) -> None:
     """A ``std_msgs/msg/Header``: stamp (``builtin_interfaces/msg/Time``), frame_id."""
     _align(buf, 4)
@@ -126,29 +146,29 @@ def imu(stamp_ns: int, frame_id: str,
         linear_acceleration_covariance: Sequence[float] = UNKNOWN_COVARIANCE) -> bytes:
     """``sensor_msgs/msg/Imu``: ``orientation`` (x, y, z, w); an ``angular_velocity`` of None
     is sent as zeros with its covariance marked not provided (element 0 = -1)."""
-    buf = bytearray(ENCAPSULATION)
-    _header(buf, stamp_ns, frame_id)
-    _align(buf, 8)
     if angular_velocity is None:
         angular_velocity, av_cov = _ZERO3, NOT_PROVIDED
     else:
         av_cov = UNKNOWN_COVARIANCE
-    buf += _IMU_BODY.pack(*orientation, *orientation_covariance,
-                          *angular_velocity, *av_cov,
-                          *linear_acceleration, *linear_acceleration_covariance)
-    return bytes(buf)
+    # header (time at 0, frame_id at 8), then doubles aligned on 8
+    return b"".join((ENCAPSULATION, _TIME.pack(*divmod(stamp_ns, 1_000_000_000)),
+                     _strings_at((frame_id,), 8, 8),
+                     _D4.pack(*orientation), _covariance(orientation_covariance),
+                     _D3.pack(*angular_velocity), _covariance(av_cov),
+                     _D3.pack(*linear_acceleration),
+                     _covariance(linear_acceleration_covariance)))
 
 
 def tf_message(transforms: Sequence[Transform]) -> bytes:
     """``tf2_msgs/msg/TFMessage``: a sequence of ``geometry_msgs/msg/TransformStamped``."""
-    buf = bytearray(ENCAPSULATION)
-    buf += _U32.pack(len(transforms))
-    for t in transforms:
-        _header(buf, t.stamp_ns, t.parent)
-        _string(buf, t.child)
-        _align(buf, 8)
-        buf += _TRANSFORM.pack(*t.translation, *t.rotation)
-    return bytes(buf)
+    parts = [ENCAPSULATION, _U32.pack(len(transforms))]
+    offset = 4
+    for t in transforms:  # each header (a time, then frame_id) starts on a multiple of 4
+        names = _strings_at((t.parent, t.child), (offset + 8) % 8, 8)
+        parts += (_TIME.pack(*divmod(t.stamp_ns, 1_000_000_000)), names,
+                  _TRANSFORM.pack(*t.translation, *t.rotation))
+        offset += 8 + len(names) + _TRANSFORM.size
+    return b"".join(parts)
 
 
 # sensor_msgs/msg/NavSatStatus

@@ -182,11 +182,14 @@ class RosTopics:
 
     # -- the state machine ------------------------------------------------------------------
 
-    def _state_armed(self, out: list[Sample], v: _Vehicle, key: object, name: Callable[[], str],
+    def _state_armed(self, out: list[Sample], v: _Vehicle, key: object, msg: Any,
                      armed: bool, ns: int) -> None:
+        """The state (named by ``msg.state_name``, or a mode by ``msg.mode``) when ``key``
+        changes, and armed when it changes."""
         if key != v.state:
             v.state = key
-            out.append(Sample(v.state_topic, STRING, cdr.string(name()), ns, True))
+            name = msg.mode if type(msg) is VehicleState else msg.state_name
+            out.append(Sample(v.state_topic, STRING, cdr.string(name), ns, True))
         if armed is not v.armed:
             v.armed = armed
             out.append(Sample(v.armed_topic, BOOL, cdr.boolean(armed), ns, True))
@@ -203,8 +206,7 @@ class RosTopics:
         out: list[Sample] = []
         self._pose(out, v, ns, m.altitude_m, (m.roll_rad, m.pitch_rad, m.yaw_rad),
                    m.accel_vert_mps2)
-        self._state_armed(out, v, (m.sm_type, m.state), lambda: m.state_name, bool(m.armed),
-                          ns)
+        self._state_armed(out, v, (m.sm_type, m.state), m, bool(m.armed), ns)
         return out
 
     def _vehicle_state(self, m: VehicleState, v: _Vehicle, ns: int) -> list[Sample]:
@@ -214,7 +216,7 @@ class RosTopics:
             self._pose(out, v, ns, alt, (m.roll_rad, m.pitch_rad, m.yaw_rad), 0.0)
         elif m.altitude_m is not None:
             out.append(Sample(v.altitude, FLOAT64, cdr.float64(m.altitude_m), ns))
-        self._state_armed(out, v, m.mode, lambda: m.mode, bool(m.armed), ns)
+        self._state_armed(out, v, m.mode, m, bool(m.armed), ns)
         return out
 
     # -- health: /diagnostics ---------------------------------------------------------------
@@ -222,7 +224,7 @@ class RosTopics:
     def _status(self, m: Status, v: _Vehicle, ns: int) -> list[Sample]:
         v.flags = m
         out: list[Sample] = []
-        self._state_armed(out, v, (m.sm_type, m.state), lambda: m.state_name, m.armed, ns)
+        self._state_armed(out, v, (m.sm_type, m.state), m, m.armed, ns)
         out.append(self._diagnostics(v, ns))
         return out
 

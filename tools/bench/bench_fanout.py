@@ -18,7 +18,18 @@ and the dispatcher/floor ratios are taken within each repetition before their me
 printed.  The cyclic garbage collector is off while the clock runs, as in :mod:`timeit`.
 Prints figures; asserts nothing about time.
 
-Run: ``.venv/bin/python tools/bench/bench_fanout.py [--updates N] [--repeat N]``
+``--ros2`` adds the ROS 2 backend's cost (it needs the ``ros2`` extra): the CPU time of the
+whole process (every thread: the dispatcher's, the backend's loop, Cyclone DDS's own) per
+update, for the same updates dispatched to one trivial backend, then to it and the ROS 2
+backend, blocks of each in turn; each chunk of ``ROS2_CHUNK`` updates (within the backend's
+queue) is waited for before the next, so nothing is dropped and every update is written.
+The updates are a flight's (the state changes every 500 updates, not at each: state and
+armed are published when they change).  DDS stays on loopback (``CYCLONEDDS_URI`` naming
+``lo``, unless one is set) on a domain of its own; ``--ros2-reader`` adds a Cyclone DDS
+subscriber in another process (``tests/ros2_dds_peer.py``), so the writes go somewhere.
+
+Run: ``.venv/bin/python tools/bench/bench_fanout.py [--updates N] [--repeat N] [--ros2
+[--ros2-reader]]``
 """
 
 from __future__ import annotations
@@ -124,14 +135,122 @@ def run_floor(hooks: Sequence[Callable[[Any], Any]], msgs: Sequence[SmUpdate]) -
             fn(m)
 
 
+ROS2_CHUNK = 256  # updates dispatched before waiting for the ROS 2 backend's loop
+_LOOPBACK_DDS = ("<CycloneDDS><Domain id='any'><General><Interfaces><NetworkInterface name='lo'/>"
+                 "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
+                 "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>20"
+                 "</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
+                 "</Discovery></Domain></CycloneDDS>")
+
+
+def flight_updates(count: int, seed: int) -> list[SmUpdate]:
+    """``count`` decoded SmUpdates of a flight: random values, the state changing every 500
+    updates (armed from the second state on)."""
+    rng = random.Random(seed)
+    frames = []
+    for k in range(count):
+        state = k // 500 % 8
+        frames.append(wire.encode(SmUpdate(
+            10 * k, state, state > 0, 0, rng.uniform(0, 3000), rng.uniform(-5, 60),
+            rng.uniform(-12, 50), rng.uniform(-50, 300), rng.uniform(-3.1, 3.1),
+            rng.uniform(-1.5, 1.5), rng.uniform(-3.1, 3.1))))
+    msgs = wire.Decoder("bench-serial").feed(b"".join(frames))
+    assert len(msgs) == count
+    return [m._replace(vehicle="rocket1") for m in msgs]  # type: ignore[attr-defined]
+
+
+def ros2_cpu(args: argparse.Namespace) -> int:
+    """The ROS 2 backend's cost: process CPU µs per update with and without it (see the
+    module docstring)."""
+    import os
+    import subprocess
+    import tempfile
+
+    if not os.environ.get("CYCLONEDDS_URI"):  # never the field network from a benchmark
+        cfg = Path(tempfile.mkdtemp(prefix="bench-dds-")) / "cyclonedds.xml"
+        cfg.write_text(_LOOPBACK_DDS)
+        os.environ["CYCLONEDDS_URI"] = cfg.as_uri()
+    domain = random.SystemRandom().randrange(100, 230)
+    os.environ["ROS_DOMAIN_ID"] = str(domain)
+    from backends.ros2.backend import Ros2Backend
+
+    reader = None
+    if args.ros2_reader:
+        reader = subprocess.Popen([sys.executable, str(ROOT / "tests" / "ros2_dds_peer.py"),
+                                   str(domain), "3600"], stdout=subprocess.DEVNULL)
+    try:
+        msgs = flight_updates(min(args.updates, 20_000), args.seed)
+        base = dispatcher_with([TrivialBackend("t0")])
+        ros2 = Ros2Backend()
+        with_ros2 = dispatcher_with([TrivialBackend("t1"), ros2])
+        handover = ros2.handover
+
+        def run_base(ms: Sequence[SmUpdate]) -> None:
+            run_dispatch(base, ms)
+
+        def run_ros2(ms: Sequence[SmUpdate]) -> None:
+            for i in range(0, len(ms), ROS2_CHUNK):
+                run_dispatch(with_ros2, ms[i:i + ROS2_CHUNK])
+                if not handover.barrier(60):
+                    sys.exit("the ROS 2 backend's loop did not catch up")
+
+        cases = [("1 trivial backend", run_base), ("1 trivial + ros2 backend", run_ros2)]
+        bounds = [len(msgs) * b // BLOCKS for b in range(BLOCKS + 1)]
+        blocks = [msgs[lo:hi] for lo, hi in itertools.pairwise(bounds) if hi > lo]
+        cpu: list[list[float]] = [[] for _ in cases]
+        for rep in range(args.repeat + 1):
+            spent = [0.0] * len(cases)
+            gc.collect()
+            gc.disable()
+            try:
+                for b, block in enumerate(blocks):
+                    for j in range(len(cases)):
+                        k = (j + b + rep) % len(cases)
+                        t0 = time.process_time()
+                        cases[k][1](block)
+                        spent[k] += time.process_time() - t0
+            finally:
+                gc.enable()
+            if rep:
+                for k, t in enumerate(spent):
+                    cpu[k].append(t)
+        stats = ros2.stats()
+        base.close()
+        with_ros2.close()
+    finally:
+        if reader is not None:
+            reader.terminate()
+            reader.wait(10)
+    n = len(msgs)
+    print(f"ROS 2 backend: {n} flight SmUpdates per run, {args.repeat} repetitions (+1 "
+          f"warm-up), process CPU time (all threads), DDS domain {domain} on loopback, "
+          f"{'a subscriber in another process' if reader else 'no subscriber'}")
+    print(f"{'case':<36}{'CPU µs/update':>14}{'min':>8}{'max':>8}")
+    for (name, _fn), ts in zip(cases, cpu, strict=True):
+        print(f"{name:<36}{statistics.median(ts) / n * 1e6:>14.2f}"
+              f"{min(ts) / n * 1e6:>8.2f}{max(ts) / n * 1e6:>8.2f}")
+    extra = statistics.median((y - x) / n * 1e6 for x, y in zip(*cpu, strict=True))
+    print(f"the ros2 backend's cost (median of the per-repetition differences): "
+          f"{extra:.2f} µs CPU per update")
+    print(f"its counters: sent {stats['sent']} samples, dropped {stats['dropped']}, "
+          f"errors {stats['errors']}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--updates", type=int, default=200_000, help="updates per run (200000)")
     ap.add_argument("--repeat", type=int, default=7, help="repetitions; medians reported (7)")
     ap.add_argument("--seed", type=int, default=2024, help="message seed (2024)")
+    ap.add_argument("--ros2", action="store_true",
+                    help="only the ROS 2 backend's CPU cost per update (the 'ros2' extra)")
+    ap.add_argument("--ros2-reader", action="store_true",
+                    help="with --ros2: a DDS subscriber in another process")
     args = ap.parse_args(argv)
     if args.updates < 1 or args.repeat < 1:
         ap.error("--updates and --repeat must be positive")
+    if args.ros2:
+        return ros2_cpu(args)
 
     distinct = decoded_updates(min(DISTINCT, args.updates), args.seed)
     msgs = (distinct * (args.updates // len(distinct) + 1))[:args.updates]

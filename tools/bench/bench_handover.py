@@ -24,6 +24,9 @@ show.  Drops are printed (there should be none: the queue holds the run).
 Peers: MAVLink sends to a UDP socket of this process (never read: the kernel drops what
 overflows), UAVTalk serves a TCP port nobody connects to (the vehicle's objects are updated,
 no packets), Zenoh publishes as a peer with nobody subscribed, Foxglove serves with no client.
+``--backends ros2`` (not run by default: the ``ros2`` extra, and a tree before it has none)
+writes on a DDS domain of its own with nobody subscribed, on loopback only (a
+``CYCLONEDDS_URI`` naming ``lo`` unless one is set).
 
 ``--compare BEFORE_TREE`` runs this script under each tree's own ``.venv`` (the checkout it
 lives in and BEFORE_TREE), alternately, ``--repeat`` times, and prints medians side by side:
@@ -56,6 +59,12 @@ HERE = Path(__file__).resolve()
 ROOT = HERE.parents[2]
 BACKENDS = ("mavlink", "uavtalk", "zenoh", "foxglove")
 WARM_UP = 1000
+#: Cyclone DDS on loopback only, no multicast (the ros2 backend's runs)
+LOOPBACK_DDS = ("<CycloneDDS><Domain id='any'><General><Interfaces><NetworkInterface name='lo'/>"
+                "</Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery>"
+                "<ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>20"
+                "</MaxAutoParticipantIndex><Peers><Peer address='127.0.0.1'/></Peers>"
+                "</Discovery></Domain></CycloneDDS>")
 
 
 def _messages(n: int) -> list[Any]:
@@ -113,6 +122,20 @@ def _build(name: str, n: int) -> tuple[Any, Callable[[], int], list[Any]]:
 
         b = FoxgloveBackend.from_config({"host": "127.0.0.1", "port": 0, "queue_depth": n + 1})
         return b, lambda: int(b.stats()["sent"]), extra
+    if name == "ros2":  # (not in BACKENDS: --backends ros2; needs the 'ros2' extra)
+        import os
+        import random
+        import tempfile
+
+        if not os.environ.get("CYCLONEDDS_URI"):  # loopback only, never the field network
+            cfg = Path(tempfile.mkdtemp(prefix="bench-dds-")) / "cyclonedds.xml"
+            cfg.write_text(LOOPBACK_DDS)
+            os.environ["CYCLONEDDS_URI"] = cfg.as_uri()
+        from backends.ros2.backend import Ros2Backend
+
+        b = Ros2Backend.from_config({"queue_depth": n + 1,
+                                     "domain_id": random.SystemRandom().randrange(100, 230)})
+        return b, lambda: int(b.processed), extra
     raise SystemExit(f"unknown backend {name!r}")
 
 
