@@ -356,3 +356,33 @@ def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoi
         assert any("/NN/%/%/aurora_gateway" in k for k in keys), keys
     finally:
         s.close()
+
+
+def test_a_new_session_gets_new_publishers_and_tokens(endpoint: str, session: Any) -> None:
+    """What the zenoh backend does when its session is reopened (a router back): the old
+    session's publishers are dropped, the new one's declared afresh, sequence numbers from 1."""
+    got = _Samples()
+    session.declare_subscriber("0/aurora/rocket1/altitude/**", got)
+    first = zenoh.open(peer_config())  # reaches nobody
+    second = zenoh.open(peer_config(listen=[endpoint]))
+    bridge = rmw_zenoh.RmwZenoh(0)
+    updates = [m for m in _flight(30) if isinstance(m, SmUpdate)][:4]
+    try:
+        bridge.declare(first)
+        bridge.handle(updates[0])
+        bridge.handle(updates[1])
+        bridge.undeclare()
+        first.close()
+        bridge.declare(second)
+        assert wait_until(lambda: any("/NN/" in t for t in _tokens(session)))
+        for m in updates[2:]:
+            bridge.handle(m)
+        assert got.wait(2)
+        assert [rmw_zenoh.parse_attachment(a)[0] for _, _, a in got.items] == [1, 2]
+        assert [TYPESTORE.deserialize_cdr(p, "std_msgs/msg/Float64").data
+                for _, p, _ in got.items] == [m.altitude_m for m in updates[2:]]
+        zid = str(second.info.zid())
+        assert all(f"/{zid}/" in t for t in _tokens(session))
+    finally:
+        bridge.undeclare()
+        second.close()
