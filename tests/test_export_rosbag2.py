@@ -158,3 +158,14 @@ def test_fix_and_battery_when_the_recording_has_them(tmp_path: Path) -> None:
     assert t == _ns(t0 + 1)
     assert battery.voltage == pytest.approx(7.4)  # (float32)
     assert battery.current == pytest.approx(-1.25)  # ROS: negative while discharging
+
+
+def test_vehicle_keeps_one_vehicles_topics(tmp_path: Path) -> None:
+    out = tmp_path / "beta"
+    assert main(["export", str(RECORDING), "--format", "rosbag2", "-o", str(out),
+                 "--vehicle", "beta"]) == 0
+    types, got = _read(out)
+    assert not any(t.startswith("/aurora/alpha/") for t in types)
+    rows = [r for r in load(RECORDING, "beta").rows if r["kind"] == "sm_update"]
+    assert [m.data for _, m in got["/aurora/beta/altitude"]] == [r["altitude_m"] for r in rows]
+    assert {m.transforms[0].child_frame_id for _, m in got["/tf"]} == {"beta"}
