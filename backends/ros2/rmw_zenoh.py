@@ -51,7 +51,8 @@ HEARTBEAT_S = 0.5
 SERVICE = "ros2.rmw_zenoh"
 
 _SEQ_TS = struct.Struct("<qq")
-_RELIABLE, _BEST_EFFORT = 1, 2
+#: rmw's enum values a QoS chunk names (rmw/types.h)
+_BEST_EFFORT = 2
 _TRANSIENT_LOCAL = 1
 
 
