@@ -26,6 +26,8 @@ import importlib
 from importlib.metadata import entry_points
 from typing import Any
 
+from gateway.exits import signalled
+
 BACKEND_GROUP = "aurora_gateway.backends"
 SOURCE_GROUP = "aurora_gateway.sources"
 COMMAND_GROUP = "aurora_gateway.commands"
@@ -125,6 +127,8 @@ def load(group: str, name: str) -> Any:
         for part in attr.split(".") if attr else ():  # "module" alone names the module
             obj = getattr(obj, part)
     except Exception as exc:  # ImportError, AttributeError, or whatever a plug-in raises
+        if signalled(exc) is not None:  # a Ctrl-C or SIGTERM while the module was executing
+            raise                       # (wrapped by a class's creation): not an import error
         extra = missing_extra(exc)
         if extra is not None:
             raise MissingExtra(f"{_KINDS.get(group, group)} {name}", extra) from exc

@@ -233,3 +233,19 @@ def test_a_plugin_with_no_flags_entry_has_its_classmethods_used(
     args = cli.build_parser().parse_args(["run", f"--{good}-level", "3", "--only", good])
     cfg = cli.config_from_args(args)
     assert [(p.name, p.options) for p in cfg.backends] == [(good, {"level": 3})]
+
+
+def test_a_signal_while_a_module_executes_is_the_signal_not_an_import_error(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C while ``run`` imports the options modules (a dataclass being created wraps it:
+    "RuntimeError: Error calling __set_name__ …") reaches the command, which exits 130; it
+    was once reported as that module failing to import, and the run went on."""
+    module = f"interrupted_{uuid.uuid4().hex}"
+    (tmp_path / f"{module}.py").write_text(
+        "raise RuntimeError('Error calling __set_name__') from KeyboardInterrupt()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(registry, "names", lambda group: {"x": f"{module}:Options"})
+    with pytest.raises(RuntimeError) as info:
+        registry.load(registry.BACKEND_OPTIONS_GROUP, "x")
+    assert not isinstance(info.value, registry.RegistryError)
+    assert isinstance(info.value.__cause__, KeyboardInterrupt)

@@ -229,3 +229,45 @@ def test_an_empty_ros2_table_enables_the_backend(domain: int, peers: list[Peer],
         assert peers[0].wait_state("IDLE", DEADLINE_S), gw.text("stderr")
     finally:
         gw.stop()
+
+
+def test_messages_naming_no_vehicle_go_to_their_source_s(domain: int, peers: list[Peer]) -> None:
+    """A message without a vehicle (a radio backend's link stats, a link event) is its
+    source's vehicle's; the configured vehicle's writers exist from the start."""
+    from backends.ros2.backend import Ros2Backend
+    from gateway.backend import GatewayContext
+    from gateway.model import LinkEvent
+    from gateway.vehicles import SERVICE, SourceVehicle
+
+    backend = Ros2Backend()
+    backend.attach(GatewayContext(services={SERVICE: [SourceVehicle("radio", "rocket1"),
+                                                      SourceVehicle("other", "rocket2")]}))
+    peers.append(Peer(domain))
+    backend.init()
+    try:
+        assert backend.stats()["writers"] == 2 + 2 * 6  # /tf, /diagnostics; 6 per vehicle
+        handover = backend.handover
+        routes = dict(backend.routes())
+        handover.post(routes[LinkEvent], LinkEvent("other", up=True))
+        handover.post(routes[SmUpdate], SmUpdate(1, 3, True, 0, 5.0, 0, 0, 0, 0, 0, 0,
+                                                 origin="radio"))
+        # the state is latched: it arrives even if written before the reader matched
+        assert peers[0].wait_state("BURNOUT", DEADLINE_S)
+        assert handover.barrier(DEADLINE_S)
+        assert backend.topics.vehicles == ["rocket2", "rocket1"]
+    finally:
+        backend.close()
+
+
+def test_a_configuration_cyclone_refuses_is_named(tmp_path: Path,
+                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    from backends.ros2.backend import Ros2Backend
+    from gateway.backend import BackendError
+
+    missing = (tmp_path / "missing.xml").as_uri()
+    monkeypatch.setenv("CYCLONEDDS_URI", missing)
+    backend = Ros2Backend()
+    with pytest.raises(BackendError, match=f"CYCLONEDDS_URI='{missing}'"):
+        backend.init()
+    backend.close()
+    assert backend.stats()["link"] == 0

@@ -9,10 +9,11 @@ of ours, because every writer follows ROS 2's conventions:
   :mod:`backends.ros2.cdr`'s, the same the rmw_zenoh publication and the rosbag2 export carry;
 * ``typehash=RIHS01_…;`` in each writer's USER_DATA (Iron and later check it) and
   ``enclave=/;`` in the participant's, as a ROS 2 participant has;
-* QoS: state and armed reliable, transient local, keep last 1 (a late joiner gets the current
-  state at once); the others ROS 2's default, reliable, volatile, keep last 10 (a reliable
-  writer matches both reliable and best-effort readers: ``ros2 topic echo``, rviz2,
-  PlotJuggler);
+* QoS: state and armed reliable, transient local (a late joiner gets the current state at
+  once, and only it: the durability service keeps the last one; a reader already there gets
+  every change, up to 100 unacknowledged); the others ROS 2's default, reliable, volatile,
+  keep last 10 (a reliable writer matches both reliable and best-effort readers:
+  ``ros2 topic echo``, rviz2, PlotJuggler);
 * the domain: ``domain_id``, else ``ROS_DOMAIN_ID``, else 0; Cyclone DDS reads its own
   configuration (network interface, peers) from ``CYCLONEDDS_URI``.
 
@@ -31,6 +32,7 @@ topics first appear: at most ``MAX_VEHICLES`` vehicles (``dropped_vehicle_limit`
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from typing import Any, ClassVar
 
@@ -68,8 +70,13 @@ MAX_VEHICLES = 64
 #: How long a reliable write may wait for a slow reader's acknowledgements.
 MAX_BLOCKING_S = 0.05
 CLOSE_TIMEOUT_S = 0.5
+URI_ENV = "CYCLONEDDS_URI"
 #: ROS 2's default history depth (rmw_qos_profile_default).
 DEPTH = 10
+#: A latched topic's history for the readers already there: every state change reaches them
+#: even when one acknowledges slowly (a late joiner gets the last one only: the durability
+#: service's depth, 1).
+LATCHED_DEPTH = 100
 #: What a ROS 2 participant's USER_DATA says (rmw_dds_common): the security enclave.
 PARTICIPANT_USER_DATA = b"enclave=/;"
 #: The message types that have ROS topics (:class:`RosTopics`).
@@ -77,14 +84,19 @@ ROUTED = (SmUpdate, Status, Position, Battery, LinkStats, LinkEvent, VehicleStat
 
 
 def writer_qos(ros_type: RosType, latched: bool) -> Qos:
-    """A ROS 2 writer's QoS: latched (state, armed) reliable + transient local + keep last 1,
-    else ROS 2's default (reliable, volatile, keep last 10); XCDR1; the type hash."""
+    """A ROS 2 writer's QoS: latched (state, armed) reliable + transient local, the last
+    value kept for late joiners (durability service history 1; the history for the readers
+    already there: ``LATCHED_DEPTH``), else ROS 2's default (reliable, volatile, keep last
+    10); XCDR1; the type hash."""
     reliable = Policy.Reliability.Reliable(duration(seconds=MAX_BLOCKING_S))
     common = (Policy.DataRepresentation(use_cdrv0_representation=True),
               Policy.Userdata(ros_type.user_data))
     if latched:
-        return Qos(reliable, Policy.Durability.TransientLocal, Policy.History.KeepLast(1),
-                   *common)
+        last = Policy.DurabilityService(cleanup_delay=0, history=Policy.History.KeepLast(1),
+                                        max_samples=-1, max_instances=-1,
+                                        max_samples_per_instance=-1)
+        return Qos(reliable, Policy.Durability.TransientLocal,
+                   Policy.History.KeepLast(LATCHED_DEPTH), last, *common)
     return Qos(reliable, Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH), *common)
 
 
@@ -148,9 +160,12 @@ class Ros2Backend(Backend):
         try:
             self._participant = DomainParticipant(
                 self.domain_id, qos=Qos(Policy.Userdata(PARTICIPANT_USER_DATA)))
-        except DDSException as exc:
-            raise BackendError(f"{self.name}: cannot join DDS domain {self.domain_id} "
-                               f"(CYCLONEDDS_URI?): {exc}") from None
+        except DDSException:
+            uri = os.environ.get(URI_ENV)
+            raise BackendError(
+                f"{self.name}: cannot join DDS domain {self.domain_id}"
+                + (f" with {URI_ENV}={uri!r}" if uri else "")
+                + ": Cyclone DDS refused (its reason is the line it wrote before)") from None
         for vehicle in dict.fromkeys(self._source_vehicle.values()):
             for topic, ros_type in vehicle_topics(vehicle):
                 self._writer(topic, ros_type, topic.rsplit("/", 1)[-1] in ("state", "armed"))
