@@ -63,6 +63,29 @@ def test_qos_chunks_leave_rmw_zenohs_defaults_empty() -> None:
     assert rmw_zenoh.qos_text(rmw_zenoh.Qos(depth=42)) == "::,:,:,:,,"
 
 
+def _read_qos(text: str) -> dict[str, int]:
+    """A QoS chunk read back as rmw_zenoh's ``keyexpr_to_qos`` does: six ``:`` parts; history,
+    deadline and lifespan two ``,`` parts each, liveliness three; an empty value is the
+    default (reliable 1, volatile 2, keep last 1, depth 42)."""
+    parts = text.split(":")
+    assert len(parts) == 6, text
+    history, deadline, lifespan = (p.split(",") for p in parts[2:5])
+    liveliness = parts[5].split(",")
+    assert len(history) == len(deadline) == len(lifespan) == 2 and len(liveliness) == 3, text
+    assert not any(deadline + lifespan + liveliness), text  # all defaults (infinite, automatic)
+    return {"reliability": int(parts[0] or 1), "durability": int(parts[1] or 2),
+            "history": int(history[0] or 1), "depth": int(history[1] or 42)}
+
+
+def test_qos_chunks_read_back_as_rmw_zenoh_reads_them() -> None:
+    assert _read_qos(rmw_zenoh.qos_text(rmw_zenoh.STREAM)) == {
+        "reliability": 1, "durability": 2, "history": 1, "depth": 10}
+    assert _read_qos(rmw_zenoh.qos_text(rmw_zenoh.LATCHED)) == {
+        "reliability": 1, "durability": 1, "history": 1, "depth": 1}
+    assert _read_qos(rmw_zenoh.qos_text(rmw_zenoh.Qos(reliable=False, depth=42))) == {
+        "reliability": 2, "durability": 2, "history": 1, "depth": 42}
+
+
 def test_tokens_name_the_node_and_each_publisher_with_slashes_mangled() -> None:
     zid = "1f2e3d4c5b6a"
     assert rmw_zenoh.node_token(0, zid, 0) == f"@ros2_lv/0/{zid}/0/0/NN/%/%/aurora_gateway"
