@@ -333,11 +333,13 @@ LOOPBACK_DDS = """<CycloneDDS><Domain id="any">
 STATES = ["IDLE", "ARMED", "BOOST", "BURNOUT", "APOGEE", "MAIN", "REDUNDANT", "LANDED"]
 
 
+@pytest.mark.parametrize("how", ["flags", "config"])
 def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoints(
-        tmp_path: Path) -> None:
-    """``run --source rocket1=sim --ros2 --zenoh-connect …`` with ``ROS_DOMAIN_ID`` set: a
-    Zenoh peer the gateway connects to gets the altitudes to the apogee, the states in order
-    (as a transient-local subscription: an advanced subscriber), the graph's tokens."""
+        tmp_path: Path, how: str) -> None:
+    """``run --source rocket1=sim --ros2 --zenoh-connect …`` (or a file with
+    ``[backends.ros2]`` and ``[backends.zenoh]``) with ``ROS_DOMAIN_ID`` set: a Zenoh peer the
+    gateway connects to gets the altitudes to the apogee, the states in order (as a
+    transient-local subscription: an advanced subscriber), the graph's tokens."""
     pytest.importorskip("cyclonedds")
     domain = random.SystemRandom().randrange(1, 230)
     dds = tmp_path / "cyclonedds.xml"
@@ -357,10 +359,16 @@ def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoi
         s.liveliness().declare_subscriber(f"@ros2_lv/{domain}/**", tokens)
         env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "CYCLONEDDS_URI": dds.as_uri(),
                "PYTHONPATH": str(ROOT)}
+        if how == "flags":
+            args = ["--source", "rocket1=sim", "--sim-speed", "20", "--ros2", "--zenoh-connect",
+                    endpoint, "--only", "zenoh", "--only", "ros2", "--duration", "8"]
+        else:
+            (tmp_path / "gw.toml").write_text(
+                '[[sources]]\ntype = "sim"\nvehicle = "rocket1"\nspeed = 20.0\ncycles = 1\n'
+                f'[backends.zenoh]\nconnect = ["{endpoint}"]\n[backends.ros2]\n')
+            args = ["-c", "gw.toml", "--duration", "30"]  # (the flight ends it)
         proc = subprocess.run(
-            [sys.executable, "-m", "gateway", "run", "--source", "rocket1=sim",
-             "--sim-speed", "20", "--ros2", "--zenoh-connect", endpoint, "--only", "zenoh",
-             "--only", "ros2", "--duration", "8", "--status-interval", "0"],
+            [sys.executable, "-m", "gateway", "run", *args, "--status-interval", "0"],
             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0, proc.stderr
         apogee = float(re.search(r"max altitude (\S+) m", proc.stderr)[1])  # type: ignore[index]
