@@ -169,3 +169,12 @@ def test_vehicle_keeps_one_vehicles_topics(tmp_path: Path) -> None:
     rows = [r for r in load(RECORDING, "beta").rows if r["kind"] == "sm_update"]
     assert [m.data for _, m in got["/aurora/beta/altitude"]] == [r["altitude_m"] for r in rows]
     assert {m.transforms[0].child_frame_id for _, m in got["/tf"]} == {"beta"}
+
+
+def test_the_bag_names_its_recording_in_custom_data(bag: Path) -> None:
+    from ruamel.yaml import YAML  # (rosbags' own YAML library)
+
+    meta = YAML(typ="safe").load((bag / "metadata.yaml").read_text())
+    custom = meta["rosbag2_bagfile_information"]["custom_data"]
+    assert custom["aurora_gateway.recording"] == RECORDING.name
+    assert custom["aurora_gateway.version"]

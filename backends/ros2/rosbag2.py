@@ -89,11 +89,13 @@ def check_target(directory: str | Path) -> Path:
 
 
 def write(messages: Iterable[tuple[float, Any]], directory: str | Path,
-          vehicles: list[str] | None = None) -> Written:
+          vehicles: list[str] | None = None,
+          custom_data: dict[str, str] | None = None) -> Written:
     """Write the ROS samples of ``messages`` (``(receive time s, message)`` in recording
     order) as a new rosbag2 directory; ``vehicles`` names the vehicle of a message that
-    names none (the first).  :class:`BagError` when the directory exists; OSError when it
-    cannot be written (a half-written directory is removed)."""
+    names none (the first); ``custom_data`` goes into the bag's metadata (``ros2 bag info``
+    shows it).  :class:`BagError` when the directory exists; OSError when it cannot be written
+    (a half-written directory is removed)."""
     from rosbags.rosbag2 import StoragePlugin, Writer, WriterError
     from rosbags.typesys import Stores, get_typestore
 
@@ -103,7 +105,13 @@ def write(messages: Iterable[tuple[float, Any]], directory: str | Path,
     written = Written()
     connections: dict[str, Any] = {}
     try:
-        with Writer(path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer = Writer(path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        for key, value in (custom_data or {}).items():
+            writer.set_custom_data(key, value)
+    except WriterError as exc:  # (the directory appeared since: not ours to remove)
+        raise BagError(str(exc)) from None
+    try:
+        with writer:
             for t, msg in messages:
                 stamp_ns = time_ns(t)
                 for sample in topics.samples(msg, stamp_ns):

@@ -113,7 +113,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from gateway import exits, recording
+from gateway import __version__, exits, recording
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -569,7 +569,10 @@ def _run_rosbag2(args: argparse.Namespace, flight: Flight) -> int:
     topics: :mod:`backends.ros2.rosbag2`); the exit status."""
     from backends.ros2 import rosbag2
     try:
-        written = rosbag2.write(flight.messages, args.output, flight.vehicles)
+        written = rosbag2.write(
+            flight.messages, args.output, flight.vehicles,
+            custom_data={"aurora_gateway.recording": Path(args.recording).name,
+                         "aurora_gateway.version": __version__})
     except rosbag2.BagError as exc:
         print(f"aurora-gateway export: -o: {exc}", file=sys.stderr)
         return EXIT_USAGE
