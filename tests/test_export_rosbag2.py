@@ -178,3 +178,15 @@ def test_the_bag_names_its_recording_in_custom_data(bag: Path) -> None:
     custom = meta["rosbag2_bagfile_information"]["custom_data"]
     assert custom["aurora_gateway.recording"] == RECORDING.name
     assert custom["aurora_gateway.version"]
+
+
+def test_a_failed_export_leaves_no_half_bag(tmp_path: Path) -> None:
+    from backends.ros2 import rosbag2
+
+    def messages() -> Any:
+        yield from load(RECORDING).messages[:50]
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        rosbag2.write(messages(), tmp_path / "bag")
+    assert not (tmp_path / "bag").exists()

@@ -110,8 +110,10 @@ def write(messages: Iterable[tuple[float, Any]], directory: str | Path,
             writer.set_custom_data(key, value)
     except WriterError as exc:  # (the directory appeared since: not ours to remove)
         raise BagError(str(exc)) from None
+    opened = False  # (then the directory is the bag's, made by open)
     try:
         with writer:
+            opened = True
             for t, msg in messages:
                 stamp_ns = time_ns(t)
                 for sample in topics.samples(msg, stamp_ns):
@@ -125,10 +127,12 @@ def write(messages: Iterable[tuple[float, Any]], directory: str | Path,
                     writer.write(conn, stamp_ns, sample.cdr)
                     written.counts[sample.topic] += 1
     except WriterError as exc:
-        _remove_partial(path)
+        if opened:
+            _remove_partial(path)
         raise BagError(str(exc)) from None
     except BaseException:
-        _remove_partial(path)
+        if opened:
+            _remove_partial(path)
         raise
     return written
 
