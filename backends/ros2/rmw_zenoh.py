@@ -229,9 +229,9 @@ class RmwZenoh:
         self.dropped_topic_limit = 0
         self.dropped_no_session = 0
 
-    @property
-    def node_id(self) -> int:
-        return 0
+    #: the ROS node the topics are published from (``/aurora_gateway``), its id in the session
+    node_name = NODE_NAME
+    node_id = 0
 
     def declare(self, session: Any) -> None:
         """Take ``session``: declare the node's token (the topics' on their first sample)."""

@@ -346,6 +346,9 @@ class ZenohBackend(Backend):
         self._ready.set()
         log.info("zenoh %s: publishing %s/<vehicle>/** as gateway %s (%s)", self.name,
                  self.prefix, self.gateway_id, self.session_options.describe())
+        if self._ros is not None:
+            log.info("zenoh %s: and the ROS 2 topics as rmw_zenoh carries them: domain %d, "
+                     "node /%s", self.name, self._ros.domain_id, self._ros.node_name)
         return True
 
     def _declare(self, session: Any) -> None:
