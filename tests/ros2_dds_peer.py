@@ -7,7 +7,8 @@ classes, named as ROS 2's DDS IDL names them; Cyclone DDS's own deserializer).
 Prints one JSON object per line on stdout: ``{"ready": true}`` once its readers exist, then
 each sample of ``rt/aurora/rocket1/altitude``, ``…/state`` (reliable, transient local: a late
 joiner gets the current one) and ``rt/tf``, and each publication discovered on ``rt/…`` with
-its type name, USER_DATA and durability (the DCPSPublication builtin topic).  Ends after
+its type name, USER_DATA and durability (the DCPSPublication builtin topic), and each
+participant's announcement of its nodes on ``ros_discovery_info`` (the ROS 2 graph).  Ends after
 SECONDS (or when terminated).
 """
 
@@ -92,6 +93,29 @@ class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
     transforms_: t.sequence[TransformStamped]
 
 
+@final
+@dataclass
+class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data_: t.array[t.byte, 16]
+
+
+@final
+@dataclass
+class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace_: t.bounded_str[256]
+    node_name_: t.bounded_str[256]
+    reader_gid_seq_: t.sequence[Gid]
+    writer_gid_seq_: t.sequence[Gid]
+
+
+@final
+@dataclass
+class ParticipantEntitiesInfo(IdlStruct,
+                              typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    gid_: Gid
+    node_entities_info_seq_: t.sequence[NodeEntitiesInfo]
+
+
 def emit(obj: dict) -> None:
     sys.stdout.write(json.dumps(obj) + "\n")
     sys.stdout.flush()
@@ -107,9 +131,11 @@ def main() -> None:
                        Qos(reliable, Policy.Durability.TransientLocal,
                            Policy.History.KeepLast(100)))
     tf = DataReader(dp, Topic(dp, "rt/tf", TFMessage), Qos(reliable, Policy.History.KeepLast(1000)))
+    graph = DataReader(dp, Topic(dp, "ros_discovery_info", ParticipantEntitiesInfo),
+                       Qos(reliable, Policy.Durability.TransientLocal, Policy.History.KeepLast(1)))
     pubs = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
     waitset = WaitSet(dp)
-    for reader in (altitude, state, tf, pubs):
+    for reader in (altitude, state, tf, graph, pubs):
         waitset.attach(ReadCondition(reader, SampleState.Any | ViewState.Any
                                      | InstanceState.Any))
     emit({"ready": True})
@@ -133,6 +159,12 @@ def main() -> None:
                       "child": x.child_frame_id_, "z": x.transform_.translation_.z_,
                       "q": [r.x_, r.y_, r.z_, r.w_], "stamp": stamp,
                       "ts": s.sample_info.source_timestamp})
+        for g in graph.take(N=10):
+            if g.sample_info.valid_data:
+                emit({"graph": bytes(g.gid_.data_).hex(),
+                      "nodes": [{"namespace": n.node_namespace_, "name": n.node_name_,
+                                 "writers": [bytes(w.data_).hex() for w in n.writer_gid_seq_]}
+                                for n in g.node_entities_info_seq_]})
         for p in pubs.take(N=100):
             if not p.sample_info.valid_data or not p.topic_name.startswith("rt/"):
                 continue
@@ -144,6 +176,7 @@ def main() -> None:
             durability = (qos[Policy.Durability]  # noqa: SIM401
                           if Policy.Durability in qos else None)
             emit({"publication": p.topic_name, "type_name": p.type_name,
+                  "key": p.key.bytes.hex(), "participant": p.participant_key.bytes.hex(),
                   "user_data": user_data.data.decode() if user_data else None,
                   "transient_local": durability == Policy.Durability.TransientLocal})
         waitset.wait(duration(milliseconds=100))  # until a reader has data

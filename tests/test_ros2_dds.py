@@ -139,6 +139,16 @@ def test_a_ros_2_subscriber_receives_the_flight(domain: int, peers: list[Peer]) 
         assert p["user_data"] == f"typehash={expected};", topic
         assert p["transient_local"] is topic.endswith(("/state", "/armed")), topic
     assert pubs["rt/aurora/rocket1/state"]["user_data"] == f"typehash={STRING_HASH};"
+
+    # the ROS 2 graph: one node, /aurora_gateway, owning every writer of the gateway's
+    graphs = [r for r in early.records() if "graph" in r]
+    assert graphs, "nothing on ros_discovery_info"
+    latest = graphs[-1]
+    (node,) = latest["nodes"]
+    assert (node["namespace"], node["name"]) == ("/", "aurora_gateway")
+    ours = {p["key"] for p in pubs.values() if p["participant"] == latest["graph"]}
+    assert ours and ours == {p["key"] for p in pubs.values()}
+    assert ours <= set(node["writers"])
     assert pubs["rt/aurora/rocket1/altitude"]["type_name"] == "std_msgs::msg::dds_::Float64_"
 
 
@@ -149,7 +159,7 @@ def test_domain_id_key_overrides_ros_domain_id(domain: int, peers: list[Peer],
     from backends.ros2.options import Ros2Options
 
     monkeypatch.setenv("ROS_DOMAIN_ID", str(domain + 1 if domain < 229 else domain - 1))
-    backend = Ros2Backend(Ros2Options(domain_id=domain))
+    backend = Ros2Backend(Ros2Options(domain_id=domain, node=""))  # no node announced
     peers.append(Peer(domain))
     backend.init()
     try:
@@ -173,6 +183,8 @@ def test_domain_id_key_overrides_ros_domain_id(domain: int, peers: list[Peer],
     finally:
         backend.close()
     assert backend.stats()["sent"] == 3 * posted + 2  # altitude, tf, imu; state, armed once
+    assert backend.stats()["announcements"] == 0
+    assert not [r for r in peers[0].records() if "graph" in r]
     assert backend.stats()["link"] == 0
 
 
@@ -210,12 +222,15 @@ def test_a_bad_ros_domain_id_is_one_line_exit_2(value: str,
     assert len(err) == 1 and "ROS_DOMAIN_ID" in err[0] and "Traceback" not in err[0], err
 
 
-def test_the_domain_key_is_checked_like_every_key(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("key", "value"), [("domain_id", "300"), ("node", '"1st"'),
+                                             ("node", '"a-b"')])
+def test_the_keys_are_checked_like_every_key(key: str, value: str, tmp_path: Path) -> None:
     cfg = tmp_path / "gw.toml"
-    cfg.write_text('[[sources]]\ntype = "sim"\n[backends.ros2]\ndomain_id = 300\n')
+    cfg.write_text(f'[[sources]]\ntype = "sim"\n[backends.ros2]\n{key} = {value}\n')
     gw = Running("run", "--config", str(cfg), "--duration", "1")
     assert gw.finish() == 2
-    assert "domain_id" in gw.text("stderr")
+    err = gw.text("stderr").strip().splitlines()
+    assert len(err) == 1 and f"backends.ros2.{key}" in err[0], err
 
 
 def test_an_empty_ros2_table_enables_the_backend(domain: int, peers: list[Peer],
@@ -246,6 +261,7 @@ def test_messages_naming_no_vehicle_go_to_their_source_s(domain: int, peers: lis
     backend.init()
     try:
         assert backend.stats()["writers"] == 2 + 2 * 6  # /tf, /diagnostics; 6 per vehicle
+        assert backend.stats()["announcements"] == 1  # the node, with every writer so far
         handover = backend.handover
         routes = dict(backend.routes())
         handover.post(routes[LinkEvent], LinkEvent("other", up=True))

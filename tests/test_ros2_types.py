@@ -16,6 +16,13 @@ def test_hash_is_the_one_ros_2_computes(store: Stores, ros_type: RosType) -> Non
     assert ros_type.rihs01 == get_typestore(store).hash_rihs01(ros_type.name)
 
 
+@pytest.mark.parametrize("store", [Stores.ROS2_IRON, Stores.ROS2_JAZZY, Stores.ROS2_KILTED])
+def test_the_graph_announcement_s_hash_is_ros_2_s(store: Stores) -> None:
+    info = types.PARTICIPANT_ENTITIES_INFO
+    assert info.rihs01 == get_typestore(store).hash_rihs01(info.name)
+    assert info.dds_name == "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"
+
+
 def test_string_hash_is_the_published_one() -> None:
     assert types.STRING.rihs01 == (
         "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")

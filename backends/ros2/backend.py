@@ -9,6 +9,9 @@ of ours, because every writer follows ROS 2's conventions:
   :mod:`backends.ros2.cdr`'s, the same the rmw_zenoh publication and the rosbag2 export carry;
 * ``typehash=RIHS01_…;`` in each writer's USER_DATA (Iron and later check it) and
   ``enclave=/;`` in the participant's, as a ROS 2 participant has;
+* the node: the writers belong to the ROS 2 node ``node`` (``/aurora_gateway``), announced
+  on ``ros_discovery_info`` as an Iron-or-later participant does (``ros2 node list``,
+  ``ros2 topic info -v``, rqt_graph);
 * QoS: state and armed reliable, transient local (a late joiner gets the current state at
   once, and only it: the durability service keeps the last one; a reader already there gets
   every change, up to 100 unacknowledged); the others ROS 2's default, reliable, volatile,
@@ -46,7 +49,7 @@ from cyclonedds.util import duration
 from backends.ros2 import idl, rmw_zenoh
 from backends.ros2.options import Ros2Options
 from backends.ros2.topics import RosTopics, Sample, dds_topic, vehicle_topics
-from backends.ros2.types import RosType
+from backends.ros2.types import PARTICIPANT_ENTITIES_INFO, RosType
 from gateway.backend import Backend, BackendError, GatewayContext, Routes
 from gateway.config import ConfigError
 from gateway.handover import Handover
@@ -79,6 +82,8 @@ DEPTH = 10
 LATCHED_DEPTH = 100
 #: What a ROS 2 participant's USER_DATA says (rmw_dds_common): the security enclave.
 PARTICIPANT_USER_DATA = b"enclave=/;"
+#: The ROS 2 graph's topic: each participant's nodes and their readers' and writers' gids.
+DISCOVERY_TOPIC = "ros_discovery_info"
 #: The message types that have ROS topics (:class:`RosTopics`).
 ROUTED = (SmUpdate, Status, Position, Battery, LinkStats, LinkEvent, VehicleState)
 
@@ -98,6 +103,14 @@ def writer_qos(ros_type: RosType, latched: bool) -> Qos:
         return Qos(reliable, Policy.Durability.TransientLocal,
                    Policy.History.KeepLast(LATCHED_DEPTH), last, *common)
     return Qos(reliable, Policy.Durability.Volatile, Policy.History.KeepLast(DEPTH), *common)
+
+
+def discovery_qos() -> Qos:
+    """``ros_discovery_info``'s QoS (rmw_dds_common): reliable, transient local, keep last 1."""
+    return Qos(Policy.Reliability.Reliable(duration(seconds=MAX_BLOCKING_S)),
+               Policy.Durability.TransientLocal, Policy.History.KeepLast(1),
+               Policy.DataRepresentation(use_cdrv0_representation=True),
+               Policy.Userdata(PARTICIPANT_ENTITIES_INFO.user_data))
 
 
 class _Writer:
@@ -131,11 +144,13 @@ class Ros2Backend(Backend):
         self._writers: dict[str, _Writer] = {}
         self._source_vehicle: dict[str, str] = {}
         self._write_log: BurstLog | None = None
+        self._discovery: DataWriter[Any] | None = None
         # counters
         self.sent = 0          # samples written
         self.messages = 0      # gateway messages turned into samples
         self.write_errors = 0
         self.writer_errors = 0  # topics whose writer could not be created
+        self.announcements = 0  # the node's, on ros_discovery_info
 
     # -- life cycle --------------------------------------------------------------------------
 
@@ -166,9 +181,19 @@ class Ros2Backend(Backend):
                 f"{self.name}: cannot join DDS domain {self.domain_id}"
                 + (f" with {URI_ENV}={uri!r}" if uri else "")
                 + ": Cyclone DDS refused (its reason is the line it wrote before)") from None
+        if self.options.node:
+            try:
+                self._discovery = DataWriter(
+                    self._participant, Topic(self._participant, DISCOVERY_TOPIC,
+                                             idl.ParticipantEntitiesInfo_), discovery_qos())
+            except DDSException as exc:  # the topics work without: only the graph misses it
+                log.warning("ros2 %s: cannot announce node %s: %s", self.name,
+                            self.options.node, exc)
         for vehicle in dict.fromkeys(self._source_vehicle.values()):
             for topic, ros_type in vehicle_topics(vehicle):
-                self._writer(topic, ros_type, topic.rsplit("/", 1)[-1] in ("state", "armed"))
+                self._writer(topic, ros_type, topic.rsplit("/", 1)[-1] in ("state", "armed"),
+                             announce=False)
+        self._announce()
         self._loop = loop = IoLoop(f"ros2-{self.name}")
         self._write_log = BurstLog(loop, f"ros2 {self.name}: a DDS write failed", logger=log)
         loop.start()
@@ -186,6 +211,7 @@ class Ros2Backend(Backend):
             loop.close()
         self._writers.clear()
         self._topics.clear()
+        self._discovery = None
         participant, self._participant = self._participant, None
         del participant  # the last reference: its writers and topics go with it
 
@@ -227,8 +253,10 @@ class Ros2Backend(Backend):
             return
         self.sent += 1
 
-    def _writer(self, topic: str, ros_type: RosType, latched: bool) -> _Writer | None:
-        """The writer of ``topic`` (created on first use; None if it cannot be, counted)."""
+    def _writer(self, topic: str, ros_type: RosType, latched: bool,
+                announce: bool = True) -> _Writer | None:
+        """The writer of ``topic`` (created on first use, and announced as the node's; None
+        if it cannot be, counted)."""
         w = self._writers.get(topic)
         if w is not None or self._participant is None:
             return w
@@ -244,7 +272,25 @@ class Ros2Backend(Backend):
             log.warning("ros2 %s: no writer for %s: %s", self.name, dds_topic(topic), exc)
             return None
         self._writers[topic] = w
+        if announce:
+            self._announce()
         return w
+
+    def _announce(self) -> None:
+        """The node and its writers on ``ros_discovery_info`` (at start, then at each new
+        writer): what ``ros2 node list`` and ``ros2 topic info -v`` read."""
+        if self._discovery is None or self._participant is None:
+            return
+        info = idl.participant_entities_info(
+            self._participant.guid, "/", self.options.node,
+            [w.writer.guid for w in self._writers.values()])
+        try:
+            self._discovery.write(info)
+            self.announcements += 1
+        except DDSException as exc:
+            self.write_errors += 1
+            log.warning("ros2 %s: cannot announce node %s: %s", self.name,
+                        self.options.node, exc)
 
     # -- status ------------------------------------------------------------------------------
 
@@ -264,6 +310,7 @@ class Ros2Backend(Backend):
                 "link": int(self._participant is not None), **h.stats(),
                 "messages": self.messages, "write_errors": self.write_errors,
                 "writer_errors": self.writer_errors, "writers": len(self._writers),
+                "announcements": self.announcements,
                 "vehicles": len(self.topics.vehicles),
                 "dropped_vehicle_limit": self.topics.dropped_vehicle_limit,
                 "domain_id": self.domain_id}

@@ -189,6 +189,45 @@ class DiagnosticArray_(IdlStruct,
     status_: t.sequence[DiagnosticStatus_]
 
 
+# rmw_dds_common: the ROS 2 graph (ros_discovery_info), serialized by the binding itself -----
+
+@final
+@dataclass
+class Gid_(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+    data_: t.array[t.byte, 16]
+
+
+@final
+@dataclass
+class NodeEntitiesInfo_(IdlStruct,
+                        typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+    node_namespace_: t.bounded_str[256]
+    node_name_: t.bounded_str[256]
+    reader_gid_seq_: t.sequence[Gid_]
+    writer_gid_seq_: t.sequence[Gid_]
+
+
+@final
+@dataclass
+class ParticipantEntitiesInfo_(IdlStruct,
+                               typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+    gid_: Gid_
+    node_entities_info_seq_: t.sequence[NodeEntitiesInfo_]
+
+
+def gid(guid: Any) -> Gid_:
+    """A DDS entity's GUID (``uuid.UUID``, 16 bytes) as ROS 2's Gid."""
+    return Gid_(list(guid.bytes))
+
+
+def participant_entities_info(participant: Any, namespace: str, node: str,
+                              writers: list[Any]) -> ParticipantEntitiesInfo_:
+    """What ``ros_discovery_info`` says of a participant (its GUID) with one node, its
+    writers (their GUIDs) and no reader."""
+    return ParticipantEntitiesInfo_(
+        gid(participant), [NodeEntitiesInfo_(namespace, node, [], [gid(w) for w in writers])])
+
+
 #: The class of each published type, by ROS name.
 CLASSES: dict[str, type[IdlStruct]] = {
     types.STRING.name: String_, types.BOOL.name: Bool_, types.FLOAT64.name: Float64_,

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -16,6 +17,15 @@ from gateway.options import ConfigError, Flag, Options, option
 MAX_DOMAIN_ID = 232
 DOMAIN_ENV = "ROS_DOMAIN_ID"
 FLAG = "--ros2"
+DEFAULT_NODE = "aurora_gateway"
+_NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
+
+
+def check_node_name(name: str) -> None:
+    """A ROS 2 node name (letters, digits, '_'; not a digit first; at most 255), or "" """
+    if name and (not _NODE_NAME.match(name) or len(name) > 255):
+        raise ValueError(f"{name!r} is not a ROS 2 node name: letters, digits and '_', not "
+                         "starting with a digit")
 
 
 def domain_from_env(environ: Any = os.environ) -> int:
@@ -47,6 +57,10 @@ class Ros2Options(Options):
                   f"{DOMAIN_ENV}'s (enables the backend)", metavar="ID"))
     queue_depth: int = option(1024, "updates waiting for the backend's DDS writer thread "
                               "before new ones are dropped", minimum=1)
+    node: str = option(DEFAULT_NODE, "the ROS 2 node its topics belong to (ros2 node list, "
+                       "rqt_graph), announced on ros_discovery_info as Iron and later do; \"\": "
+                       "none (a graph of Humble nodes, whose announcement differs)",
+                       validator=check_node_name)
 
     def check(self) -> None:
         """With no ``domain_id``, ``ROS_DOMAIN_ID`` is read now: a bad one is the

@@ -71,6 +71,12 @@ DIAGNOSTIC_ARRAY = RosType.of(
     "diagnostic_msgs/msg/DiagnosticArray",
     "RIHS01_5a8a36efb05fb25070fa0fb3810290c0e6cd4862b54a8fb975a1ee8dc55a333e")
 
-#: Every type the gateway publishes.
+#: What a ROS 2 participant announces its nodes with (``ros_discovery_info``; Iron and later:
+#: Humble's Gid is 24 bytes, a type of another hash).
+PARTICIPANT_ENTITIES_INFO = RosType.of(
+    "rmw_dds_common/msg/ParticipantEntitiesInfo",
+    "RIHS01_e725f4a506958c79f95dd693b965722c57b19cd18e7eff984f49561b93dc985d")
+
+#: Every type the gateway publishes on its topics.
 ALL_TYPES: tuple[RosType, ...] = (STRING, BOOL, FLOAT64, IMU, TF_MESSAGE, NAV_SAT_FIX,
                                   BATTERY_STATE, DIAGNOSTIC_ARRAY)
