@@ -365,7 +365,8 @@ def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoi
         else:
             (tmp_path / "gw.toml").write_text(
                 '[[sources]]\ntype = "sim"\nvehicle = "rocket1"\nspeed = 20.0\ncycles = 1\n'
-                f'[backends.zenoh]\nconnect = ["{endpoint}"]\n[backends.ros2]\n')
+                f'[backends.zenoh]\nconnect = ["{endpoint}"]\n'
+                '[backends.ros2]\nnode = "ground_station"\n')  # (its DDS node's name too)
             args = ["-c", "gw.toml", "--duration", "30"]  # (the flight ends it)
         proc = subprocess.run(
             [sys.executable, "-m", "gateway", "run", *args, "--status-interval", "0"],
@@ -381,10 +382,11 @@ def test_run_ros2_puts_the_flight_on_rmw_zenoh_through_the_zenoh_backends_endpoi
                  for _, p, _ in states.items]
         assert names[:len(STATES)] == STATES, names
         keys = {k for k, _, _ in tokens.items}
-        assert any(k.startswith(f"@ros2_lv/{domain}/") and "/MP/%/%/aurora_gateway/"
+        node = "aurora_gateway" if how == "flags" else "ground_station"
+        assert any(k.startswith(f"@ros2_lv/{domain}/") and f"/MP/%/%/{node}/"
                    "%aurora%rocket1%altitude/std_msgs::msg::dds_::Float64_/RIHS01_" in k
                    for k in keys), keys
-        assert any("/NN/%/%/aurora_gateway" in k for k in keys), keys
+        assert any(k.endswith(f"/NN/%/%/{node}") for k in keys), keys
     finally:
         s.close()
 

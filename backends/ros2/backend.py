@@ -162,7 +162,7 @@ class Ros2Backend(Backend):
         if configured:
             self.topics.default_vehicle = configured[0].vehicle
         # the same topics on rmw_zenoh, through the zenoh backend's session if it runs
-        rmw_zenoh.request(context, self.options.domain)
+        rmw_zenoh.request(context, self.options.domain, self.options.node)
 
     def init(self) -> None:
         """Join the domain, declare the configured vehicles' writers, start the loop."""

@@ -152,15 +152,19 @@ def parse_attachment(data: bytes) -> tuple[int, int, bytes]:
 @dataclass(frozen=True)
 class Request:
     """What the ros2 backend asks of the zenoh backend's session: its domain (read when the
-    zenoh backend starts: ``domain_id``, else ``ROS_DOMAIN_ID``, as the DDS side reads it)."""
+    zenoh backend starts: ``domain_id``, else ``ROS_DOMAIN_ID``, as the DDS side reads it) and
+    its node's name."""
 
     domain: Callable[[], int]
+    node: str = NODE_NAME
 
 
-def request(context: Any, domain: int | Callable[[], int]) -> None:
-    """Ask for the rmw_zenoh topics on ``domain`` (the ros2 backend's ``attach``: its options'
-    ``domain``)."""
-    context.services[SERVICE] = Request(domain if callable(domain) else lambda: domain)
+def request(context: Any, domain: int | Callable[[], int], node: str = "") -> None:
+    """Ask for the rmw_zenoh topics on ``domain`` from the node ``node`` ("": the default,
+    ``aurora_gateway``; rmw_zenoh's graph has no publisher without a node) — the ros2
+    backend's ``attach``, with its options' ``domain`` and ``node``."""
+    context.services[SERVICE] = Request(domain if callable(domain) else lambda: domain,
+                                        node or NODE_NAME)
 
 
 def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
@@ -182,7 +186,7 @@ def bridge_for(context: Any, backend: str = "zenoh") -> RmwZenoh | None:
                   if sv.vehicle and not sv.systems]
     if configured:
         topics.default_vehicle = configured[0]
-    return RmwZenoh(domain_id, name=backend, samples=topics.samples)
+    return RmwZenoh(domain_id, name=backend, samples=topics.samples, node=req.node)
 
 
 # -- the publisher ------------------------------------------------------------------------------
@@ -207,13 +211,14 @@ class RmwZenoh:
 
     def __init__(self, domain_id: int = 0, *, name: str = "zenoh",
                  samples: Callable[[Any], Iterable[Any]] | None = None,
-                 clock: Callable[[], int] = time.time_ns) -> None:
+                 clock: Callable[[], int] = time.time_ns, node: str = NODE_NAME) -> None:
         if samples is None:
             from backends.ros2.topics import RosTopics
 
             samples = RosTopics().samples
         self.domain_id = domain_id
         self.name = name
+        self.node_name = node
         self._samples = samples
         self._clock = clock
         self._session: Any = None
@@ -229,8 +234,7 @@ class RmwZenoh:
         self.dropped_topic_limit = 0
         self.dropped_no_session = 0
 
-    #: the ROS node the topics are published from (``/aurora_gateway``), its id in the session
-    node_name = NODE_NAME
+    #: the ROS node's id in the session (its name: ``node_name``)
     node_id = 0
 
     def declare(self, session: Any) -> None:
@@ -241,7 +245,7 @@ class RmwZenoh:
         self._next_id = 1  # 0 is the node
         try:
             self._node_token = session.liveliness().declare_token(
-                node_token(self.domain_id, self._zid, self.node_id))
+                node_token(self.domain_id, self._zid, self.node_id, self.node_name))
         except Exception as exc:  # published all the same; the graph misses the node
             self.declare_errors += 1
             log.warning("zenoh %s: cannot declare the ROS node's token: %s", self.name, exc)
@@ -314,7 +318,8 @@ class RmwZenoh:
         entity_id = self._next_id
         self._next_id += 1
         token_key = publisher_token(self.domain_id, self._zid, self.node_id, entity_id,
-                                    sample.topic, rtype.dds_name, rtype.rihs01, qos)
+                                    sample.topic, rtype.dds_name, rtype.rihs01, qos,
+                                    self.node_name)
         publisher = None
         try:
             if qos.transient_local:
