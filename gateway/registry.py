@@ -47,6 +47,8 @@ EXTRA_OF_MODULE = {
     "matplotlib": "plot",                # plot
     "gpiod": "gpio",                     # the HC-12 SET line on a Linux GPIO
     "cyclonedds": "ros2",                # backends/ros2's DDS writers (Cyclone DDS)
+    "rosbags": "ros2",                   # export --format rosbag2
+    "xxhash": "ros2",                    # the rmw_zenoh topics' publisher GIDs
 }
 
 _cache: dict[tuple[str, str], Any] = {}

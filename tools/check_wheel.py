@@ -13,13 +13,13 @@ runs:
   object; the files installed for the user (``share/aurora-gateway/``: the
   Foxglove layout, the example configuration, the systemd unit); ``check-config`` of
   ``examples/gateway.toml`` (a copy);
-  ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap`` and ``plot`` of the
-  recording;
-* without extras: ``record`` a flight; ``--foxglove``, ``--http``, ``--ros2``, ``plot`` and ``export
-  --format mcap`` of it each one line on stderr naming the extra, exit 2; ``check-config
-  examples/gateway.toml`` exit 0 (its optional backends are disabled, so checked by their
-  options alone); the embedded default runs (it leaves out the backends whose extra is
-  missing).
+  ``fprime-dictionary``; ``mavlink-modes``; ``export --format mcap``, ``export --format
+  rosbag2`` and ``plot`` of the recording;
+* without extras: ``record`` a flight; ``--foxglove``, ``--http``, ``--ros2``, ``plot``,
+  ``export --format mcap`` and ``export --format rosbag2`` of it each one line on stderr
+  naming the extra, exit 2; ``check-config examples/gateway.toml`` exit 0 (its optional
+  backends are disabled, so checked by their options alone); the embedded default runs (it
+  leaves out the backends whose extra is missing).
 
 Standard library only (it runs before any environment exists).  Prints one line per check
 with its duration; exit status 0 when every check passed, 1 otherwise.  ``--keep`` leaves the
@@ -234,6 +234,8 @@ def run_all(exe: Path, work: Path) -> None:
     expect_ok(exe, work, ["mavlink-modes"], "mavlink-modes")
     expect_ok(exe, work, ["export", recording.name, "--format", "mcap", "-o", "flight.mcap"],
               "export --format mcap", work / "flight.mcap", MCAP_MAGIC)
+    expect_ok(exe, work, ["export", recording.name, "--format", "rosbag2", "-o", "flight_bag"],
+              "export --format rosbag2", work / "flight_bag" / "flight_bag.mcap", MCAP_MAGIC)
     expect_ok(exe, work, ["plot", recording.name, "-o", "flight.png"], "plot",
               work / "flight.png", PNG_MAGIC)
 
@@ -275,6 +277,8 @@ def run_base(exe: Path, work: Path) -> None:
         ("plot", ["plot", str(recording), "-o", "flight.png"], "plot"),
         ("export --format mcap", ["export", str(recording), "--format", "mcap", "-o",
                                   "flight.mcap"], "mcap"),
+        ("export --format rosbag2", ["export", str(recording), "--format", "rosbag2", "-o",
+                                     "flight_bag"], "ros2"),
     ]
     for label, args, extra in cases:
         started = time.monotonic()

@@ -46,7 +46,7 @@ from cyclonedds.qos import Policy, Qos
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from backends.ros2 import idl
+from backends.ros2 import idl, rmw_zenoh
 from backends.ros2.options import Ros2Options
 from backends.ros2.topics import LATCHED_LEAVES, RosTopics, Sample, dds_topic
 from backends.ros2.types import PARTICIPANT_ENTITIES_INFO, RosType
@@ -161,6 +161,8 @@ class Ros2Backend(Backend):
         self._source_vehicle = {sv.source: sv.vehicle for sv in configured}
         if configured:
             self.topics.default_vehicle = configured[0].vehicle
+        # the same topics on rmw_zenoh, through the zenoh backend's session if it runs
+        rmw_zenoh.request(context, self.options.domain, self.options.node)
 
     def init(self) -> None:
         """Join the domain, declare the configured vehicles' writers, start the loop."""

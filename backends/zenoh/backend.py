@@ -36,6 +36,12 @@ matches, so late joiners need not wait for the next update (one, not one per veh
 runs each Python callback on a thread of its own).  The gateway's own counters go on
 ``<prefix>/@gateways/<id>/stats`` (not a vehicle's: a verbatim chunk no wildcard matches).
 
+ROS 2 over rmw_zenoh: when the ``ros2`` backend runs too (it asks with
+:func:`backends.ros2.rmw_zenoh.request`), this backend's loop also puts each message's ROS
+samples on this session as rmw_zenoh does (:class:`backends.ros2.rmw_zenoh.RmwZenoh`: its keys,
+liveliness tokens and attachments), so a ROS 2 node on rmw_zenoh hears the rocket through this
+backend's endpoints; its counters are this backend's ``ros2_…`` stats.
+
 Loop prevention reads the message, not a registry: a message whose ``via`` says it came in
 over Zenoh is never published again (``skipped_from_zenoh``); the attachment names this
 gateway, and the id goes into the gateway's context so its own Zenoh sources ignore it.
@@ -150,6 +156,8 @@ class ZenohBackend(Backend):
         self.skipped_no_vehicle = 0
         self.dropped_vehicle_limit = 0
         self.bad_vehicle_names = 0
+        #: the rmw_zenoh topics (when the ros2 backend asked for them), on this loop
+        self._ros: Any = None
 
     # -- configuration -----------------------------------------------------------------------
 
@@ -166,6 +174,8 @@ class ZenohBackend(Backend):
         if self._loop is not None:
             return
         self._learn_sources()
+        from backends.ros2.rmw_zenoh import bridge_for
+        self._ros = bridge_for(self.context, self.name)
         self.context.own_ids.add(self.gateway_id)  # this gateway's Zenoh sources skip it
         self._stop = threading.Event()
         self._loop = loop = IoLoop(f"zenoh-{self.name}")
@@ -221,6 +231,8 @@ class ZenohBackend(Backend):
         session, self._session = self._session, None
         if session is None:
             return
+        if self._ros is not None:
+            self._ros.undeclare()
         entities = [e for ents in self._presence.values() for e in ents] + self._entities
         for ent in reversed(entities):
             try:
@@ -334,6 +346,9 @@ class ZenohBackend(Backend):
         self._ready.set()
         log.info("zenoh %s: publishing %s/<vehicle>/** as gateway %s (%s)", self.name,
                  self.prefix, self.gateway_id, self.session_options.describe())
+        if self._ros is not None:
+            log.info("zenoh %s: and the ROS 2 topics as rmw_zenoh carries them: domain %d, "
+                     "node /%s", self.name, self._ros.domain_id, self._ros.node_name)
         return True
 
     def _declare(self, session: Any) -> None:
@@ -359,6 +374,8 @@ class ZenohBackend(Backend):
             layout = self._layout(vehicle) if vehicle else None
             if layout is not None:
                 self._declare_presence(session, layout)
+        if self._ros is not None:
+            self._ros.declare(session)
 
     def _declare_presence(self, session: Any, layout: _Vehicle) -> None:
         """``layout``'s vehicle's liveliness token (once per session)."""
@@ -449,6 +466,8 @@ class ZenohBackend(Backend):
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
         """Put ``msg``'s document and/or its wire frame; a message that cannot be encoded is
         skipped, counted (``publish_errors``)."""
+        if self._ros is not None:
+            self._ros.handle(msg)
         layout = self._declared.get(msg.vehicle)
         if layout is None:
             layout = self._vehicle_layout(msg)
@@ -542,6 +561,7 @@ class ZenohBackend(Backend):
             "connected": self.transports,
             "session_opens": self.session_opens,
             "open_failures": self.open_failures,
+            **(self._ros.stats() if self._ros is not None else {}),
         }
 
     def latest(self) -> dict[str, bytes]:

@@ -20,6 +20,12 @@ whose); ``--vehicle NAME`` keeps one (a name the recording does not have: one li
 the vehicles it has, exit status 2).  A version 1 recording's frames name no vehicle: their
 vehicle is named after the file (:func:`gateway.recording.file_vehicle`).
 
+Or the flight as a rosbag2 bag for ``ros2 bag play`` — a new directory with ``metadata.yaml``
+and MCAP storage, the live ``ros2`` backend's topics and CDR (:mod:`backends.ros2.rosbag2`;
+the ``ros2`` extra)::
+
+    aurora-gateway export flight.aur --format rosbag2 -o flight_bag
+
 The recording itself stays the lossless format (every frame as received); the MCAP is a view.
 
 Columns (the same names, in this order, in both formats):
@@ -107,7 +113,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from gateway import exits, recording
+from gateway import __version__, exits, recording
 from gateway.model import (
     Battery,
     LinkEvent,
@@ -150,7 +156,7 @@ KIND_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 #: The kinds ``--kind`` takes: the ones with rows.
 ROW_KINDS: tuple[str, ...] = ("sm_update", *KIND_COLUMNS)
-FORMATS = ("csv", "jsonl", "mcap", "tlog")
+FORMATS = ("csv", "jsonl", "mcap", "tlog", "rosbag2")
 _JSONL_SUFFIXES = (".jsonl", ".ndjson", ".json")
 _MCAP_SUFFIXES = (".mcap",)
 _TLOG_SUFFIXES = (".tlog",)
@@ -387,9 +393,10 @@ def add_command(subparsers: Any) -> argparse.ArgumentParser:
                     "pandas, or the flight as an MCAP file for Foxglove. " + _COLUMN_HELP)
     p.add_argument("recording", metavar="RECORDING", help="the recording (.aur)")
     p.add_argument("--format", "-f", choices=FORMATS, default=None,
-                   help="csv, jsonl, mcap or tlog (a MAVLink telemetry log; default: jsonl "
+                   help="csv, jsonl, mcap, tlog (a MAVLink telemetry log) or rosbag2 (a new "
+                        "directory -o DIR for ros2 bag play; the ros2 extra); default: jsonl "
                         "for a .jsonl/.ndjson/.json -o file, mcap for .mcap, tlog for .tlog, "
-                        "else csv)")
+                        "else csv")
     p.add_argument("-o", "--output", metavar="FILE", default="-",
                    help="file to write; - = stdout (default)")
     p.add_argument("--vehicle", metavar="NAME",
@@ -429,10 +436,20 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
     """The ``export`` handler; returns the exit status.  ``out`` replaces stdout (tests)."""
     err = sys.stderr
     fmt = _format_of(args)
-    if fmt in ("mcap", "tlog") and args.output == "-":
-        print(f"aurora-gateway export: {'an MCAP file' if fmt == 'mcap' else 'a telemetry log'}"
-              " is written with -o FILE, not to stdout", file=err)
+    if fmt in ("mcap", "tlog", "rosbag2") and args.output == "-":
+        what = {"mcap": "an MCAP file", "tlog": "a telemetry log",
+                "rosbag2": "a rosbag2 bag"}[fmt]
+        target = "-o DIR (a new directory)" if fmt == "rosbag2" else "-o FILE"
+        print(f"aurora-gateway export: {what} is written with {target}, not to stdout",
+              file=err)
         return EXIT_USAGE
+    if fmt == "rosbag2":
+        from backends.ros2 import rosbag2  # (rosbags itself only when it writes)
+        try:
+            rosbag2.check_target(args.output)
+        except rosbag2.BagError as exc:
+            print(f"aurora-gateway export: -o: {exc}", file=err)
+            return EXIT_USAGE
     try:
         flight = load(args.recording, args.vehicle)
     except ExportError as exc:
@@ -442,6 +459,8 @@ def run_export(args: argparse.Namespace, out: TextIO | None = None) -> int:
         return _run_mcap(args, flight)
     if fmt == "tlog":
         return _run_tlog(args, flight)
+    if fmt == "rosbag2":
+        return _run_rosbag2(args, flight)
     to_stdout = args.output == "-"
     stream = out if out is not None else sys.stdout
     kinds = getattr(args, "kind", None)
@@ -542,4 +561,28 @@ def _run_tlog(args: argparse.Namespace, flight: Flight) -> int:
     print(f"aurora-gateway export: {written.frames} MAVLink frames of {_vehicles(flight)} "
           f"as tlog to {args.output}: {kinds or 'none'}" + (f"; {notes}" if notes else ""),
           file=sys.stderr)
+    return 0
+
+
+def _run_rosbag2(args: argparse.Namespace, flight: Flight) -> int:
+    """Write ``flight`` as a rosbag2 directory ``args.output`` (the live ``ros2`` backend's
+    topics: :mod:`backends.ros2.rosbag2`); the exit status."""
+    from backends.ros2 import rosbag2
+    try:
+        written = rosbag2.write(
+            flight.messages, args.output, flight.vehicles,
+            custom_data={"aurora_gateway.recording": Path(args.recording).name,
+                         "aurora_gateway.version": __version__})
+    except rosbag2.BagError as exc:
+        print(f"aurora-gateway export: -o: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:
+        print(f"aurora-gateway export: cannot write {args.output}: {exc.strerror or exc}",
+              file=sys.stderr)
+        return EXIT_FAILURE
+    topics = ", ".join(f"{t} {n}" for t, n in written.counts.items())
+    notes = flight.notes()
+    print(f"aurora-gateway export: {flight.kinds['sm_update']} SM updates ({flight.statuses} "
+          f"STATUS) of {_vehicles(flight)} as rosbag2 to {args.output}: "
+          f"{topics or 'no messages'}" + (f"; {notes}" if notes else ""), file=sys.stderr)
     return 0
