@@ -205,6 +205,7 @@ class Router:
         self.forward = forward
         self.links: list[Link] = []
         self._others: dict[Link, tuple[Link, ...]] = {}
+        self._batching: tuple[Link, ...] = ()  # links that write what a batch routes at once
         self.stats = RouterStats()
         self.signing_key: bytes | None = None
         self.verifier: signing.SignatureVerifier | None = None
@@ -324,6 +325,7 @@ class Router:
 
     def _rebuild(self) -> None:
         self._others = {lk: tuple(o for o in self.links if o is not lk) for lk in self.links}
+        self._batching = tuple(lk for lk in self.links if hasattr(lk, "flush_batch"))
 
     # -- system ids ----------------------------------------------------------------------------
 
@@ -439,15 +441,24 @@ class Router:
             for f in frames:
                 self._route(link, f)
 
-    def receive_many(self, link: Link, datagrams: Iterable[bytes]) -> None:
-        """Several datagrams read from ``link`` in one go (one lock round trip)."""
+    def receive_many(self, link: Link, datagrams: list[bytes]) -> None:
+        """Several datagrams read from ``link`` in one go (one lock round trip); what they
+        route to links that write in batches (``start_batch``/``flush_batch``: UDP) is
+        written once they are all routed, one write per link (in order)."""
         with self.lock:
             self._now = time.monotonic()
             stats = link.framer_stats
             route = self._route
-            for data in datagrams:
-                for f in split_datagram(data, stats):
-                    route(link, f)
+            batching = self._batching if len(datagrams) > 1 else ()
+            for lk in batching:
+                lk.start_batch()  # type: ignore[attr-defined]
+            try:
+                for data in datagrams:
+                    for f in split_datagram(data, stats):
+                        route(link, f)
+            finally:
+                for lk in batching:
+                    lk.flush_batch()  # type: ignore[attr-defined]
 
     def _route(self, link: Link, f: Frame) -> None:
         raw, msgid, sysid, compid, seq, tsys, tcomp, _, _ = f  # one unpack: the hot path
