@@ -507,7 +507,8 @@ class Router:
             self._say("new", f"system {sysid} component {compid} on {link.name}")
         readers = self._wants.get(msgid)
         if readers is not None:
-            mine = [s for s in readers if s.claimed and s.wants(tsys, tcomp)]
+            mine = ([s for s in readers if s.claimed] if tsys <= 0  # broadcast: for all
+                    else [s for s in readers if s.claimed and s.wants(tsys, tcomp)])
             if mine:  # (not yet on the air: not ours)
                 if verifier is not None and verdict is None:
                     verdict = verifier.check(f)

@@ -100,12 +100,13 @@ class _EpollPoller:
 
     def select(self, timeout: float) -> list[tuple[Callable[[int], Any], int]]:
         entries = self._entries
-        out = []
+        out: list[tuple[Callable[[int], Any], int]] = []
         ep = self._ep
         if 0 < timeout < FINE_WAIT_S:
             # epoll waits whole milliseconds (Python rounds up): a shorter wait (a router's
             # coalescing window) waits on the epoll descriptor with select's microseconds
-            select.select(self._fine, (), (), timeout)
+            if not select.select(self._fine, (), (), timeout)[0]:
+                return out  # the time is up, nothing is ready: no epoll call needed
             timeout = 0
         for fd, ev in ep.poll(timeout, max(1, len(entries))):
             entry = entries.get(fd)

@@ -696,12 +696,13 @@ class PortEngine:
         dense = now - self._datagrams_done < COALESCE_GAP_S
         self._datagrams_done = now
         if got and dense and self.coalesce_s > 0:
-            self._hold(port)
+            self._hold(port, read_many, feed_many)
         elif self._holding:
             self._holding = False
             self._set_interest(write=self._want_write)
 
-    def _hold(self, port: Any) -> None:
+    def _hold(self, port: Any, read_many: Callable[[], list[bytes]],
+              feed_many: Callable[[list[bytes]], Any]) -> None:
         """Leave ``port`` unwatched for :attr:`coalesce_s`, then read what came meanwhile."""
         if not self._holding:
             self._holding = True
@@ -709,7 +710,7 @@ class PortEngine:
 
         def resume() -> None:
             if self._port is port and self._holding:
-                self._read_available()
+                self._read_batches(port, read_many, feed_many)
 
         self._loop.call_later(self.coalesce_s, resume)
 
