@@ -15,7 +15,6 @@ fallback on Linux).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import errno
 import mmap
 import os
@@ -56,8 +55,8 @@ def _load() -> tuple[Any, Any] | None:
     if (sys.platform != "linux" or ctypes.sizeof(ctypes.c_void_p) != 8
             or sys.implementation.name != "cpython" or os.environ.get("AURORA_NO_MMSG")):
         return None
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    try:  # the process's own symbols (libc's among them): no find_library (a subprocess)
+        libc = ctypes.CDLL(None, use_errno=True)
         recv, send = libc.recvmmsg, libc.sendmmsg
     except (OSError, AttributeError):
         return None
