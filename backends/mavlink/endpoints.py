@@ -193,7 +193,6 @@ class UdpEndpoint(Endpoint, PortLink):
         self.listen = spec.kind == "udpin"
         self.port: UdpPort | None = None
         self._bound_port = spec.port  # udpin:HOST:0 binds the same port again on a reopen
-        self._first: UdpPort | None = None
         self._new_peers = 0
         #: while the router routes a batch of datagrams: what is sent to this link meanwhile,
         #: written in one go by :meth:`flush_batch` (None: each send is written at once)
@@ -217,15 +216,11 @@ class UdpEndpoint(Endpoint, PortLink):
         self._new_peers = 0
         return port
 
-    def _opener(self) -> UdpPort:
-        first, self._first = self._first, None
-        return first if first is not None else self._open()
-
     def start(self, loop: IoLoop, router: Router) -> None:
-        self._first = self._open()  # raises (TransportError is an OSError) naming us
-        engine = self.make_engine(self._opener, loop, queue_depth=self.queue_depth)
+        first = self._open()  # raises (TransportError is an OSError) naming us
+        engine = self.make_engine(self._open, loop, queue_depth=self.queue_depth)
         router.add_link(self)
-        engine.start()
+        engine.start_with(first)  # open already: attached on the loop, no worker round trip
         engine.wait_connected(START_WAIT_S)
 
     @property

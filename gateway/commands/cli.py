@@ -394,7 +394,7 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     keep, asked = _backend_filter(args, backends)
     cfg = config.load(args.config, keep) if getattr(args, "config", None) else None
     if cfg is None:
-        cfg = config.embedded_default(keep)
+        cfg = config.embedded_default(keep, sources=not getattr(args, "source", None))
     if getattr(args, "source", None):
         cfg.sources = _sources_from_urls(args.source)
     for type_name, key, value in source_opts:
