@@ -160,7 +160,7 @@ _INTEGRATED = frozenset({"_alt", "_vel", "_f", "_t_apogee", "_t_land", "apogee_a
                          "_trans_times", "_trans_states"})
 
 
-_INTEGRATING = threading.Lock()
+_INTEGRATING = threading.RLock()
 
 
 class FlightModel:
@@ -203,8 +203,8 @@ class FlightModel:
         source's first sample waits for it).  Only the slots it fills come here."""
         if name not in _INTEGRATED:
             raise AttributeError(name)
-        with _INTEGRATING:
-            try:  # complete (the state table is its last step), or under way on this thread
+        with _INTEGRATING:  # another thread integrating: wait for it
+            try:  # complete? (the state table is its last step)
                 object.__getattribute__(self, "_trans_states")
             except AttributeError:
                 try:
@@ -212,8 +212,9 @@ class FlightModel:
                 except AttributeError:
                     self._busy = True
                     self._complete()
-                    return object.__getattribute__(self, name)
-        raise AttributeError(name)
+                else:  # under way on this very thread: the slot is not set yet
+                    raise AttributeError(name) from None
+        return object.__getattribute__(self, name)
 
     def _complete(self) -> None:
         p = self.profile
