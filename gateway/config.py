@@ -305,9 +305,11 @@ def load(path: str | Path, keep: Callable[[str], bool] | None = None) -> Gateway
     return parse(data, keep)
 
 
-def embedded_default(keep: Callable[[str], bool] | None = None) -> GatewayConfig:
+def embedded_default(keep: Callable[[str], bool] | None = None, *,
+                     sources: bool = True) -> GatewayConfig:
     """The configuration used with no file: the simulated flight through every backend
-    that can run on loopback with its defaults (``keep``: see :func:`parse`)."""
+    that can run on loopback with its defaults (``keep``: see :func:`parse`).  ``sources``
+    False leaves the simulated source out (``--source`` replaces it: it is not imported)."""
     backends: dict[str, Any] = {}
     for name in registry.backend_names():
         if keep is not None and not keep(name):
@@ -319,4 +321,4 @@ def embedded_default(keep: Callable[[str], bool] | None = None) -> GatewayConfig
         default = getattr(cls, "EMBEDDED_DEFAULT", {})
         if default is not None:
             backends[name] = dict(default)
-    return parse({"sources": [{"type": "sim"}], "backends": backends})
+    return parse({"sources": [{"type": "sim"}] if sources else [], "backends": backends})

@@ -39,8 +39,10 @@ disarmed, which is the LANDED → IDLE transition.
 from __future__ import annotations
 
 import math
+import threading
 from bisect import bisect_right
 from dataclasses import dataclass
+from typing import Any
 
 from dialects.states import SimpleState
 from gateway.model import SM_UPDATE_F32_LEN, SM_UPDATE_F64_LEN, SmUpdate, Status
@@ -152,6 +154,15 @@ def _smoothstep(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
+#: The slots :meth:`FlightModel._complete` fills (see ``FlightModel.__getattr__``).
+_INTEGRATED = frozenset({"_alt", "_vel", "_f", "_t_apogee", "_t_land", "apogee_altitude_m",
+                         "max_velocity_mps", "_apogee_roll", "_land_pitch", "_land_yaw",
+                         "_trans_times", "_trans_states"})
+
+
+_INTEGRATING = threading.RLock()
+
+
 class FlightModel:
     """One flight cycle of ``profile``, integrated once; sampled at any time ``t``.
 
@@ -161,6 +172,7 @@ class FlightModel:
     __slots__ = (
         "_alt",
         "_apogee_roll",
+        "_busy",
         "_f",
         "_land_pitch",
         "_land_yaw",
@@ -175,10 +187,37 @@ class FlightModel:
         "profile",
     )
 
-    def __init__(self, profile: FlightProfile = FlightProfile()) -> None:
+    def __init__(self, profile: FlightProfile = FlightProfile(), *, lazy: bool = False) -> None:
+        """``lazy``: integrate when first sampled (see :meth:`__getattr__`), for a profile
+        known to be valid (a bad one raises ValueError there instead of here)."""
         self.profile = p = profile
         #: cycle time of ARMED → BOOST (ignition)
         self.launch_time_s: float = p.idle_s + p.armed_s
+        if not lazy:
+            self._busy = True
+            self._complete()
+
+    def __getattr__(self, name: str) -> Any:
+        """A lazy model is integrated when first needed, not when it is made: tens of
+        milliseconds of a gateway's start-up (its backends start first, the simulated
+        source's first sample waits for it).  Only the slots it fills come here."""
+        if name not in _INTEGRATED:
+            raise AttributeError(name)
+        with _INTEGRATING:  # another thread integrating: wait for it
+            try:  # complete? (the state table is its last step)
+                object.__getattribute__(self, "_trans_states")
+            except AttributeError:
+                try:
+                    object.__getattribute__(self, "_busy")
+                except AttributeError:
+                    self._busy = True
+                    self._complete()
+                else:  # under way on this very thread: the slot is not set yet
+                    raise AttributeError(name) from None
+        return object.__getattribute__(self, name)
+
+    def _complete(self) -> None:
+        p = self.profile
         self._integrate()
         self._apogee_roll = p.pad_roll_rad + p.spin_rad_per_m * self.apogee_altitude_m
         self._land_pitch = self._descent_pitch(self._t_land)

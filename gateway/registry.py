@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import functools
 import importlib
-from importlib.metadata import entry_points
+import os
+import re
+import sys
 from typing import Any
 
 from gateway.exits import signalled
@@ -98,15 +100,76 @@ _KINDS = {BACKEND_GROUP: "backend", SOURCE_GROUP: "source", COMMAND_GROUP: "comm
 
 def names(group: str) -> dict[str, str]:
     """Every name installed in ``group`` → its ``module:attr`` target, sorted by name."""
-    return dict(_installed(group))
+    return dict(_installed().get(group, ()))
 
 
 @functools.cache
-def _installed(group: str) -> tuple[tuple[str, str], ...]:
-    """``group``'s entry points, read once: scanning the installed distributions is slow
-    (every ``names`` call was a scan), and they do not change while the gateway runs.  A test
-    that installs a plug-in mid-run calls ``_installed.cache_clear()``."""
-    return tuple(sorted((ep.name, ep.value) for ep in entry_points(group=group)))
+def _installed() -> dict[str, tuple[tuple[str, str], ...]]:
+    """Every group's entry points (sorted), read once: scanning the installed distributions
+    is slow, and they do not change while the gateway runs.  A test that installs a plug-in
+    mid-run calls ``_installed.cache_clear()``."""
+    found = _read_entry_points()
+    if found is None:  # a path this scan does not read (a zip): the standard library's way
+        from importlib.metadata import entry_points
+
+        found = {group: [(ep.name, ep.value) for ep in entry_points(group=group)]
+                 for group in entry_points().groups}
+    return {group: tuple(sorted(eps)) for group, eps in found.items()}
+
+
+_DIST_DIR = re.compile(r"^([^-]+)(?:-[^/]*)?\.(?:dist|egg)-info$")
+
+
+def _read_entry_points() -> dict[str, list[tuple[str, str]]] | None:
+    """Every group's entry points of the distributions on ``sys.path``, as
+    :func:`importlib.metadata.entry_points` finds them (the first distribution of a name on
+    the path wins; ``entry_points.txt`` in each ``*.dist-info``/``*.egg-info`` directory),
+    without importing :mod:`importlib.metadata` (email, zipfile, csv …: a fifth of the
+    start-up).  None when a path entry is not a directory (a zip): then use the library."""
+    groups: dict[str, list[tuple[str, str]]] = {}
+    seen: set[str] = set()
+    for entry in sys.path:
+        path = entry or "."
+        if not os.path.isdir(path):
+            if os.path.exists(path):
+                return None
+            continue
+        try:
+            names = os.listdir(path)
+        except OSError:
+            continue
+        for name in names:
+            m = _DIST_DIR.match(name)
+            if m is None:
+                continue
+            dist = re.sub(r"[-_.]+", "_", m.group(1)).lower()
+            if dist in seen:
+                continue
+            try:
+                with open(os.path.join(path, name, "entry_points.txt"), encoding="utf-8") as f:
+                    text = f.read()
+            except OSError:  # no entry points, or an egg-info file, not a directory
+                if os.path.isdir(os.path.join(path, name)):
+                    seen.add(dist)
+                continue
+            seen.add(dist)
+            _parse_entry_points(text, groups)
+    return groups
+
+
+def _parse_entry_points(text: str, groups: dict[str, list[tuple[str, str]]]) -> None:
+    """``entry_points.txt`` (INI: ``[group]`` then ``name = value`` lines) into ``groups``."""
+    current: list[tuple[str, str]] | None = None
+    for raw in text.splitlines():
+        line = raw.strip()
+        if not line or line.startswith(("#", ";")):
+            continue
+        if line.startswith("[") and line.endswith("]"):
+            current = groups.setdefault(line[1:-1].strip(), [])
+            continue
+        name, sep, value = line.partition("=")
+        if sep and current is not None:
+            current.append((name.strip(), value.strip()))
 
 
 def load(group: str, name: str) -> Any:

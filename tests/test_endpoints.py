@@ -455,20 +455,48 @@ def test_a_plugin_source_is_a_url_prefix(tmp_path: Path, monkeypatch: pytest.Mon
 
 
 def test_entry_points_are_read_once(monkeypatch: pytest.MonkeyPatch) -> None:
-    calls: list[str] = []
-    real = registry.entry_points
+    calls: list[int] = []
+    real = registry._read_entry_points
 
-    def counting(**kw: Any) -> Any:
-        calls.append(kw["group"])
-        return real(**kw)
+    def counting() -> Any:
+        calls.append(1)
+        return real()
 
-    monkeypatch.setattr(registry, "entry_points", counting)
+    monkeypatch.setattr(registry, "_read_entry_points", counting)
     registry._installed.cache_clear()
     try:
         for _ in range(3):
             registry.source_names()
             registry.backend_names()
-        assert sorted(calls) == sorted([registry.SOURCE_GROUP, registry.BACKEND_GROUP])
+            registry.names(registry.COMMAND_GROUP)
+        assert calls == [1]  # one scan of the installed distributions for every group
+    finally:
+        registry._installed.cache_clear()
+
+
+def test_entry_points_are_those_importlib_metadata_finds() -> None:
+    """The registry's own scan (no importlib.metadata import at start-up) finds what the
+    standard library finds, in every group of every distribution installed here."""
+    from importlib.metadata import entry_points
+
+    found = registry._read_entry_points()
+    assert found is not None
+    groups = set(found) | {registry.BACKEND_GROUP, registry.SOURCE_GROUP,
+                           registry.COMMAND_GROUP, registry.BACKEND_OPTIONS_GROUP,
+                           registry.SOURCE_OPTIONS_GROUP}
+    for group in groups:
+        expected = sorted((ep.name, ep.value) for ep in entry_points(group=group))
+        assert sorted(found.get(group, ())) == expected, group
+    assert registry.names(registry.BACKEND_GROUP)["mavlink"]  # the project's own, installed
+
+
+def test_where_the_scan_cannot_read_a_path_the_standard_library_reads_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    scanned = registry._installed()
+    monkeypatch.setattr(registry, "_read_entry_points", lambda: None)  # as for a zip on the path
+    registry._installed.cache_clear()
+    try:
+        assert registry._installed() == scanned
     finally:
         registry._installed.cache_clear()
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import threading
+from typing import Any
 
 import pytest
 
@@ -352,3 +354,27 @@ def test_sm_type_passes_through() -> None:
 def test_invalid_profiles(kwargs: dict) -> None:
     with pytest.raises(ValueError):
         FlightModel(dataclasses.replace(FlightProfile(), **kwargs))
+
+
+def test_a_lazy_model_is_the_same_flight_integrated_at_first_use() -> None:
+    """The simulated source's model integrates when first sampled (start-up time), from any
+    thread, and flies exactly the eager model's flight."""
+    eager = FlightModel()
+    lazy = FlightModel(lazy=True)
+    results: list[Any] = []
+
+    def sample() -> None:
+        results.append(lazy.sm_update(30.0, 0))
+
+    threads = [threading.Thread(target=sample) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(10.0)
+    assert len(results) == 4 and all(r == eager.sm_update(30.0, 0) for r in results)
+    assert lazy.apogee_altitude_m == eager.apogee_altitude_m
+    assert lazy.transitions() == eager.transitions()
+    for t in (0.0, 12.5, 47.0, eager.cycle_s - 0.1):
+        assert lazy.sm_update(t, 7) == eager.sm_update(t, 7)
+    with pytest.raises(AttributeError):
+        _ = lazy.no_such_attribute  # type: ignore[attr-defined]

@@ -193,8 +193,10 @@ class UdpEndpoint(Endpoint, PortLink):
         self.listen = spec.kind == "udpin"
         self.port: UdpPort | None = None
         self._bound_port = spec.port  # udpin:HOST:0 binds the same port again on a reopen
-        self._first: UdpPort | None = None
         self._new_peers = 0
+        #: while the router routes a batch of datagrams: what is sent to this link meanwhile,
+        #: written in one go by :meth:`flush_batch` (None: each send is written at once)
+        self._batch: list[bytes] | None = None
         # from sockets reopened since
         self._closed_counts = {"tx_errors": 0, "tx_refused": 0, "tx_dropped": 0}
 
@@ -214,15 +216,11 @@ class UdpEndpoint(Endpoint, PortLink):
         self._new_peers = 0
         return port
 
-    def _opener(self) -> UdpPort:
-        first, self._first = self._first, None
-        return first if first is not None else self._open()
-
     def start(self, loop: IoLoop, router: Router) -> None:
-        self._first = self._open()  # raises (TransportError is an OSError) naming us
-        engine = self.make_engine(self._opener, loop, queue_depth=self.queue_depth)
+        first = self._open()  # raises (TransportError is an OSError) naming us
+        engine = self.make_engine(self._open, loop, queue_depth=self.queue_depth)
         router.add_link(self)
-        engine.start()
+        engine.start_with(first)  # open already: attached on the loop, no worker round trip
         engine.wait_connected(START_WAIT_S)
 
     @property
@@ -249,6 +247,31 @@ class UdpEndpoint(Endpoint, PortLink):
         self.router.receive_many(self, datagrams)  # type: ignore[union-attr]
         return ()
 
+    def start_batch(self) -> None:
+        """Keep what is sent from now on for :meth:`flush_batch` (the router's batches)."""
+        if self._batch is None and self.port is not None and self.port.mmsg is not None:
+            self._batch = []
+
+    def flush_batch(self) -> None:
+        """Write what was kept since :meth:`start_batch`: one ``sendmmsg`` per destination
+        when the engine can write now, else each through its queue."""
+        batch, self._batch = self._batch, None
+        if not batch:
+            return
+        engine = self.engine
+        if engine.send_datagrams(batch):  # type: ignore[union-attr]
+            return
+        c = self.counters
+        for data in batch:  # counted sent when kept: a refusal here undoes that
+            outcome = engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
+            if outcome is not ACCEPTED:
+                c.tx_frames -= 1
+                c.tx_bytes -= len(data)
+                if outcome is NOT_READY:
+                    c.tx_not_up += 1
+                else:
+                    c.tx_dropped += 1
+
     def send(self, data: bytes) -> bool:
         c = self.counters
         if self.listen:
@@ -256,6 +279,12 @@ class UdpEndpoint(Endpoint, PortLink):
             if port is None or not port.peers:
                 c.tx_not_up += 1  # udpin: nobody has talked to us yet
                 return False
+        batch = self._batch
+        if batch is not None:
+            batch.append(data)
+            c.tx_frames += 1
+            c.tx_bytes += len(data)
+            return True
         engine = self.engine
         if engine.send_datagram(data):  # type: ignore[union-attr]  # the router's hot path
             c.tx_frames += 1

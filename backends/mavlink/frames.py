@@ -62,6 +62,10 @@ class Frame(NamedTuple):
     version: int  # 1 or 2
 
 
+#: A Frame from a tuple without the generated ``__new__``'s Python call (the router's hot path)
+_new_frame = tuple.__new__
+
+
 @dataclass
 class FramerStats(Counters):
     frames: int = 0
@@ -174,7 +178,7 @@ def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
             msgid = data[7] | (data[8] << 8) | (data[9] << 16)
             info = _INFO.get(msgid)
             if (info is not None and plen <= info[1]
-                    and mcrf4xx(info[0], initial=mcrf4xx(data[1:crc_at]))
+                    and mcrf4xx(data[1:crc_at] + info[0])  # one call: header, payload, extra
                     == data[crc_at] | (data[crc_at + 1] << 8)):
                 so, co = info[2], info[3]
                 if so < 0:
@@ -183,8 +187,8 @@ def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
                     tsys = data[HEADER_V2 + so] if so < plen else 0
                     tcomp = -1 if co < 0 else (data[HEADER_V2 + co] if co < plen else 0)
                 stats.frames += 1
-                return [Frame(data, msgid, data[5], data[6], data[4], tsys, tcomp,
-                              bool(data[2]), 2)]
+                return [_new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
+                                           bool(data[2]), 2))]
     out: list[Frame] = []
     end, _ = split(data, stats, out)
     if end < len(data):

@@ -208,6 +208,7 @@ class Router:
         self.forward = forward
         self.links: list[Link] = []
         self._others: dict[Link, tuple[Link, ...]] = {}
+        self._batching: tuple[Link, ...] = ()  # links that write what a batch routes at once
         self.stats = RouterStats()
         self.signing_key: bytes | None = None
         self.verifier: signing.SignatureVerifier | None = None
@@ -327,6 +328,7 @@ class Router:
 
     def _rebuild(self) -> None:
         self._others = {lk: tuple(o for o in self.links if o is not lk) for lk in self.links}
+        self._batching = tuple(lk for lk in self.links if hasattr(lk, "flush_batch"))
 
     # -- system ids ----------------------------------------------------------------------------
 
@@ -442,15 +444,24 @@ class Router:
             for f in frames:
                 self._route(link, f)
 
-    def receive_many(self, link: Link, datagrams: Iterable[bytes]) -> None:
-        """Several datagrams read from ``link`` in one go (one lock round trip)."""
+    def receive_many(self, link: Link, datagrams: list[bytes]) -> None:
+        """Several datagrams read from ``link`` in one go (one lock round trip); what they
+        route to links that write in batches (``start_batch``/``flush_batch``: UDP) is
+        written once they are all routed, one write per link (in order)."""
         with self.lock:
             self._now = time.monotonic()
             stats = link.framer_stats
             route = self._route
-            for data in datagrams:
-                for f in split_datagram(data, stats):
-                    route(link, f)
+            batching = self._batching if len(datagrams) > 1 else ()
+            for lk in batching:
+                lk.start_batch()  # type: ignore[attr-defined]
+            try:
+                for data in datagrams:
+                    for f in split_datagram(data, stats):
+                        route(link, f)
+            finally:
+                for lk in batching:
+                    lk.flush_batch()  # type: ignore[attr-defined]
 
     def _route(self, link: Link, f: Frame) -> None:
         raw, msgid, sysid, compid, seq, tsys, tcomp, _, _ = f  # one unpack: the hot path
@@ -499,7 +510,8 @@ class Router:
             self._say("new", f"system {sysid} component {compid} on {link.name}")
         readers = self._wants.get(msgid)
         if readers is not None:
-            mine = [s for s in readers if s.claimed and s.wants(tsys, tcomp)]
+            mine = ([s for s in readers if s.claimed] if tsys <= 0  # broadcast: for all
+                    else [s for s in readers if s.claimed and s.wants(tsys, tcomp)])
             if mine:  # (not yet on the air: not ours)
                 if verifier is not None and verdict is None:
                     verdict = verifier.check(f)

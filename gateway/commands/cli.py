@@ -244,11 +244,18 @@ def _add_plugin_commands(sub: Any, only: str | None) -> None:
 
 
 def build_parser(backend_flags: bool = True,
-                 plugin_command: str | None = None) -> argparse.ArgumentParser:
+                 plugin_command: str | None = None,
+                 command: str | None = None) -> argparse.ArgumentParser:
     """The whole command line.  ``backend_flags`` False leaves the backends' own flags out of
     ``run`` and ``replay`` (they come from light modules, :func:`registry.load_flags`: no
     backend is imported either way).  ``plugin_command``: see :func:`_add_plugin_commands`
-    ("" adds none)."""
+    ("" adds none).  ``command``: the built-in command about to run: only its parser gets its
+    arguments (the others' flags, every source's and backend's options among them, cost
+    start-up time and are never read); None builds them all (``--help``)."""
+
+    def full(name: str) -> bool:
+        return command is None or command == name
+
     parser = _Parser(
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
@@ -259,7 +266,8 @@ def build_parser(backend_flags: bool = True,
 
     run = sub.add_parser("run", help="run the gateway (default: simulated flight, every "
                          "backend, loopback)")
-    _add_gateway_options(run, backend_flags=backend_flags)
+    if full("run"):
+        _add_gateway_options(run, backend_flags=backend_flags)
 
     dec = sub.add_parser("decode", help="print the frames of a capture or recording (and its "
                          "other messages: positions, batteries …) as JSON lines")
@@ -290,19 +298,21 @@ def build_parser(backend_flags: bool = True,
                          "frames from a MAVLink or Zenoh source); every other kind (a MAVLink "
                          "vehicle's state, position, battery, RC channels, link statistics) as "
                          "a record of its fields.")
-    rec.add_argument("file", help="recording to append to")
-    add_source_options(rec)
-    _add_common_options(rec)
+    if full("record"):
+        rec.add_argument("file", help="recording to append to")
+        add_source_options(rec)
+        _add_common_options(rec)
 
     rep = sub.add_parser("replay", help="run the gateway with a recording as its source",
                          description="Run the gateway with a recording as its source: each "
                          "recorded vehicle comes back under its name (the frames of a version "
                          "1 recording, which name none, as the replay source's own vehicle).")
-    rep.add_argument("file", help="recording")
-    key_flag(rep, "--speed", _source_key("replay", "speed"),
-              "N times real time; 0 = flat out (default 1)", metavar="N")
-    rep.add_argument("--loop", action="store_true", help="start again at the end")
-    _add_gateway_options(rep, sources=False, backend_flags=backend_flags)
+    if full("replay"):
+        rep.add_argument("file", help="recording")
+        key_flag(rep, "--speed", _source_key("replay", "speed"),
+                  "N times real time; 0 = flat out (default 1)", metavar="N")
+        rep.add_argument("--loop", action="store_true", help="start again at the end")
+        _add_gateway_options(rep, sources=False, backend_flags=backend_flags)
     if plugin_command != "":
         _add_plugin_commands(sub, plugin_command)
     return parser
@@ -384,7 +394,7 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     keep, asked = _backend_filter(args, backends)
     cfg = config.load(args.config, keep) if getattr(args, "config", None) else None
     if cfg is None:
-        cfg = config.embedded_default(keep)
+        cfg = config.embedded_default(keep, sources=not getattr(args, "source", None))
     if getattr(args, "source", None):
         cfg.sources = _sources_from_urls(args.source)
     for type_name, key, value in source_opts:
@@ -762,7 +772,8 @@ def _main(argv: Sequence[str] | None) -> int:
     else:
         plugin = None  # --help, --version or a typo: list every command
     try:
-        parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin)
+        parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin,
+                              command=first if first in COMMANDS else None)
     except registry.MissingExtra as exc:
         print(f"aurora-gateway: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -33,6 +33,8 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 MAX_WAIT_S = 0.5
+#: Waits shorter than this are timed with select's microseconds, not epoll's milliseconds.
+FINE_WAIT_S = 0.002
 LOGGED_ERRORS = 5
 #: Worker threads for blocking calls, for the whole process: opens that wait on a host that
 #: does not answer (pyserial's ``socket://``: up to 5 s) are the longest; more of them than
@@ -68,6 +70,7 @@ class _EpollPoller:
 
     def __init__(self) -> None:
         self._ep = select.epoll()
+        self._fine = (self._ep.fileno(),)
         self._entries: dict[int, tuple[Callable[[int], Any], int]] = {}
 
     @staticmethod
@@ -97,8 +100,15 @@ class _EpollPoller:
 
     def select(self, timeout: float) -> list[tuple[Callable[[int], Any], int]]:
         entries = self._entries
-        out = []
-        for fd, ev in self._ep.poll(timeout, max(1, len(entries))):
+        out: list[tuple[Callable[[int], Any], int]] = []
+        ep = self._ep
+        if 0 < timeout < FINE_WAIT_S:
+            # epoll waits whole milliseconds (Python rounds up): a shorter wait (a router's
+            # coalescing window) waits on the epoll descriptor with select's microseconds
+            if not select.select(self._fine, (), (), timeout)[0]:
+                return out  # the time is up, nothing is ready: no epoll call needed
+            timeout = 0
+        for fd, ev in ep.poll(timeout, max(1, len(entries))):
             entry = entries.get(fd)
             if entry is None:
                 continue

@@ -68,11 +68,23 @@ _get_ident = threading.get_ident
 DEFAULT_POLL_S = 0.01
 READ_SIZE = 65536
 DATAGRAM_BATCH = 64
-#: A feed_many protocol (a router) reads one datagram per wake-up, as mavlink-router does,
-#: unless the loop came back to the port within this long of the last batch (a backlog: the
-#: poller, level-triggered, did not wait): then up to DATAGRAM_BATCH.  Datagrams mostly
-#: arrive one at a time, and a read that finds nothing (a system call and an exception)
-#: would cost ~10 % of the router's work per frame; under a backlog, batches are cheaper.
+#: A feed_many protocol (a router) on a port with ``read_many`` (a UDP socket: every datagram
+#: waiting in one ``recvmmsg``) is read in batches, and while datagrams keep coming (the
+#: last batch within COALESCE_GAP_S), the port is left unwatched for COALESCE_S after each
+#: batch: what arrives meanwhile waits in the socket and is read, routed and written in one
+#: go (one wake-up, one read, one write per destination for the lot, instead of one each
+#: per datagram).  A datagram after a quiet spell is read at once; one in a stream waits at
+#: most about COALESCE_S (the loop's timers have a 1 ms grain).  The socket's receive
+#: buffer holds far more than arrives in that time (see transport.UDP_RCVBUF).
+COALESCE_S = 0.0005
+COALESCE_GAP_S = 0.004
+#: Batches read back to back at most per wake-up, when each one fills DATAGRAM_BATCH.
+COALESCE_MAX_READS = 16
+#: Without ``read_many``: one datagram per wake-up, as mavlink-router does, unless the loop
+#: came back to the port within this long of the last batch (a backlog: the poller,
+#: level-triggered, did not wait): then up to DATAGRAM_BATCH.  Datagrams mostly arrive one
+#: at a time, and a read that finds nothing (a system call and an exception) would cost
+#: ~10 % of the router's work per frame; under a backlog, batches are cheaper.
 BACKLOG_GAP_S = 20e-6
 
 
@@ -156,6 +168,10 @@ class PortEngine:
         self.min_interval_s = min_interval_s
         self.protocol = protocol
         self._datagrams_done = 0.0  # when _read_datagrams last finished (monotonic)
+        self._holding = False  # reads paused for COALESCE_S (see there)
+        self._want_write = False
+        #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
+        self.coalesce_s = COALESCE_S
         self.on_event = on_event
         self.on_link = on_link
         self.stats = PortStats()
@@ -281,6 +297,27 @@ class PortEngine:
             return True  # taken (and lost with the port, counted)
         st.sent_frames += 1
         st.sent_bytes += len(data)
+        return True
+
+    def send_datagrams(self, datagrams: list[bytes]) -> bool:
+        """:meth:`send_datagram` for several at once, in order, through the port's
+        ``write_many`` (one system call where the platform allows); False, with nothing
+        written, when they cannot be written directly now (then :meth:`submit` each)."""
+        if not self._up or self._writing or self._flush_scheduled or \
+                _get_ident() != self._loop_ident:
+            return False
+        st = self.stats
+        n = len(datagrams)
+        st.submitted += n
+        st.accepted += n
+        try:
+            self._port.write_many(datagrams)
+        except Exception as exc:
+            st.write_errors += 1
+            self._fail(exc, "write failed")
+            return True  # taken (and lost with the port, counted)
+        st.sent_frames += n
+        st.sent_bytes += sum(map(len, datagrams))
         return True
 
     def queued(self) -> int:
@@ -559,11 +596,12 @@ class PortEngine:
     def _set_interest(self, *, write: bool) -> None:
         """Watch the port's descriptor for reading (with a protocol) and, while a partial
         write is pending, for writing."""
+        self._want_write = write
         fd = self._fd
         if fd is None:
             return
-        mask = (selectors.EVENT_READ if self.protocol is not None else 0) | (
-            selectors.EVENT_WRITE if write else 0)
+        mask = (selectors.EVENT_READ if self.protocol is not None and not self._holding
+                else 0) | (selectors.EVENT_WRITE if write else 0)
         if mask == self._interest:
             return
         if self._interest and mask:
@@ -609,9 +647,13 @@ class PortEngine:
                 return  # a handler closed or reopened the port
 
     def _read_datagrams(self, port: Any, feed_many: Callable[[list[bytes]], Any]) -> None:
-        """A datagram port whose protocol has ``feed_many(datagrams)``: one datagram, or up
-        to DATAGRAM_BATCH under a backlog (see BACKLOG_GAP_S), handed over in one call (a
+        """A datagram port whose protocol has ``feed_many(datagrams)``: what is waiting, in
+        batches (see COALESCE_S and BACKLOG_GAP_S), each handed over in one call (a
         router's per-frame path)."""
+        read_many = getattr(port, "read_many", None)
+        if read_many is not None:
+            self._read_batches(port, read_many, feed_many)
+            return
         batch: list[bytes] = []
         read, keep = port.read, batch.append
         error: Exception | None = None
@@ -626,22 +668,65 @@ class PortEngine:
                 break
             keep(data)
         if batch:
-            self.stats.received_bytes += sum(map(len, batch))
-            try:
-                events = feed_many(batch)
-            except Exception:
-                self.stats.protocol_errors += 1
-                log.exception("%s: the protocol failed on %d datagrams (skipped)", self.name,
-                              len(batch))
-                events = ()
-            handler = self.on_event
-            if handler is not None:
-                for ev in events:
-                    handler(ev)
+            self._feed_batch(batch, feed_many)
         self._datagrams_done = time.monotonic()
         if error is not None and self._port is port:
             self.stats.read_errors += 1
             self._fail(error, "read failed")
+
+    def _read_batches(self, port: Any, read_many: Callable[[], list[bytes]],
+                      feed_many: Callable[[list[bytes]], Any]) -> None:
+        got = 0
+        for _ in range(COALESCE_MAX_READS):
+            try:
+                batch = read_many()
+            except Exception as exc:
+                if self._port is port:
+                    self.stats.read_errors += 1
+                    self._fail(exc, "read failed")
+                return
+            if batch:
+                got += len(batch)
+                self._feed_batch(batch, feed_many)
+                if self._port is not port:
+                    return  # the protocol closed or reopened the port
+            if len(batch) < DATAGRAM_BATCH:
+                break
+        now = time.monotonic()
+        dense = now - self._datagrams_done < COALESCE_GAP_S
+        self._datagrams_done = now
+        if got and dense and self.coalesce_s > 0:
+            self._hold(port, read_many, feed_many)
+        elif self._holding:
+            self._holding = False
+            self._set_interest(write=self._want_write)
+
+    def _hold(self, port: Any, read_many: Callable[[], list[bytes]],
+              feed_many: Callable[[list[bytes]], Any]) -> None:
+        """Leave ``port`` unwatched for :attr:`coalesce_s`, then read what came meanwhile."""
+        if not self._holding:
+            self._holding = True
+            self._set_interest(write=self._want_write)
+
+        def resume() -> None:
+            if self._port is port and self._holding:
+                self._read_batches(port, read_many, feed_many)
+
+        self._loop.call_later(self.coalesce_s, resume)
+
+    def _feed_batch(self, batch: list[bytes], feed_many: Callable[[list[bytes]], Any]) -> None:
+        self.stats.received_bytes += sum(map(len, batch))
+        try:
+            events = feed_many(batch)
+        except Exception:
+            self.stats.protocol_errors += 1
+            log.exception("%s: the protocol failed on %d datagrams (skipped)", self.name,
+                          len(batch))
+            events = ()
+        handler = self.on_event
+        if handler is not None:
+            for ev in events:
+                handler(ev)
 
     def _deliver(self, data: bytes) -> None:
         protocol = self.protocol
@@ -780,6 +865,7 @@ class PortEngine:
                 self._loop.unregister(self._fd)
             self._interest = 0
             self._fd = None
+        self._holding = False
         if self._poll is not None:
             self._poll.cancel()
             self._poll = None

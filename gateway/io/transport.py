@@ -17,6 +17,8 @@ from typing import Any, Protocol
 import serial
 from serial.urlhandler import protocol_socket
 
+from gateway.io import mmsg
+
 READ_SIZE = 65536
 
 DEFAULT_READ_TIMEOUT_S = 0.05
@@ -221,6 +223,8 @@ class UdpPort:
         if dest is not None:
             with contextlib.suppress(OSError):
                 self.connected = sock.getpeername() is not None
+        #: recvmmsg/sendmmsg where the platform has them (see :mod:`gateway.io.mmsg`)
+        self.mmsg: mmsg.MmsgSocket | None = mmsg.MmsgSocket(sock) if mmsg.AVAILABLE else None
 
     @property
     def destinations(self) -> tuple[Any, ...]:
@@ -254,6 +258,55 @@ class UdpPort:
                         peers.popitem(last=False)
             self.last_peer = addr
             return data
+
+    def read_many(self) -> list[bytes]:
+        """Every datagram waiting, up to :data:`gateway.io.mmsg.BATCH` (one system call
+        where ``recvmmsg`` exists); [] when there is none."""
+        mm = self.mmsg
+        if mm is None:
+            out = []
+            for _ in range(mmsg.BATCH):
+                data = self.read()
+                if not data:
+                    break
+                out.append(data)
+            return out
+        try:
+            datagrams, addrs = mm.recv(self.dest is None)
+        finally:
+            if mm.refused:
+                self.send_refused += mm.refused
+                mm.refused = 0
+        if addrs:
+            peers = self.peers
+            for addr in addrs:
+                if addr in peers:
+                    peers.move_to_end(addr)
+                else:
+                    peers[addr] = time.monotonic()
+                    self.new_peers += 1
+                    if len(peers) > self.max_peers:
+                        peers.popitem(last=False)
+            self.last_peer = addrs[-1]
+        return datagrams
+
+    def write_many(self, datagrams: list[bytes]) -> None:
+        """:meth:`write` each of ``datagrams``, in order (one system call per destination
+        where ``sendmmsg`` exists)."""
+        mm = self.mmsg
+        if mm is None or (not self.connected and self.dest is not None):
+            for data in datagrams:
+                self.write(data)
+            return
+        dests: tuple[Any, ...] = (None,) if self.connected else tuple(self.peers)
+        if not dests:
+            self.not_sent += len(datagrams)
+            return
+        for d in dests:
+            refused, dropped, failed = mm.send(datagrams, d)
+            self.send_refused += refused
+            self.send_dropped += dropped
+            self.send_errors += failed
 
     def write(self, data: bytes) -> int:
         if self.connected:  # udpout (the router's per-frame path): one send, no lookups

@@ -69,9 +69,11 @@ class SimSource(PacedFrameSource):
     def __init__(self, options: SimOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)
         options = options or SimOptions()
+        # lazy: the physics are the default profile's (valid); the flight is integrated by
+        # the first sample, after the backends have started, not at start-up
         self.model = FlightModel(FlightProfile(idle_s=options.pad_idle_s,
                                                armed_s=options.pad_armed_s,
-                                               revision=options.revision))
+                                               revision=options.revision), lazy=True)
         self.rate_hz = options.rate_hz
         self.status_hz = options.status_hz
         self.speed = options.speed

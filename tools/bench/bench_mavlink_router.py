@@ -97,7 +97,12 @@ from typing import Any
 
 BUILD_HELP = """\
 mavlink-router (the peer) is not in any package index this bench uses; build it from its
-repository with meson, submodule included:
+repository with meson, submodule included.  tools/bench/build_mavlink_router.sh does all of
+it outside the repository and prints the binary's path:
+
+  --mavlink-routerd "$(tools/bench/build_mavlink_router.sh)"   # ~/.cache/aurora-bench/…
+
+or by hand:
 
   git clone --recurse-submodules https://github.com/mavlink-router/mavlink-router
   cd mavlink-router            # (or: git submodule update --init for modules/mavlink_c_library_v2)

@@ -1,0 +1,223 @@
+"""Many datagrams per system call: Linux's ``recvmmsg``/``sendmmsg`` through ctypes.
+
+A router's cost per datagram is mostly the system calls and the Python steps around them;
+reading every datagram waiting on a socket with one ``recvmmsg`` and writing a batch to one
+destination with one ``sendmmsg`` takes one call (and one release of the GIL) per batch
+instead of per datagram.
+
+:data:`AVAILABLE` says whether this platform has them (64-bit Linux, CPython, a libc that
+exports both); :class:`MmsgSocket` is only made where it is true, and every caller keeps a
+plain ``recvfrom_into``/``send`` path for the rest (:class:`gateway.io.transport.UdpPort`).
+``AURORA_NO_MMSG=1`` in the environment turns the fast path off (to compare, and to test the
+fallback on Linux).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import errno
+import mmap
+import os
+import socket
+import sys
+from typing import Any
+
+MSG_DONTWAIT = 0x40
+MSG_TRUNC = 0x20
+#: Datagrams read per ``recvmmsg`` at most (and written per ``sendmmsg``).
+BATCH = 64
+#: The room for one received datagram: the largest UDP payload.  The buffers are anonymous
+#: memory mapped lazily: only the pages datagrams were written to are resident.
+SLOT = 65536
+
+
+class _IoVec(ctypes.Structure):
+    _fields_ = [("base", ctypes.c_void_p), ("len", ctypes.c_size_t)]
+
+
+class _MsgHdr(ctypes.Structure):
+    _fields_ = [("name", ctypes.c_void_p), ("namelen", ctypes.c_uint32),
+                ("iov", ctypes.c_void_p), ("iovlen", ctypes.c_size_t),
+                ("control", ctypes.c_void_p), ("controllen", ctypes.c_size_t),
+                ("flags", ctypes.c_int)]
+
+
+class _MMsgHdr(ctypes.Structure):
+    _fields_ = [("hdr", _MsgHdr), ("len", ctypes.c_uint)]
+
+
+_SOCKADDR = 28  # sockaddr_in6, the larger of the two families
+#: Where a ``bytes`` object's data starts, from its address (CPython's layout).
+_BYTES_DATA = bytes.__basicsize__ - 1
+
+
+def _load() -> tuple[Any, Any] | None:
+    if (sys.platform != "linux" or ctypes.sizeof(ctypes.c_void_p) != 8
+            or sys.implementation.name != "cpython" or os.environ.get("AURORA_NO_MMSG")):
+        return None
+    try:  # the process's own symbols (libc's among them): no find_library (a subprocess)
+        libc = ctypes.CDLL(None, use_errno=True)
+        recv, send = libc.recvmmsg, libc.sendmmsg
+    except (OSError, AttributeError):
+        return None
+    recv.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int,
+                     ctypes.c_void_p]
+    send.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_uint, ctypes.c_int]
+    recv.restype = send.restype = ctypes.c_int
+    probe = b"layout probe"  # the data pointer of a bytes object, as sendmmsg is given it
+    if ctypes.string_at(id(probe) + _BYTES_DATA, len(probe)) != probe:
+        return None
+    return recv, send
+
+
+_FUNCS = _load()
+AVAILABLE = _FUNCS is not None
+
+
+def _decode_addr(raw: bytes) -> Any:
+    """A ``sockaddr`` as Python's socket module gives it: (host, port) or, for IPv6,
+    (host, port, flowinfo, scope_id)."""
+    family = int.from_bytes(raw[0:2], sys.byteorder)
+    port = int.from_bytes(raw[2:4], "big")
+    if family == socket.AF_INET:
+        return socket.inet_ntop(socket.AF_INET, raw[4:8]), port
+    return (socket.inet_ntop(socket.AF_INET6, raw[8:24]), port,
+            int.from_bytes(raw[4:8], "big"), int.from_bytes(raw[24:28], sys.byteorder))
+
+
+def encode_addr(family: int, addr: Any) -> bytes:
+    """The ``sockaddr`` bytes of a Python address of ``family`` (the inverse of decoding)."""
+    fam = family.to_bytes(2, sys.byteorder)
+    port = int(addr[1]).to_bytes(2, "big")
+    if family == socket.AF_INET:
+        return fam + port + socket.inet_pton(socket.AF_INET, addr[0]) + bytes(8)
+    flow = int(addr[2]) if len(addr) > 2 else 0
+    scope = int(addr[3]) if len(addr) > 3 else 0
+    return (fam + port + flow.to_bytes(4, "big") + socket.inet_pton(socket.AF_INET6, addr[0])
+            + scope.to_bytes(4, sys.byteorder))
+
+
+class MmsgSocket:
+    """``recvmmsg``/``sendmmsg`` on one non-blocking UDP socket (only where
+    :data:`AVAILABLE`).  Errors are returned as counts, never raised, except a read error
+    that is not "nothing waiting" or "port unreachable" (raised as OSError)."""
+
+    def __init__(self, sock: socket.socket, batch: int = BATCH) -> None:
+        if _FUNCS is None:
+            raise OSError("recvmmsg/sendmmsg are not available here")
+        self._recv, self._send = _FUNCS
+        self.sock = sock
+        self.family = sock.family
+        self.batch = batch
+        self._fd = sock.fileno()
+        self._rbuf = mmap.mmap(-1, batch * SLOT)
+        self._rview = memoryview(self._rbuf)
+        rbase = ctypes.addressof(ctypes.c_char.from_buffer(self._rbuf))
+        self._names = ctypes.create_string_buffer(batch * _SOCKADDR)
+        nbase = ctypes.addressof(self._names)
+        self._riov = (_IoVec * batch)()
+        self._rhdrs = (_MMsgHdr * batch)()
+        for i in range(batch):
+            self._riov[i].base = rbase + i * SLOT
+            self._riov[i].len = SLOT
+            h = self._rhdrs[i].hdr
+            h.name = nbase + i * _SOCKADDR
+            h.namelen = _SOCKADDR
+            h.iov = ctypes.addressof(self._riov[i])
+            h.iovlen = 1
+        self._rhdrs_addr = ctypes.addressof(self._rhdrs)
+        size = ctypes.sizeof(_MMsgHdr)
+        # the received lengths, namelens and flags as one strided view each (no ctypes
+        # attribute access per datagram)
+        u32 = memoryview(self._rhdrs).cast("B").cast("I")
+        self._lens = u32[_MMsgHdr.len.offset // 4::size // 4]
+        self._namelens = u32[_MsgHdr.namelen.offset // 4::size // 4]
+        self._names_view = memoryview(self._names).cast("B")
+        self._addr_cache: dict[bytes, Any] = {}
+        # sending: one iovec per datagram, pointed at the bytes objects themselves
+        self._siov = (_IoVec * batch)()
+        self._shdrs = (_MMsgHdr * batch)()
+        for i in range(batch):
+            self._shdrs[i].hdr.iov = ctypes.addressof(self._siov[i])
+            self._shdrs[i].hdr.iovlen = 1
+        self._shdrs_addr = ctypes.addressof(self._shdrs)
+        self._siov_q = memoryview(self._siov).cast("B").cast("Q")
+        self._shdr_q = memoryview(self._shdrs).cast("B").cast("Q")
+        self._hdr_words = size // 8
+        self._dest_name: bytes | None = None
+        self._dest_buf = ctypes.create_string_buffer(_SOCKADDR)
+        self.refused = 0  # ICMP "port unreachable" reported by a call (for an earlier send)
+        self.truncated = 0
+
+    def recv(self, with_addresses: bool) -> tuple[list[bytes], list[Any] | None]:
+        """Every datagram waiting (up to :attr:`batch`), and their senders when asked."""
+        while True:
+            n = self._recv(self._fd, self._rhdrs_addr, self.batch, MSG_DONTWAIT, None)
+            if n >= 0:
+                break
+            err = ctypes.get_errno()
+            if err in (errno.EAGAIN, errno.EINTR):
+                return [], None
+            if err == errno.ECONNREFUSED:
+                self.refused += 1
+                continue
+            raise OSError(err, os.strerror(err))
+        if n == 0:
+            return [], None
+        view = self._rview
+        lens = self._lens[:n].tolist()
+        data = [bytes(view[i * SLOT:i * SLOT + ln]) for i, ln in enumerate(lens)]
+        if not with_addresses:
+            return data, None
+        names = self._names_view
+        cache = self._addr_cache
+        addrs = []
+        for i, ln in enumerate(self._namelens[:n].tolist()):
+            raw = bytes(names[i * _SOCKADDR:i * _SOCKADDR + ln])
+            addr = cache.get(raw)
+            if addr is None:
+                if len(cache) >= 256:
+                    cache.clear()
+                addr = cache[raw] = _decode_addr(raw)
+            addrs.append(addr)
+        return data, addrs
+
+    def send(self, datagrams: list[bytes], dest: Any = None) -> tuple[int, int, int]:
+        """Write ``datagrams`` in order (to ``dest``, or on the connected socket); returns
+        (refused, dropped, failed): "port unreachable" reported (that datagram is lost),
+        the rest of a batch the socket had no room for (EAGAIN), refused by another error."""
+        name_addr, name_len = 0, 0
+        if dest is not None:
+            name = encode_addr(self.family, dest)
+            if name != self._dest_name:
+                ctypes.memmove(self._dest_buf, name, len(name))
+                self._dest_name = name
+            name_addr, name_len = ctypes.addressof(self._dest_buf), len(name)
+        refused = failed = 0
+        total = len(datagrams)
+        start = 0
+        iov, hdr, words = self._siov_q, self._shdr_q, self._hdr_words
+        while start < total:
+            # (the list holds every datagram alive while the kernel reads it)
+            chunk = [d if type(d) is bytes else bytes(d)
+                     for d in datagrams[start:start + self.batch]]
+            for i, d in enumerate(chunk):
+                iov[2 * i] = id(d) + _BYTES_DATA
+                iov[2 * i + 1] = len(d)
+                hdr[i * words] = name_addr
+                hdr[i * words + 1] = name_len
+            n = self._send(self._fd, self._shdrs_addr, len(chunk), MSG_DONTWAIT)
+            if n >= 0:
+                start += n
+                continue
+            err = ctypes.get_errno()
+            if err == errno.EINTR:
+                continue
+            if err in (errno.EAGAIN, errno.ENOBUFS):
+                return refused, total - start, failed
+            if err == errno.ECONNREFUSED:
+                refused += 1
+            else:
+                failed += 1
+            start += 1  # that one is lost; the rest goes on
+        return refused, 0, failed
