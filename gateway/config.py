@@ -279,14 +279,18 @@ def parse(data: dict[str, Any], keep: Callable[[str], bool] | None = None) -> Ga
 
 def check_runnable(cfg: GatewayConfig, *, sources: bool = True) -> None:
     """A configuration ``run`` can do something with: a source (unless ``sources`` is False:
-    a command that brings its own) and a backend or a recording; else :class:`ConfigError`
-    saying what to add (a run with neither idled for ever)."""
+    a command that brings its own) and a backend, a recording or a source with a job of its
+    own (:meth:`Source.works_alone`); else :class:`ConfigError` saying what to add (a run
+    with none idled for ever)."""
     if sources and not cfg.sources:
         raise ConfigError("sources: none configured; add a [[sources]] table "
                           "(or run --source URL)")
-    if not cfg.backends and not (cfg.gateway.get("record") or cfg.gateway.get("record_dir")):
-        raise ConfigError("backends: none enabled; add a [backends.NAME] table "
-                          "(or a backend's flag, see run --help)")
+    if cfg.backends or cfg.gateway.get("record") or cfg.gateway.get("record_dir"):
+        return
+    if any(getattr(p.cls, "works_alone", lambda _o: False)(p.options) for p in cfg.sources):
+        return  # e.g. a MAVLink source routing its vehicle to its endpoints
+    raise ConfigError("backends: none enabled; add a [backends.NAME] table "
+                      "(or a backend's flag, see run --help)")
 
 
 def load(path: str | Path, keep: Callable[[str], bool] | None = None) -> GatewayConfig:

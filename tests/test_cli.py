@@ -744,6 +744,7 @@ def test_the_light_options_modules_name_the_backends_own_defaults() -> None:
     ("[gateway]\nstatus_interval_s = 0\n", "sources: none configured"),
     ('[[sources]]\ntype = "sim"\n', "backends: none enabled; add a [backends.NAME] table"),
     ('[[sources]]\ntype = "sim"\n[backends.console]\nenabled = false\n', "backends: none"),
+    ('[[sources]]\ntype = "mavlink"\nurl = "udpin:127.0.0.1:0"\n', "backends: none"),
 ])
 def test_a_configuration_that_would_do_nothing_is_refused(tmp_path: Path, text: str,
                                                           error: str) -> None:
@@ -755,6 +756,17 @@ def test_a_configuration_that_would_do_nothing_is_refused(tmp_path: Path, text: 
         r = gw(*args)
         assert r.returncode == 2, (args, r.stderr)
         assert error in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
+
+
+def test_a_mavlink_router_config_needs_no_backend(tmp_path: Path) -> None:
+    """A MAVLink source with more endpoints routes its vehicle to them (mavlink-router's
+    job, the router bench's config form): a run of its own, no backend needed."""
+    path = tmp_path / "c.toml"
+    path.write_text('[gateway]\nstatus_interval_s = 0\n[[sources]]\ntype = "mavlink"\n'
+                    'url = "udpin:127.0.0.1:0"\nendpoints = ["udpout:127.0.0.1:9"]\n')
+    assert gw("check-config", str(path)).returncode == 0
+    r = gw("run", "-c", str(path), "--duration", "0.5")
+    assert r.returncode == 0, r.stderr
 
 
 def test_a_recording_run_needs_no_backend(tmp_path: Path) -> None:

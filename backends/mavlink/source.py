@@ -343,6 +343,11 @@ class MavlinkSource(Source):
     NAME_FORMAT = "mavlink:{url}"
     YIELDS_SYSTEMS = True  # one vehicle per system heard, <vehicle>-<system id>
 
+    @classmethod
+    def works_alone(cls, options: dict[str, Any]) -> bool:
+        """With ``endpoints`` it routes the vehicle to them: a router needs no backend."""
+        return bool(options.get("endpoints"))
+
     def __init__(self, options: MavlinkSourceOptions, name: str | None = None) -> None:
         super().__init__(name)
         self.vehicle_spec = parse_endpoint(options.url)

@@ -81,6 +81,12 @@ class Source(Plugin):
         """An instance's name from its validated options (None: the type's name)."""
         return cls.NAME_FORMAT.format(**options) if cls.NAME_FORMAT else None
 
+    @classmethod
+    def works_alone(cls, options: dict[str, Any]) -> bool:
+        """Whether a run of this source with these validated options has a job with no
+        backend and no recording (a MAVLink source routing its vehicle to more endpoints)."""
+        return False
+
     def __init__(self, name: str | None = None) -> None:
         super().__init__(name)
         self.done = threading.Event()
