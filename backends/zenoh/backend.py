@@ -1,7 +1,8 @@
 """Zenoh backend: every update the gateway handles, published on Zenoh.
 
 The dispatcher hands each message over to the backend's :class:`~gateway.io.ioloop.IoLoop`
-(:class:`~gateway.handover.Handover`, bounded by ``queue_depth``; never blocking).  On that
+(:class:`~gateway.handover.Handover`, bounded by ``queue_s`` seconds of the update rate,
+at least ``queue_depth`` updates; never blocking).  On that
 loop the backend opens the session (retrying with backoff while, e.g., a client's router is
 down), and its handler encodes and puts each message.  Where messages can be lost, and how
 each loss is counted:
@@ -122,7 +123,7 @@ class ZenohBackend(Backend):
         self._stop = threading.Event()
         self._ready = threading.Event()
         self.handover = Handover(self.name, options.queue_depth, ready=self._ready.is_set,
-                                 skip=self._loops)
+                                 skip=self._loops, span_s=options.queue_s)
         self._loop: IoLoop | None = None
         self._transport_logs: dict[str, BurstLog] = {}  # (the loop's thread)
         self._timers: list[Timer] = []

@@ -1,0 +1,260 @@
+"""Benchmark: Aurora frames over ``socket://`` through a running gateway's backends.
+
+A TCP server in this process sends the simulated flight's wire frames (SM_UPDATE at the
+rate, STATUS at 10 Hz) to ``aurora-gateway run --source socket://127.0.0.1:PORT`` paced in
+1 ms steps for ``--duration`` seconds, then interrupts it (SIGINT) once it has read every
+byte and takes its stop report (``--log-format json``).  Per run:
+
+* **lossless**: every frame sent came in (``messages_in``) and every backend's ``dropped``
+  counter is 0;
+* **CPU µs per update**: the gateway process's CPU time (``/proc/PID/task/*/stat``) while
+  the frames flow, divided by the frames sent; per thread (by ``comm``) as well.
+
+Cases (``--case``): ``all`` — the embedded default backends (console, crsf, mavlink, zenoh)
+plus ``--http 127.0.0.1:0``; ``none`` — the console alone, printing state changes only (the
+source, decode and ingest; a run needs one backend); ``only:NAME`` — one backend.  A
+backend's cost per update is its ``only:`` case's minus ``none``'s, both taken in the same
+round.
+
+``--tree DIR`` (repeatable) runs another checkout's gateway (``PYTHONPATH=DIR``, this
+venv's interpreter) side by side: rounds alternate the trees, so a change of load on the
+shared machine hits them alike; medians over ``--repeat`` rounds are printed, ratios taken
+within a round.  Prints figures; asserts nothing about time.
+
+Run: ``.venv/bin/python tools/bench/bench_fanout_live.py [--rate 25000] [--duration 30]
+[--repeat 3] [--case all] [--tree /work/wt-fan-before]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from gateway.flight import FlightModel, FlightProfile  # noqa: E402
+from gateway.sources.sim import flight_frames  # noqa: E402
+
+TICKS = os.sysconf("SC_CLK_TCK")
+STATUS_HZ = 10.0
+DEFAULT_BACKENDS = ("console", "crsf", "mavlink", "zenoh", "http")
+
+
+def flight_stream(rate: float, duration: float) -> tuple[bytes, list[int]]:
+    """The frames of ``duration`` s of flight at ``rate`` SM_UPDATEs/s: one blob and the end
+    offset of each frame."""
+    blob = bytearray()
+    ends: list[int] = []
+    model = FlightModel(FlightProfile())
+    for t, frame in flight_frames(model, rate, STATUS_HZ):
+        if t >= duration:
+            break
+        blob += frame
+        ends.append(len(blob))
+    return bytes(blob), ends
+
+
+def cpu_by_thread(pid: int) -> dict[str, float]:
+    """CPU seconds per thread (``comm/tid``) of process ``pid`` so far."""
+    out: dict[str, float] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        except OSError:
+            continue
+        comm = stat[stat.index("(") + 1:stat.rindex(")")]
+        fields = stat[stat.rindex(")") + 2:].split()
+        out[f"{comm}/{tid}"] = (int(fields[11]) + int(fields[12])) / TICKS
+    return out
+
+
+@dataclass
+class Run:
+    tree: str
+    case: str
+    sent: int = 0
+    received: int = 0
+    cpu_s: float = 0.0
+    wall_s: float = 0.0
+    threads: dict[str, float] = field(default_factory=dict)
+    dropped: dict[str, dict[str, int]] = field(default_factory=dict)
+    error: str = ""
+
+    @property
+    def lossless(self) -> bool:
+        return not self.error and self.received == self.sent and not any(
+            self.dropped.values())
+
+    @property
+    def us_per_update(self) -> float:
+        return self.cpu_s / self.sent * 1e6 if self.sent else float("nan")
+
+
+def case_args(case: str) -> list[str]:
+    if case == "all":
+        return ["--http", "127.0.0.1:0"]
+    if case == "none":  # the least a run can have: a console that prints state changes only
+        return ["--only", "console", "--console-interval", "3600"]
+    if case.startswith("only:"):
+        name = case[5:]
+        return ["--only", name] + (["--http", "127.0.0.1:0"] if name == "http" else [])
+    raise SystemExit(f"--case: unknown case {case!r} (all, none, only:NAME)")
+
+
+def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
+            duration: float, profile: Path | None = None) -> Run:
+    run = Run(str(tree), case)
+    srv = socket.create_server(("127.0.0.1", 0))
+    port = srv.getsockname()[1]
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    cmd = [sys.executable, "-m", "gateway", "run", "--source", f"socket://127.0.0.1:{port}",
+           "--status-interval", "0", "--log-format", "json", "--console-interval", "1",
+           *case_args(case)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, cwd="/tmp", env=env)
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(proc.stderr or ()), daemon=True)
+    reader.start()
+    try:
+        srv.settimeout(30)
+        conn, _ = srv.accept()
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+        spy = None
+        if profile is not None:
+            profile.mkdir(parents=True, exist_ok=True)
+            out = profile / f"{tree.name}-{case.replace(':', '_')}-{time.time_ns()}.txt"
+            spy = subprocess.Popen(
+                [str(Path(sys.executable).parent / "py-spy"), "record", "-p", str(proc.pid),
+                 "-d", str(max(1, int(duration))), "-r", "250", "--threads", "-f", "raw",
+                 "--nonblocking", "-o", str(out)],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        cpu0 = cpu_by_thread(proc.pid)
+        t0 = time.monotonic()
+        sent_frames = 0
+        pos = 0
+        total = len(ends)
+        while sent_frames < total:
+            now = time.monotonic() - t0
+            due = min(total, int(now * (rate + STATUS_HZ)) + 1)
+            if due > sent_frames:
+                end = ends[due - 1]
+                conn.sendall(blob[pos:end])
+                pos = end
+                sent_frames = due
+            time.sleep(0.001)
+        send_end = time.monotonic()
+        run.wall_s = send_end - t0
+        run.sent = sent_frames
+        # let it read what is in flight, then take the CPU before stopping it
+        time.sleep(0.5)
+        cpu1 = cpu_by_thread(proc.pid)
+        run.cpu_s = sum(cpu1.values()) - sum(cpu0.get(k, 0.0) for k in cpu1)
+        run.threads = {k.split("/")[0]: 0.0 for k in cpu1}
+        for k, v in cpu1.items():
+            run.threads[k.split("/")[0]] += v - cpu0.get(k, 0.0)
+        if spy is not None:
+            spy.wait(30)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(30)
+        conn.close()
+    except Exception as exc:  # a failed run is reported, not fatal
+        run.error = f"{type(exc).__name__}: {exc}"
+        proc.kill()
+        proc.wait()
+    finally:
+        srv.close()
+    reader.join(5)
+    for line in err:
+        if '"event": "stop"' not in line:
+            continue
+        summary = json.loads(line)["summary"]
+        run.received = sum(summary["messages_in"].values())
+        for name, st in summary["backends"].items():
+            run.dropped[name] = {k: v for k, v in st.items()
+                                 if k.startswith("dropped") and isinstance(v, int) and v}
+        break
+    else:
+        run.error = run.error or "no stop report: " + "".join(err[-5:])[-500:]
+    return run
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--rate", type=float, action="append",
+                    help="SM_UPDATEs per second (repeatable; default 25000)")
+    ap.add_argument("--duration", type=float, default=30.0, help="seconds of frames (30)")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds (3)")
+    ap.add_argument("--case", action="append",
+                    help="all | none | only:NAME (repeatable; default all)")
+    ap.add_argument("--tree", type=Path, action="append", default=[],
+                    help="another checkout run side by side (repeatable)")
+    ap.add_argument("--threads", action="store_true", help="print CPU per thread")
+    ap.add_argument("--profile", metavar="DIR", type=Path,
+                    help="record each run with py-spy (collapsed stacks per thread) into DIR")
+    args = ap.parse_args(argv)
+    rates = args.rate or [25000.0]
+    cases = args.case or ["all"]
+    trees = [ROOT, *args.tree]
+    for rate in rates:
+        blob, ends = flight_stream(rate, args.duration)
+        print(f"rate {rate:,.0f} SM_UPDATE/s + {STATUS_HZ:g} STATUS/s, {args.duration:g} s, "
+              f"{len(ends)} frames ({len(blob) / len(ends):.1f} B/frame)", flush=True)
+        results: dict[tuple[str, str], list[Run]] = {}
+        for rnd in range(args.repeat):
+            for case in cases:
+                order = trees if rnd % 2 == 0 else trees[::-1]
+                for tree in order:
+                    r = one_run(tree, case, blob, ends, rate, args.duration, args.profile)
+                    results.setdefault((str(tree), case), []).append(r)
+                    lost = {k: v for k, v in r.dropped.items() if v}
+                    print(f"  round {rnd + 1} {tree.name:<16} {case:<14} "
+                          f"{'lossless' if r.lossless else 'LOSSY   '} "
+                          f"in {r.received}/{r.sent} cpu {r.us_per_update:6.1f} µs/update "
+                          f"({r.cpu_s / max(r.wall_s, 1e-9) * 100:.0f} % of a core)"
+                          f"{' ' + str(lost) if lost else ''}{' ' + r.error if r.error else ''}",
+                          flush=True)
+                    if args.threads:
+                        for name, s in sorted(r.threads.items(), key=lambda kv: -kv[1]):
+                            if s > 0.05:
+                                print(f"      {name:<16} {s / r.sent * 1e6:6.1f} µs/update")
+        print()
+        print(f"{'tree':<18}{'case':<16}{'lossless':>9}{'µs/update':>11}{'min':>7}{'max':>7}")
+        for (tree, case), runs in results.items():
+            us = [r.us_per_update for r in runs]
+            ok = sum(r.lossless for r in runs)
+            print(f"{Path(tree).name:<18}{case:<16}{f'{ok}/{len(runs)}':>9}"
+                  f"{statistics.median(us):>11.1f}{min(us):>7.1f}{max(us):>7.1f}")
+        for case in cases:
+            if case.startswith("only:") and all((str(t), "none") in results for t in trees):
+                for t in trees:
+                    own = [a.us_per_update - b.us_per_update for a, b in
+                           zip(results[(str(t), case)], results[(str(t), "none")],
+                               strict=False)]
+                    print(f"{t.name:<18}{case[5:]:<16} backend's own cost "
+                          f"{statistics.median(own):.1f} µs/update")
+        if len(trees) > 1:
+            for case in cases:
+                rs = [a.us_per_update / b.us_per_update for a, b in
+                      zip(results[(str(trees[0]), case)], results[(str(trees[1]), case)],
+                          strict=False)]
+                print(f"{case}: {trees[0].name} / {trees[1].name} CPU per update, median of "
+                      f"rounds: {statistics.median(rs):.2f}x")
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
