@@ -20,7 +20,9 @@ and the dispatcher, instead of calling ``_on_sm_update`` in its own thread, call
   ``ready`` predicate says no, a message is refused, ``Outcome.NOT_READY``, counted
   (``dropped_not_ready``);
 * **coalesced**: a drain is scheduled on the loop only when none is pending, so a burst of
-  messages costs one wake-up of the loop;
+  messages costs one wake-up of the loop; a batch the dispatcher posts
+  (:meth:`~gateway.dispatcher.Dispatcher.dispatch_batch`, between :meth:`Handover.hold` and
+  :meth:`Handover.release`) schedules one drain at its end;
 * **typed**: the drain calls the handler the backend routed the message's type to, on the
   loop's thread, in the order the messages were posted — no second dispatch by type behind
   it, so mypy follows a message from :class:`~gateway.backend.Routes` into the handler;
@@ -102,6 +104,7 @@ class Handover:
         self._loop: IoLoop | None = None
         self._queue: deque[tuple[AnyHandler, Any]] = deque()
         self._scheduled = False  # a drain is scheduled and has not started
+        self._held = False  # a batch is being posted: one drain is scheduled at its end
         self._failures = FailureLog(log)
         self.posted = 0
         self.handled = 0
@@ -180,10 +183,23 @@ class Handover:
             return _QUEUE_FULL
         q.append((handler, msg))
         self.posted += 1
-        if not self._scheduled:
+        if not self._scheduled and not self._held:
             self._scheduled = True
             loop.call_soon(self._drain)
         return _ACCEPTED
+
+    def hold(self) -> None:
+        """A batch of posts begins (the dispatcher's): they schedule no drain until
+        :meth:`release`, so the loop wakes once for the batch."""
+        self._held = True
+
+    def release(self) -> None:
+        """The batch is posted: schedule a drain for it unless one is pending."""
+        self._held = False
+        loop = self._loop
+        if self._queue and not self._scheduled and loop is not None:
+            self._scheduled = True
+            loop.call_soon(self._drain)
 
     def queued(self) -> int:
         return len(self._queue)

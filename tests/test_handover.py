@@ -344,3 +344,31 @@ def test_a_hand_over_sized_by_time_shrinks_to_its_floor_when_the_rate_falls(
     assert first.count(Outcome.QUEUE_FULL) == 1  # at 8 of 8 offered; the rate grew after
     assert second == [Outcome.QUEUE_FULL] * 20
     h.close()
+
+
+def test_a_batch_through_the_dispatcher_wakes_the_loop_once(loop: IoLoop) -> None:
+    b = LoopBackend(loop, depth=256)
+    d = Dispatcher([b])
+    assert d.start() == []
+    for k in range(3):
+        d.dispatch_batch([sm(100 * k + i) if i % 10 else st(100 * k + i) for i in range(100)])
+        assert b.handover.barrier(DEADLINE_S)
+    assert b.wait_got(300)
+    # one drain per batch, however fast the loop (no drain starts before a batch is posted)
+    assert b.handover.batches == 3 and b.batch_sizes == [100, 100, 100]
+    assert b.got == [("status" if i % 10 == 0 else "sm", i) for k in range(3)
+                     for i in range(100 * k, 100 * k + 100)]
+    assert d.stats()["looped"]["accepted"] == 300 and d.dispatched == 300
+    d.close()
+
+
+def test_a_batch_past_a_full_hand_over_counts_what_was_refused(loop: IoLoop) -> None:
+    b = LoopBackend(loop, depth=8)
+    d = Dispatcher([b])
+    assert d.start() == []
+    with HeldLoop(loop):
+        d.dispatch_batch([sm(i) for i in range(13)])
+        assert b.handover.queued() == 8
+    assert b.wait_got(8)
+    assert d.stats()["looped"]["queue-full"] == 5 and b.handover.dropped_queue_full == 5
+    d.close()
