@@ -11,7 +11,8 @@ byte and takes its stop report (``--log-format json``).  Per run:
   the frames flow, divided by the frames sent; per thread (by ``comm``) as well.
 
 Cases (``--case``): ``all`` — the embedded default backends (console, crsf, mavlink, zenoh)
-plus ``--http 127.0.0.1:0``; ``none`` — the console alone, printing state changes only (the
+plus ``--http`` with a viewer (the page's ``/events`` stream read, ``/status.json`` polled
+twice a second); ``none`` — the console alone, printing state changes only (the
 source, decode and ingest; a run needs one backend); ``only:NAME`` — one backend.  A
 backend's cost per update is its ``only:`` case's minus ``none``'s, both taken in the same
 round.
@@ -37,6 +38,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +94,7 @@ class Run:
     threads: dict[str, float] = field(default_factory=dict)
     dropped: dict[str, dict[str, int]] = field(default_factory=dict)
     error: str = ""
+    viewer: str = ""
 
     @property
     def lossless(self) -> bool:
@@ -103,14 +106,67 @@ class Run:
         return self.cpu_s / self.sent * 1e6 if self.sent else float("nan")
 
 
-def case_args(case: str) -> list[str]:
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Viewer:
+    """A status-page viewer: the page's event stream (``/events``) read as it comes, and
+    ``/status.json`` fetched twice a second, as a browser and a dashboard would."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.stop = threading.Event()
+        self.event_bytes = 0
+        self.polls = 0
+        self.threads = [threading.Thread(target=self._events, daemon=True),
+                        threading.Thread(target=self._poll, daemon=True)]
+        for t in self.threads:
+            t.start()
+
+    def _events(self) -> None:
+        while not self.stop.is_set():
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=1) as c:
+                    c.sendall(b"GET /events HTTP/1.1\r\nHost: bench\r\n\r\n")
+                    while not self.stop.is_set():
+                        try:
+                            data = c.recv(65536)
+                        except TimeoutError:
+                            continue
+                        if not data:
+                            break
+                        self.event_bytes += len(data)
+            except OSError:
+                self.stop.wait(0.1)
+
+    def _poll(self) -> None:
+        while not self.stop.wait(0.5):
+            try:
+                with urllib.request.urlopen(
+                        f"http://127.0.0.1:{self.port}/status.json", timeout=2) as r:
+                    r.read()
+                self.polls += 1
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self.stop.set()
+        for t in self.threads:
+            t.join(3)
+
+
+def case_args(case: str, http_port: int) -> list[str]:
     if case == "all":
-        return ["--http", "127.0.0.1:0"]
+        return ["--http", f"127.0.0.1:{http_port}"]
     if case == "none":  # the least a run can have: a console that prints state changes only
         return ["--only", "console", "--console-interval", "3600"]
     if case.startswith("only:"):
         name = case[5:]
-        return ["--only", name] + (["--http", "127.0.0.1:0"] if name == "http" else [])
+        return ["--only", name] + (["--http", f"127.0.0.1:{http_port}"] if name == "http"
+                                   else [])
     raise SystemExit(f"--case: unknown case {case!r} (all, none, only:NAME)")
 
 
@@ -119,10 +175,12 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
     run = Run(str(tree), case)
     srv = socket.create_server(("127.0.0.1", 0))
     port = srv.getsockname()[1]
+    http_port = free_port()
+    viewer: Viewer | None = None
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, "-m", "gateway", "run", "--source", f"socket://127.0.0.1:{port}",
            "--status-interval", "0", "--log-format", "json", "--console-interval", "1",
-           *case_args(case)]
+           *case_args(case, http_port)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True, cwd="/tmp", env=env)
     err: list[str] = []
@@ -132,6 +190,10 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
         srv.settimeout(30)
         conn, _ = srv.accept()
         conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+        # pyserial's socket:// drops what arrives before its open() returns: let it return
+        time.sleep(0.5)
+        if case in ("all", "only:http"):
+            viewer = Viewer(http_port)
         spy = None
         if profile is not None:
             profile.mkdir(parents=True, exist_ok=True)
@@ -167,6 +229,9 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
             run.threads[k.split("/")[0]] += v - cpu0.get(k, 0.0)
         if spy is not None:
             spy.wait(30)
+        if viewer is not None:
+            viewer.close()
+            run.viewer = f"viewer: {viewer.event_bytes} B of events, {viewer.polls} polls"
         proc.send_signal(signal.SIGINT)
         proc.wait(30)
         conn.close()
@@ -224,8 +289,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                           f"{'lossless' if r.lossless else 'LOSSY   '} "
                           f"in {r.received}/{r.sent} cpu {r.us_per_update:6.1f} µs/update "
                           f"({r.cpu_s / max(r.wall_s, 1e-9) * 100:.0f} % of a core)"
-                          f"{' ' + str(lost) if lost else ''}{' ' + r.error if r.error else ''}",
-                          flush=True)
+                          f"{' ' + str(lost) if lost else ''}{' ' + r.error if r.error else ''}"
+                          f"{'; ' + r.viewer if r.viewer else ''}", flush=True)
                     if args.threads:
                         for name, s in sorted(r.threads.items(), key=lambda kv: -kv[1]):
                             if s > 0.05:
