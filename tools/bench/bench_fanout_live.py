@@ -15,7 +15,8 @@ plus ``--http`` with a viewer (the page's ``/events`` stream read, ``/status.jso
 twice a second); ``none`` — the console alone, printing state changes only (the
 source, decode and ingest; a run needs one backend); ``only:NAME`` — one backend.  A
 backend's cost per update is its ``only:`` case's minus ``none``'s, both taken in the same
-round.
+round.  With several ``--rate``, the lossless ceiling is printed: per tree and case, the
+highest rate up to which every run was lossless.
 
 ``--tree DIR`` (repeatable) runs another checkout's gateway (``PYTHONPATH=DIR``, this
 venv's interpreter) side by side: rounds alternate the trees, so a change of load on the
@@ -273,6 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     rates = args.rate or [25000.0]
     cases = args.case or ["all"]
     trees = [ROOT, *args.tree]
+    lossless_at: dict[tuple[str, str], list[float]] = {}
     for rate in rates:
         blob, ends = flight_stream(rate, args.duration)
         print(f"rate {rate:,.0f} SM_UPDATE/s + {STATUS_HZ:g} STATUS/s, {args.duration:g} s, "
@@ -317,7 +319,24 @@ def main(argv: Sequence[str] | None = None) -> int:
                           strict=False)]
                 print(f"{case}: {trees[0].name} / {trees[1].name} CPU per update, median of "
                       f"rounds: {statistics.median(rs):.2f}x")
+        for key, runs in results.items():
+            if all(r.lossless for r in runs):
+                lossless_at.setdefault(key, []).append(rate)
         print()
+    if len(rates) > 1:  # the ceiling: the highest rate up to which every run was lossless
+        ordered = sorted(rates)
+        for tree in trees:
+            for case in cases:
+                ok = lossless_at.get((str(tree), case), [])
+                ceiling = 0.0
+                for rate in ordered:
+                    if rate not in ok:
+                        break
+                    ceiling = rate
+                shown = f"{ceiling:,.0f}" if ceiling else f"< {ordered[0]:,.0f}"
+                tried = ", ".join(f"{r:,.0f}" for r in ordered)
+                print(f"lossless ceiling {tree.name:<16} {case:<14} {shown} updates/s "
+                      f"(rates tried: {tried})")
     return 0
 
 
