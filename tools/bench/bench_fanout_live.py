@@ -251,6 +251,8 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
         for name, st in summary["backends"].items():
             run.dropped[name] = {k: v for k, v in st.items()
                                  if k.startswith("dropped") and isinstance(v, int) and v}
+            if name == "zenoh":  # its peers: a subscriber elsewhere slows its puts
+                run.viewer += f"{'; ' if run.viewer else ''}zenoh transports {st.get('connected')}"
         break
     else:
         run.error = run.error or "no stop report: " + "".join(err[-5:])[-500:]
