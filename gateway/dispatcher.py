@@ -152,7 +152,8 @@ class Dispatcher:
             for rec, fn in hooks:
                 try:
                     res = fn(msg)
-                    outcome = ACCEPTED if res is None or res == 0 else Outcome(res)
+                    outcome = (ACCEPTED if res is None or res == 0 else
+                               res if type(res) is Outcome else Outcome(res))
                 except Exception as exc:
                     outcome = Outcome.FAILED
                     self._log_failure(rec, exc)
@@ -182,7 +183,8 @@ class Dispatcher:
                     for rec, fn in hooks:
                         try:
                             res = fn(msg)
-                            outcome = ACCEPTED if res is None or res == 0 else Outcome(res)
+                            outcome = (ACCEPTED if res is None or res == 0 else
+                                       res if type(res) is Outcome else Outcome(res))
                         except Exception as exc:
                             outcome = Outcome.FAILED
                             self._log_failure(rec, exc)
