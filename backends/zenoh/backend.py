@@ -88,14 +88,18 @@ class _Vehicle(KeyLayout):
 
 
 class _Key:
-    """One published key: its publisher and sequence counter."""
+    """One published key: its publisher, encoding, sequence counter and the attachment's
+    head (``gw=<id>;seq=``: each put only appends its number)."""
 
-    __slots__ = ("key", "publisher", "seq")
+    __slots__ = ("attachment_head", "encoding", "key", "publisher", "seq")
 
-    def __init__(self, key: str, publisher: Any) -> None:
+    def __init__(self, key: str, publisher: Any, encoding: Any = None,
+                 gateway_id: str = "") -> None:
         self.key = key
         self.publisher = publisher
+        self.encoding = encoding
         self.seq = 0
+        self.attachment_head = make_attachment(gateway_id, 0)[:-1]
 
 
 class ZenohBackend(Backend):
@@ -423,15 +427,15 @@ class ZenohBackend(Backend):
                 key, encoding=self._encodings[encoding], congestion_control=self._congestion,
                 priority=self._priority)
             self._entities.append(pub)
-            k = self._keys[key] = _Key(key, pub)
+            k = self._keys[key] = _Key(key, pub, self._encodings[encoding], self.gateway_id)
         return k
 
     def _put(self, key: str, payload: bytes, encoding: str,
              latest: dict[str, tuple[bytes, Any, bytes]] | None) -> bool:
         """Put on ``key``; remember it in ``latest`` (a vehicle's, what its queryable
         answers)."""
-        k = self._key(key, encoding)
-        att = make_attachment(self.gateway_id, k.seq)
+        k = self._keys.get(key) or self._key(key, encoding)
+        att = b"%b%d" % (k.attachment_head, k.seq)  # = make_attachment(gateway_id, seq)
         k.seq += 1
         try:
             k.publisher.put(payload, attachment=att)
@@ -444,7 +448,7 @@ class ZenohBackend(Backend):
         if not self.transports:
             self.unrouted += 1
         if latest is not None:
-            latest[key] = (payload, self._encodings[encoding], att)
+            latest[key] = (payload, k.encoding, att)
         return True
 
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:
