@@ -172,7 +172,8 @@ def case_args(case: str, http_port: int) -> list[str]:
 
 
 def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
-            duration: float, profile: Path | None = None) -> Run:
+            duration: float, profile: Path | None = None, extra: Sequence[str] = (),
+            keep_log: Path | None = None) -> Run:
     run = Run(str(tree), case)
     srv = socket.create_server(("127.0.0.1", 0))
     port = srv.getsockname()[1]
@@ -181,7 +182,7 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, "-m", "gateway", "run", "--source", f"socket://127.0.0.1:{port}",
            "--status-interval", "0", "--log-format", "json", "--console-interval", "1",
-           *case_args(case, http_port)]
+           *case_args(case, http_port), *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True, cwd="/tmp", env=env)
     err: list[str] = []
@@ -243,6 +244,10 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
     finally:
         srv.close()
     reader.join(5)
+    if keep_log is not None:
+        keep_log.mkdir(parents=True, exist_ok=True)
+        (keep_log / f"{tree.name}-{case.replace(':', '_')}-{time.time_ns()}.log").write_text(
+            "".join(err))
     for line in err:
         if '"event": "stop"' not in line:
             continue
@@ -270,6 +275,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--tree", type=Path, action="append", default=[],
                     help="another checkout run side by side (repeatable)")
     ap.add_argument("--threads", action="store_true", help="print CPU per thread")
+    ap.add_argument("--gateway-arg", action="append", default=[], metavar="ARG",
+                    help="one more argument for every run (repeatable), e.g. "
+                    "--gateway-arg=--status-interval=1")
+    ap.add_argument("--keep-log", metavar="DIR", type=Path,
+                    help="keep each run's standard error in DIR")
     ap.add_argument("--profile", metavar="DIR", type=Path,
                     help="record each run with py-spy (collapsed stacks per thread) into DIR")
     args = ap.parse_args(argv)
@@ -286,7 +296,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             for case in cases:
                 order = trees if rnd % 2 == 0 else trees[::-1]
                 for tree in order:
-                    r = one_run(tree, case, blob, ends, rate, args.duration, args.profile)
+                    r = one_run(tree, case, blob, ends, rate, args.duration, args.profile,
+                                args.gateway_arg, args.keep_log)
                     results.setdefault((str(tree), case), []).append(r)
                     lost = {k: v for k, v in r.dropped.items() if v}
                     print(f"  round {rnd + 1} {tree.name:<16} {case:<14} "
