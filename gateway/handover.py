@@ -12,10 +12,10 @@ and the dispatcher, instead of calling ``_on_sm_update`` in its own thread, call
 
 * **bounded**: at most ``depth`` messages wait; past that a message is refused,
   ``Outcome.QUEUE_FULL``, counted (``dropped_queue_full``).  With ``span_s`` the bound is
-  sized by time instead: ``span_s`` seconds of the rate messages are posted at (measured
-  over windows of half a second or more), never less than ``depth`` nor more than
-  ``max_depth`` — a loop held up for a moment at 25k messages/s loses nothing, and a flood
-  is still bounded;
+  sized by time instead: ``span_s`` seconds of the rate messages are offered at (measured
+  over windows of half a second or more; what came in a window's first half second counts
+  as that many per half second), never less than ``depth`` nor more than ``max_depth`` — a
+  loop held up for a moment at 25k messages/s loses nothing, and a flood is still bounded;
 * **not ready**: before :meth:`Handover.open` (after :meth:`Handover.close`), or while the
   ``ready`` predicate says no, a message is refused, ``Outcome.NOT_READY``, counted
   (``dropped_not_ready``);
