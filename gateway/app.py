@@ -77,6 +77,15 @@ class Gateway:
     def ingest(self, msg: Any) -> None:
         """Everything a source produces comes through here (from the sources' loop, or the
         thread a source's library calls back on)."""
+        self.dispatcher.dispatch(self._take(msg))
+
+    def ingest_batch(self, msgs: list[Any]) -> None:
+        """:meth:`ingest` for what one read of a source decoded: dispatched as one batch."""
+        take = self._take
+        self.dispatcher.dispatch_batch([take(m) for m in msgs])
+
+    def _take(self, msg: Any) -> Any:
+        """Stamp, record, monitor and count a message before it is dispatched."""
         if getattr(msg, "vehicle", None) == "":  # (a message type without one keeps none)
             vehicle = self._vehicle_of.get(msg.origin)
             if vehicle:
@@ -90,7 +99,7 @@ class Gateway:
         if msg.origin:
             self.monitor.frame_seen(msg.origin, msg.via, getattr(msg, "vehicle", ""))
         self.counts[kind(msg)] += 1
-        self.dispatcher.dispatch(msg)
+        return msg
 
     # -- life cycle ----------------------------------------------------------------------------
 
@@ -127,6 +136,8 @@ class Gateway:
         failures = self.dispatcher.start()
         self.loop.start()
         for src in self.sources:
+            if hasattr(src, "batch_sink"):  # (a Source: it may hand over what a read decoded)
+                src.batch_sink = self.ingest_batch
             src.start(self.ingest)
         return failures
 

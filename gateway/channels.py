@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import threading
 from collections import deque
-from typing import Generic, TypeVar
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
 
 T = TypeVar("T")
 
@@ -20,31 +21,44 @@ RING_DEPTH = 32
 
 
 class Mailbox(Generic[T]):
-    """The latest value, overwritten by every publish.  ``version`` counts publishes."""
+    """The latest value, overwritten by every publish.  ``version`` counts publishes.
 
-    __slots__ = ("_lock", "_value", "version")
+    One producer at a time (a backend's handlers: the dispatcher never runs them
+    concurrently); any thread may read.  The version and the value are one tuple, swapped in a
+    single store, so a reader never sees one without the other and a publish takes no lock.
+    :meth:`put_lazy` publishes a value to be made only when it is read: a producer at 25k
+    updates/s feeding a consumer that reads 20 values a second makes 20, not 25 000."""
+
+    __slots__ = ("_cell",)
 
     def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._value: T | None = None
-        self.version = 0
+        # (version, value or the argument of make, make or None)
+        self._cell: tuple[int, Any, Callable[[Any], T] | None] = (0, None, None)
+
+    @property
+    def version(self) -> int:
+        return self._cell[0]
 
     def put(self, value: T) -> None:
-        with self._lock:
-            self._value = value
-            self.version += 1
+        self._cell = (self._cell[0] + 1, value, None)
+
+    def put_lazy(self, make: Callable[[Any], T], arg: Any) -> None:
+        """Publish ``make(arg)``, made when it is read (by every read: ``make`` must be
+        cheap and pure)."""
+        self._cell = (self._cell[0] + 1, arg, make)
 
     def peek(self) -> T | None:
         """The latest value (None before the first publish); does not consume it."""
-        return self._value
+        _, value, make = self._cell
+        return value if make is None else make(value)
 
     def poll(self, seen_version: int) -> tuple[int, T | None]:
         """(version, value) if something newer than ``seen_version`` arrived, else
         (seen_version, None)."""
-        with self._lock:
-            if self.version == seen_version:
-                return seen_version, None
-            return self.version, self._value
+        version, value, make = self._cell
+        if version == seen_version:
+            return seen_version, None
+        return version, (value if make is None else make(value))
 
 
 class Ring(Generic[T]):

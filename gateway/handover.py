@@ -11,12 +11,18 @@ and the dispatcher, instead of calling ``_on_sm_update`` in its own thread, call
 :meth:`Handover.post`, which never blocks:
 
 * **bounded**: at most ``depth`` messages wait; past that a message is refused,
-  ``Outcome.QUEUE_FULL``, counted (``dropped_queue_full``);
+  ``Outcome.QUEUE_FULL``, counted (``dropped_queue_full``).  With ``span_s`` the bound is
+  sized by time instead: ``span_s`` seconds of the rate messages are offered at (measured
+  over windows of half a second or more; what came in a window's first half second counts
+  as that many per half second), never less than ``depth`` nor more than ``max_depth`` — a
+  loop held up for a moment at 25k messages/s loses nothing, and a flood is still bounded;
 * **not ready**: before :meth:`Handover.open` (after :meth:`Handover.close`), or while the
   ``ready`` predicate says no, a message is refused, ``Outcome.NOT_READY``, counted
   (``dropped_not_ready``);
 * **coalesced**: a drain is scheduled on the loop only when none is pending, so a burst of
-  messages costs one wake-up of the loop;
+  messages costs one wake-up of the loop; a batch the dispatcher posts
+  (:meth:`~gateway.dispatcher.Dispatcher.dispatch_batch`, between :meth:`Handover.hold` and
+  :meth:`Handover.release`) schedules one drain at its end;
 * **typed**: the drain calls the handler the backend routed the message's type to, on the
   loop's thread, in the order the messages were posted — no second dispatch by type behind
   it, so mypy follows a message from :class:`~gateway.backend.Routes` into the handler;
@@ -56,6 +62,10 @@ log = logging.getLogger(__name__)
 #: updates and statuses, enough for a loop busy with a burst; a backend may set its own.
 DEFAULT_DEPTH = 256
 CLOSE_TIMEOUT_S = 1.0
+#: The most messages a hand-over sized by time (``span_s``) lets wait: 1 s at 50k/s.
+MAX_DEPTH = 50_000
+#: The least time over which the post rate is measured (a burst at start is not a rate).
+RATE_WINDOW_S = 0.5
 
 _ACCEPTED = Outcome.ACCEPTED
 _QUEUE_FULL = Outcome.QUEUE_FULL
@@ -72,10 +82,21 @@ class Handover:
                  ready: Callable[[], bool] | None = None,
                  after_batch: Callable[[], Any] | None = None,
                  lock: contextlib.AbstractContextManager[Any] | None = None,
-                 skip: Callable[[Any], bool] | None = None) -> None:
+                 skip: Callable[[Any], bool] | None = None,
+                 span_s: float = 0.0, max_depth: int = MAX_DEPTH,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         at_least("a hand-over's depth", depth, 1)
         self.name = name
         self.depth = depth
+        #: seconds of the post rate that may wait (0: ``depth`` messages, fixed)
+        self.span_s = span_s
+        self.max_depth = max(depth, max_depth) if span_s > 0 else depth
+        #: the bound now: ``depth``, or ``span_s`` of the measured rate
+        self.limit = depth
+        self._clock = clock
+        self._window_start = clock()
+        self._window_posted = 0  # messages offered (posted or refused as full) before it
+        self._rate = 0.0  # offered per second in the last window
         self.ready = ready
         self.after_batch = after_batch
         self.lock = lock  # may be set until open()
@@ -83,6 +104,7 @@ class Handover:
         self._loop: IoLoop | None = None
         self._queue: deque[tuple[AnyHandler, Any]] = deque()
         self._scheduled = False  # a drain is scheduled and has not started
+        self._held = False  # a batch is being posted: one drain is scheduled at its end
         self._failures = FailureLog(log)
         self.posted = 0
         self.handled = 0
@@ -156,18 +178,47 @@ class Handover:
             self.dropped_not_ready += 1
             return _NOT_READY
         q = self._queue
-        if len(q) >= self.depth:
+        if len(q) >= self.limit and (not self.span_s or len(q) >= self._resize()):
             self.dropped_queue_full += 1
             return _QUEUE_FULL
         q.append((handler, msg))
         self.posted += 1
-        if not self._scheduled:
+        if not self._scheduled and not self._held:
             self._scheduled = True
             loop.call_soon(self._drain)
         return _ACCEPTED
 
+    def hold(self) -> None:
+        """A batch of posts begins (the dispatcher's): they schedule no drain until
+        :meth:`release`, so the loop wakes once for the batch."""
+        self._held = True
+
+    def release(self) -> None:
+        """The batch is posted: schedule a drain for it unless one is pending."""
+        self._held = False
+        loop = self._loop
+        if self._queue and not self._scheduled and loop is not None:
+            self._scheduled = True
+            loop.call_soon(self._drain)
+
     def queued(self) -> int:
         return len(self._queue)
+
+    def _resize(self, window_done: bool = False) -> int:
+        """The bound from the post rate: the last window's or the current one's (over at
+        least ``RATE_WINDOW_S``), whichever is higher; ``window_done`` (a drain, once the
+        window is that long): the window's own, and a new window starts."""
+        now = self._clock()
+        elapsed = now - self._window_start
+        offered = self.posted + self.dropped_queue_full
+        current = (offered - self._window_posted) / max(elapsed, RATE_WINDOW_S)
+        rate = current if window_done else max(self._rate, current)
+        if window_done:
+            self._rate = current
+            self._window_start = now
+            self._window_posted = offered
+        self.limit = min(self.max_depth, max(self.depth, int(rate * self.span_s)))
+        return self.limit
 
     def barrier(self, timeout: float) -> bool:
         """Wait until everything posted so far has been handled (tools and tests); False on
@@ -184,7 +235,8 @@ class Handover:
 
     def stats(self) -> dict[str, int]:
         """The hand-over's counters, for a backend's ``stats()``."""
-        return {"queued": len(self._queue), "dropped_queue_full": self.dropped_queue_full,
+        return {"queued": len(self._queue), "queue_limit": self.limit,
+                "dropped_queue_full": self.dropped_queue_full,
                 "dropped_not_ready": self.dropped_not_ready,
                 "dropped_closed": self.dropped_closed, "handler_errors": self.handler_errors}
 
@@ -219,6 +271,8 @@ class Handover:
                 self._failed(exc)
         self.handled += n
         self.batches += 1
+        if self.span_s and self._clock() - self._window_start >= RATE_WINDOW_S:
+            self._resize(window_done=True)
         after = self.after_batch
         if after is not None:
             try:

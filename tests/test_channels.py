@@ -47,6 +47,58 @@ def test_mailbox_poll_reports_only_what_is_newer_than_seen() -> None:
     assert mb.poll(seen) == (3, None)
 
 
+def test_a_lazy_value_is_made_only_when_read_from_the_latest_argument() -> None:
+    made: list[int] = []
+
+    def make(arg: int) -> str:
+        made.append(arg)
+        return f"v{arg}"
+
+    mb: Mailbox[str] = Mailbox()
+    for k in range(1000):
+        mb.put_lazy(make, k)
+    assert made == [] and mb.version == 1000
+    assert mb.poll(0) == (1000, "v999") and made == [999]
+    assert mb.poll(1000) == (1000, None) and made == [999]  # nothing new: nothing made
+    mb.put("plain")
+    assert mb.peek() == "plain" and mb.version == 1001
+
+
+def test_a_reader_never_sees_a_version_with_another_publish_s_value() -> None:
+    """One producer, one reader on another thread: every (version, value) read belongs to
+    one publish (the value is its version)."""
+    mb: Mailbox[int] = Mailbox()
+    stop = threading.Event()
+    bad: list[tuple[int, int | None]] = []
+
+    def produce() -> None:
+        for k in range(1, 200_001):
+            if k % 2:
+                mb.put(k)
+            else:
+                mb.put_lazy(int, k)
+        stop.set()
+
+    def read() -> None:
+        seen = 0
+        while not stop.is_set():
+            version, value = mb.poll(seen)
+            if version != seen:
+                if value != version:
+                    bad.append((version, value))
+                seen = version
+
+    threads = [threading.Thread(target=produce), threading.Thread(target=read)]
+    def both() -> None:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+
+    run_within(both, DEADLINE_S * 6)
+    assert bad == [] and mb.version == 200_000
+
+
 # -- ring -----------------------------------------------------------------------------------
 
 

@@ -271,3 +271,104 @@ def test_it_opens_again_on_a_new_loop_after_close(loop: IoLoop) -> None:
         h.close()
         second.stop()
         second.close()
+
+
+class FakeClock:
+    """A clock the test moves (the hand-over's rate windows, without waiting)."""
+
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_hand_over_sized_by_time_holds_span_s_of_the_post_rate(loop: IoLoop) -> None:
+    clock = FakeClock()
+    h = Handover("timed", depth=8, span_s=1.0, max_depth=100_000, clock=clock)
+    h.open(loop)
+    got: list[int] = []
+    with HeldLoop(loop):
+        # a burst in a new window: its rate is at least 3000 per 0.5 s, so the bound grows
+        # past the floor of 8 as they come and all 3000 wait
+        burst = [h.post(got.append, i) for i in range(3000)]
+        assert burst == [Outcome.ACCEPTED] * 3000
+        # 2 s later, the loop still held: 8000 offered over 2 s is 4000/s; 1 s of that
+        # may wait — more than that once the bound is next looked at (it was at most 6000)
+        clock.now += 2.0
+        more = [h.post(got.append, 3000 + i) for i in range(5000)]
+        accepted = more.count(Outcome.ACCEPTED)
+        assert 0 < accepted < 3000 and more[accepted:] == [Outcome.QUEUE_FULL] * (5000 - accepted)
+        assert h.limit == 7999 // 2 and h.queued() == 3000 + accepted
+        assert h.dropped_queue_full == 5000 - accepted
+        assert h.stats()["queue_limit"] == h.limit
+    assert h.barrier(DEADLINE_S)
+    assert got == list(range(3000 + accepted))  # in order, none lost but those refused
+    h.close()
+
+
+def test_a_hand_over_sized_by_time_never_exceeds_max_depth(loop: IoLoop) -> None:
+    h = Handover("timed", depth=8, span_s=1.0, max_depth=100)
+    h.open(loop)
+    with HeldLoop(loop):
+        outcomes = [h.post(lambda m: None, i) for i in range(500)]
+        assert h.queued() == 100
+    assert outcomes == [Outcome.ACCEPTED] * 100 + [Outcome.QUEUE_FULL] * 400
+    assert h.dropped_queue_full == 400
+    h.close()
+
+
+def test_a_hand_over_sized_by_time_shrinks_to_its_floor_when_the_rate_falls(
+        loop: IoLoop) -> None:
+    clock = FakeClock()
+    h = Handover("timed", depth=8, span_s=1.0, max_depth=10_000, clock=clock)
+    h.open(loop)
+    with HeldLoop(loop):
+        for i in range(2000):
+            h.post(lambda m: None, i)
+    assert h.barrier(DEADLINE_S)
+    clock.now += 1.0  # a window of 2000/s ends at the next drain
+    h.post(lambda m: None, 0)
+    assert h.barrier(DEADLINE_S)
+    assert h.limit == 2001
+    clock.now += 10.0  # 10 s, one post: the next window's rate is 0.1/s
+    h.post(lambda m: None, 0)
+    assert h.barrier(DEADLINE_S)
+    assert h.limit == 8
+    clock.now += 1.0  # 20 offered in the window's first second: about 20 may wait
+    with HeldLoop(loop):
+        first = [h.post(lambda m: None, i) for i in range(20)]
+        clock.now += 1.0  # the next second, still held: 40 offered over 2 s is 20/s
+        second = [h.post(lambda m: None, i) for i in range(20)]
+        assert h.queued() == 19
+    assert first.count(Outcome.QUEUE_FULL) == 1  # at 8 of 8 offered; the rate grew after
+    assert second == [Outcome.QUEUE_FULL] * 20
+    h.close()
+
+
+def test_a_batch_through_the_dispatcher_wakes_the_loop_once(loop: IoLoop) -> None:
+    b = LoopBackend(loop, depth=256)
+    d = Dispatcher([b])
+    assert d.start() == []
+    for k in range(3):
+        d.dispatch_batch([sm(100 * k + i) if i % 10 else st(100 * k + i) for i in range(100)])
+        assert b.handover.barrier(DEADLINE_S)
+    assert b.wait_got(300)
+    # one drain per batch, however fast the loop (no drain starts before a batch is posted)
+    assert b.handover.batches == 3 and b.batch_sizes == [100, 100, 100]
+    assert b.got == [("status" if i % 10 == 0 else "sm", i) for k in range(3)
+                     for i in range(100 * k, 100 * k + 100)]
+    assert d.stats()["looped"]["accepted"] == 300 and d.dispatched == 300
+    d.close()
+
+
+def test_a_batch_past_a_full_hand_over_counts_what_was_refused(loop: IoLoop) -> None:
+    b = LoopBackend(loop, depth=8)
+    d = Dispatcher([b])
+    assert d.start() == []
+    with HeldLoop(loop):
+        d.dispatch_batch([sm(i) for i in range(13)])
+        assert b.handover.queued() == 8
+    assert b.wait_got(8)
+    assert d.stats()["looped"]["queue-full"] == 5 and b.handover.dropped_queue_full == 5
+    d.close()

@@ -286,6 +286,38 @@ def test_socket_source_reads_a_burst_in_chunks_not_byte_by_byte(
     assert reads < len(burst) / 100, f"{reads} reads for {len(burst)} bytes"
 
 
+def test_socket_source_hands_each_read_to_a_batch_sink_as_one_list_in_order(
+        server: socket.socket) -> None:
+    """With a batch sink (the gateway's ingest_batch) what one read decoded comes as one
+    list; every frame arrives, in order, and nothing goes through the per-message sink."""
+    port = server.getsockname()[1]
+    src = SerialSource(SerialOptions(url=f"socket://127.0.0.1:{port}"), name="tcp")
+    per_message = Sink()
+    batched = Sink()
+    batches: list[int] = []
+
+    def batch_sink(msgs: list[Any]) -> None:
+        batches.append(len(msgs))
+        for m in msgs:
+            batched(m)
+
+    src.batch_sink = batch_sink
+    frames = sample_frames() * 20
+    src.start(per_message)
+    try:
+        conn, _ = server.accept()
+        with conn:
+            wait_until_reading(conn.sendall, batched)
+            conn.sendall(b"".join(frames))
+            assert batched.wait_count(len(frames), keep=not_probe)
+    finally:
+        src.stop(1.0)
+    got = [m.raw for m in batched.msgs if not_probe(m)]
+    assert got == frames
+    assert per_message.msgs == []
+    assert max(batches) > 1 and len(batches) < len(frames)  # lists of many, not one each
+
+
 def test_a_port_with_no_listener_yet_is_retried_not_fatal() -> None:
     # Bound but not listening: connects are refused until listen() is called.
     srv = socket.socket()

@@ -172,7 +172,8 @@ def test_liveliness_token_appears_and_vanishes(endpoint, subscriber):
 def test_block_mode_counts_every_loss_in_its_queue(endpoint, subscriber):
     """With congestion control BLOCK nothing is lost inside Zenoh: whatever the hand-off
     queue refused is counted, and everything it accepted arrives, in order."""
-    b = zenoh_backend(listen=[endpoint], raw=False, queue_depth=4, congestion_control="block")
+    b = zenoh_backend(listen=[endpoint], raw=False, queue_depth=4, queue_s=0,
+                      congestion_control="block")
     b.init()
     try:
         assert b.wait_ready(20)

@@ -1,9 +1,10 @@
 """CRSF / ExpressLRS backend: the rocket as telemetry sensors on an EdgeTX radio.
 
 Handlers turn each message into CRSF records and put them in per-frame-type mailboxes (never
-blocking).  One :class:`~gateway.io.port.PortEngine` owns the receiver's UART (a serial port or
-pyserial URL, or the pseudo-terminal this backend creates for ``url = "pty"``) and everything
-else runs on its thread, so the backend starts no thread of its own:
+blocking; an update's records are made when they are sent, not for each update).  One
+:class:`~gateway.io.port.PortEngine` owns the receiver's UART (a serial port or pyserial URL,
+or the pseudo-terminal this backend creates for ``url = "pty"``) and everything else runs on
+its thread, so the backend starts no thread of its own:
 
 * **sending**: the scheduler (:mod:`backends.crsf.scheduler`) runs on the engine's timers; it
   picks the next frame at the per-type rates and submits it, then sleeps until the next one is
@@ -96,6 +97,16 @@ _HEALTH_CHECKS = (("imu_ok", "IMU"), ("baro_ok", "BARO"), ("calibrated", "CAL"),
                   ("log_ready", "LOG"))
 
 ACCEPTED = Outcome.ACCEPTED
+#: flight-mode records kept by (state machine, state, armed, marker)
+MODES_KEPT = 1024
+
+
+def _baro_altitude(m: model.SmUpdate) -> BaroAltitude:
+    return BaroAltitude(m.altitude_m, m.velocity_mps)
+
+
+def _vario(m: model.SmUpdate) -> Vario:
+    return Vario(m.velocity_mps)
 
 
 def health_marker(status: model.Status) -> str:
@@ -147,6 +158,7 @@ class CrsfBackend(Backend):
         # state kept between handlers (the dispatcher never calls them concurrently)
         self._health = ""
         self._mode_text: str | None = None
+        self._modes: dict[tuple[int, int, bool, str], FlightMode] = {}
         self._volts: dict[int, float] = {}
         # the scheduler on the engine's thread: its next run, and whether it sleeps with
         # nothing to send (then the next value published wakes it)
@@ -250,7 +262,23 @@ class CrsfBackend(Backend):
     def _flight_mode(self, name: str, armed: bool) -> None:
         marker = self._health if self.use_health_marker else ""
         text = flight_mode_text(name, armed, disarmed_suffix=self.disarmed_suffix, marker=marker)
-        rec = FlightMode(text)
+        self._publish_mode(FlightMode(text))
+
+    def _update_mode(self, m: model.SmUpdate) -> None:
+        """An update's flight mode: the record made once per (state machine, state, armed,
+        marker), not per update (at 25k updates/s the text is the same for seconds)."""
+        key = (m.sm_type, m.state, m.armed, self._health if self.use_health_marker else "")
+        rec = self._modes.get(key)
+        if rec is None:
+            if len(self._modes) >= MODES_KEPT:  # (bounded: a peer may send any byte)
+                self._modes.clear()
+            marker = key[3]
+            rec = self._modes[key] = FlightMode(flight_mode_text(
+                m.state_name, m.armed, disarmed_suffix=self.disarmed_suffix, marker=marker))
+        self._publish_mode(rec)
+
+    def _publish_mode(self, rec: FlightMode) -> None:
+        text = rec.text
         if text != self._mode_text:
             self._mode_text = text
             if self.scheduler.publish_change(FRAME_FLIGHT_MODE, rec):
@@ -273,12 +301,16 @@ class CrsfBackend(Backend):
     def send_sm_update(self, m: model.SmUpdate) -> Outcome:
         if not self.selector.accepts(m):
             return self._other()
-        pub = self.scheduler.publish
-        pub(FRAME_ATTITUDE, Attitude(m.pitch_rad * self.pitch_sign, m.roll_rad, m.yaw_rad))
-        pub(FRAME_BARO_ALTITUDE, BaroAltitude(m.altitude_m, m.velocity_mps))
-        pub(FRAME_VARIO, Vario(m.velocity_mps))
-        self._flight_mode(m.state_name, m.armed)
+        # the records are made when the scheduler sends them (20 a second), not per update
+        lazy = self.scheduler.publish_lazy
+        lazy(FRAME_ATTITUDE, self._attitude, m)
+        lazy(FRAME_BARO_ALTITUDE, _baro_altitude, m)
+        lazy(FRAME_VARIO, _vario, m)
+        self._update_mode(m)
         return self._published()
+
+    def _attitude(self, m: model.SmUpdate) -> Attitude:
+        return Attitude(m.pitch_rad * self.pitch_sign, m.roll_rad, m.yaw_rad)
 
     def send_status(self, s: model.Status) -> Outcome:
         if not self.selector.accepts(s):

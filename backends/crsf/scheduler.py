@@ -102,6 +102,15 @@ class Scheduler:
         slot.mailbox.put(value)
         return True
 
+    def publish_lazy(self, frame_type: int, make: Callable[[Any], Any], arg: Any) -> bool:
+        """Make ``make(arg)`` the latest of its type, made only if it is read (sent or
+        peeked); False when the type is not scheduled."""
+        slot = self._slots.get(frame_type)
+        if slot is None:
+            return False
+        slot.mailbox.put_lazy(make, arg)
+        return True
+
     def publish_change(self, frame_type: int, value: Any) -> bool:
         """Publish ``value`` and send it at once, ahead of the rate cap (a state change).
         False when the type is not scheduled or the change ring is full (counted)."""

@@ -43,6 +43,9 @@ log = logging.getLogger(__name__)
 
 #: Gateway messages waiting for the loop before drops (QUEUE_FULL, counted).
 INBOX_DEPTH = 256
+#: seconds of the gateway's messages (at the rate they come in) that may wait for the loop,
+#: at least INBOX_DEPTH of them (see gateway.handover: sized by time)
+INBOX_SPAN_S = 1.0
 POLL_S = 0.02
 #: Routing a vehicle, the rocket takes its system id once the vehicle has been heard, or
 #: after this long (a vehicle heartbeats at 1 Hz): never the vehicle's id, even briefly.
@@ -113,7 +116,7 @@ class MavlinkBackend(Backend):
         # the messages a batch of the gateway's makes, sent once after the batch
         # (what came from a MAVLink system on our router is skipped in the dispatcher's thread)
         self.handover = Handover(self.name, INBOX_DEPTH, after_batch=self._send_out,
-                                 skip=self._repeats)
+                                 skip=self._repeats, span_s=INBOX_SPAN_S)
         #: (None, []): a vehicle starts a new flight there (``tlog``)
         self._out: list[tuple[AuroraVehicle | None, list[Any]]] = []
         self._ticker: Timer | None = None

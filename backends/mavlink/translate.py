@@ -94,6 +94,13 @@ _FLIGHT_SW_TYPE_OFFICIAL = 255  # FIRMWARE_VERSION_TYPE_OFFICIAL
 _REORDER_WINDOW_MS = 5000
 
 
+#: the gates an SM update passes (see AuroraVehicle.on_sm_update)
+_SM_UPDATE_GATES = ("attitude_hz", "altitude_hz", "vfr_hud_hz", "named_value_hz",
+                    "aurora_sm_update_hz")
+#: RateGate.opens_at errs early by this much (a float's rounding never skips a send)
+_GATE_EPS_S = 1e-6
+
+
 class RateGate:
     """Lets events through at most ``hz`` times a second on average (0 = never): a token
     bucket holding 200 ms worth of tokens (at least 3), so updates bunched by scheduling
@@ -115,6 +122,24 @@ class RateGate:
     @property
     def enabled(self) -> bool:
         return self.hz > 0
+
+    def opens_at(self) -> float:
+        """When :meth:`ready` will next say yes (as of its last call; ``inf``: never).  A
+        call before then says no and changes nothing that a later call would not: the
+        tokens grow linearly up to ``burst``, so callers may skip it until then."""
+        if self.hz <= 0:
+            return math.inf
+        if self._tokens >= 1.0 or self._last is None:
+            return -math.inf
+        return self._last + (1.0 - self._tokens) / self.hz - _GATE_EPS_S
+
+    def advance(self, now: float) -> None:
+        """What calls of :meth:`ready` skipped until ``now`` (all saying no) would have done:
+        the tokens they would have added, at the rate they would have added them."""
+        last = self._last
+        if self.hz > 0 and last is not None and now > last:
+            self._tokens = min(self.burst, self._tokens + (now - last) * self.hz)
+            self._last = now
 
     def ready(self, now: float) -> bool:
         if self.hz <= 0:
@@ -296,6 +321,10 @@ class AuroraVehicle:
             "attitude_hz", "altitude_hz", "vfr_hud_hz", "named_value_hz", "position_hz",
             "battery_hz", "aurora_sm_update_hz", "aurora_status_hz", "radio_status_hz",
             "rc_channels_hz")}
+        #: before this time none of an update's gates (_SM_UPDATE_GATES) can open: an update
+        #: then only moves the state (the gates' calls, skipped, would change nothing)
+        self._sm_gates_shut_until = -math.inf
+        self._sm_at = -math.inf  # the last SM update's time
 
     # -- what we know ------------------------------------------------------------------------
 
@@ -453,7 +482,9 @@ class AuroraVehicle:
         self.sm = m
         out: list[Any] = []
         self._set_state(m.sm_type, m.state, bool(m.armed), m.timestamp_ms, out)
-        now = self.clock()
+        now = self._sm_at = self.clock()
+        if now < self._sm_gates_shut_until:  # at 25k updates/s, all but ~100 a second
+            return out
         g = self._gates
         t_ms = m.timestamp_ms & 0xFFFFFFFF
         if g["attitude_hz"].ready(now):
@@ -470,6 +501,7 @@ class AuroraVehicle:
                                                              f32(m.accel_vert_mps2)))
         if g["aurora_sm_update_hz"].ready(now):
             out.append(aurora_sm_update(m))
+        self._sm_gates_shut_until = min(g[key].opens_at() for key in _SM_UPDATE_GATES)
         return out
 
     def altitude(self) -> Any:
@@ -692,7 +724,11 @@ class AuroraVehicle:
         elif key == "extended_sys_state_hz":
             self._ext_state.set_rate(hz, now)
         else:
-            self._gates[key].set_rate(hz)
+            gate = self._gates[key]
+            if key in _SM_UPDATE_GATES:  # the updates it skipped, at the rate they came at
+                gate.advance(self._sm_at)
+            gate.set_rate(hz)
+            self._sm_gates_shut_until = -math.inf
         return mav.MAV_RESULT_ACCEPTED
 
     def autopilot_version(self) -> Any:

@@ -1,7 +1,8 @@
 """Zenoh backend: every update the gateway handles, published on Zenoh.
 
 The dispatcher hands each message over to the backend's :class:`~gateway.io.ioloop.IoLoop`
-(:class:`~gateway.handover.Handover`, bounded by ``queue_depth``; never blocking).  On that
+(:class:`~gateway.handover.Handover`, bounded by ``queue_s`` seconds of the update rate,
+at least ``queue_depth`` updates; never blocking).  On that
 loop the backend opens the session (retrying with backoff while, e.g., a client's router is
 down), and its handler encodes and puts each message.  Where messages can be lost, and how
 each loss is counted:
@@ -93,14 +94,18 @@ class _Vehicle(KeyLayout):
 
 
 class _Key:
-    """One published key: its publisher and sequence counter."""
+    """One published key: its publisher, encoding, sequence counter and the attachment's
+    head (``gw=<id>;seq=``: each put only appends its number)."""
 
-    __slots__ = ("key", "publisher", "seq")
+    __slots__ = ("attachment_head", "encoding", "key", "publisher", "seq")
 
-    def __init__(self, key: str, publisher: Any) -> None:
+    def __init__(self, key: str, publisher: Any, encoding: Any = None,
+                 gateway_id: str = "") -> None:
         self.key = key
         self.publisher = publisher
+        self.encoding = encoding
         self.seq = 0
+        self.attachment_head = make_attachment(gateway_id, 0)[:-1]
 
 
 class ZenohBackend(Backend):
@@ -128,7 +133,7 @@ class ZenohBackend(Backend):
         self._stop = threading.Event()
         self._ready = threading.Event()
         self.handover = Handover(self.name, options.queue_depth, ready=self._ready.is_set,
-                                 skip=self._loops)
+                                 skip=self._loops, span_s=options.queue_s)
         self._loop: IoLoop | None = None
         self._transport_logs: dict[str, BurstLog] = {}  # (the loop's thread)
         self._timers: list[Timer] = []
@@ -439,15 +444,15 @@ class ZenohBackend(Backend):
                 key, encoding=self._encodings[encoding], congestion_control=self._congestion,
                 priority=self._priority)
             self._entities.append(pub)
-            k = self._keys[key] = _Key(key, pub)
+            k = self._keys[key] = _Key(key, pub, self._encodings[encoding], self.gateway_id)
         return k
 
     def _put(self, key: str, payload: bytes, encoding: str,
              latest: dict[str, tuple[bytes, Any, bytes]] | None) -> bool:
         """Put on ``key``; remember it in ``latest`` (a vehicle's, what its queryable
         answers)."""
-        k = self._key(key, encoding)
-        att = make_attachment(self.gateway_id, k.seq)
+        k = self._keys.get(key) or self._key(key, encoding)
+        att = b"%b%d" % (k.attachment_head, k.seq)  # = make_attachment(gateway_id, seq)
         k.seq += 1
         try:
             k.publisher.put(payload, attachment=att)
@@ -460,7 +465,7 @@ class ZenohBackend(Backend):
         if not self.transports:
             self.unrouted += 1
         if latest is not None:
-            latest[key] = (payload, self._encodings[encoding], att)
+            latest[key] = (payload, k.encoding, att)
         return True
 
     def _publish(self, msg: Any, *, doc: bool, raw: bool) -> None:

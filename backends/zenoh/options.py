@@ -161,7 +161,11 @@ class ZenohOptions(ZenohSessionOptions):
                                      choices=("drop", "block"))
     priority: str = option("data", "Zenoh priority of the publications", choices=PRIORITIES)
     queue_depth: int = option(1024, "updates waiting for the worker before new ones are "
-                              "dropped", minimum=1, maximum=1_000_000)
+                              "dropped (the least, with queue_s)", minimum=1,
+                              maximum=1_000_000)
+    queue_s: float = option(1.0, "seconds of updates (at the rate they come in) that may wait "
+                            "for the worker, at least queue_depth and at most 50000; 0 = "
+                            "queue_depth, fixed", minimum=0, maximum=60)
     liveliness: bool = option(True, "declare a liveliness token <prefix>/<vehicle>/gateway/<id> "
                               "per vehicle published")
     queryable: bool = option(True, "answer get() with the latest value of each key, per "

@@ -28,7 +28,8 @@ A subclass of :class:`Source` implements (the "must / might" list for source aut
 * **must**, one of: :meth:`Source.begin` — on the loop's thread, once: schedule timers
   (:class:`gateway.pacing.Pacer`, ``io_loop.call_every``) or start an engine on
   :attr:`Source.io_loop`, hand messages to :meth:`Source.emit` from the loop's thread, and
-  call :meth:`Source.finish` when there is nothing more to send; what blocks (an open, a
+  call :meth:`Source.finish` when there is nothing more to send (what one read decoded may go
+  as one list to :meth:`Source.emit_batch`); what blocks (an open, a
   file read, a library's close) goes to ``io_loop.run_blocking`` and its result comes back on
   the loop.  Or, for code that can only block (a third-party source written for a thread of
   its own), :meth:`Source.run` — loop until the ``stop`` event it is given is set.  Such a
@@ -92,6 +93,9 @@ class Source(Plugin):
         self.done = threading.Event()
         self._stop = threading.Event()  # what run() is given; set by request_stop()
         self._sink: Sink | None = None
+        #: takes a list of messages at once (the gateway's :meth:`~gateway.app.Gateway.
+        #: ingest_batch`, set before :meth:`start`); None: :meth:`emit_batch` emits each
+        self.batch_sink: Callable[[list[Any]], Any] | None = None
         self._loop: IoLoop | None = None
         self._own_loop = False
         self._halted = False
@@ -217,6 +221,18 @@ class Source(Plugin):
         sink = self._sink
         if sink is not None:
             sink(msg)
+
+    def emit_batch(self, msgs: list[Any]) -> None:
+        """Hand what one read decoded to the sink at once (in order): the gateway dispatches
+        it as one batch, each backend's loop woken once for it."""
+        if self._sink is None or not msgs:
+            return
+        batch = self.batch_sink
+        if batch is not None:
+            batch(msgs)
+        else:
+            for msg in msgs:
+                self.emit(msg)
 
     @property
     def stop_requested(self) -> bool:

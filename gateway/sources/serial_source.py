@@ -2,7 +2,8 @@
 
 The port belongs to a :class:`gateway.io.port.PortEngine` on the source's I/O loop (the
 gateway's, shared by its sources): the loop's thread reads whatever arrives
-into the sans-I/O :class:`gateway.wire.Decoder` and hands every decoded message on.  When the
+into the sans-I/O :class:`gateway.wire.Decoder` and hands what each read decoded on, as one
+batch.  When the
 port fails or vanishes the engine logs it once, counts it and reopens it with backoff until
 it is back (a device path that is not there yet is simply retried: hot-plug).
 """
@@ -47,7 +48,10 @@ class SerialSource(Source):
 
     # The engine's protocol: the decoder, looked up at each call so it can be swapped.
     def feed(self, data: bytes) -> list[Any]:
-        return self.decoder.feed(data)
+        """What one read decoded goes to the gateway as one batch (nothing is left for the
+        engine to hand over message by message)."""
+        self.emit_batch(self.decoder.feed(data))
+        return []
 
     def flush(self) -> list[Any]:
         """The stream broke (or stopped): nothing completes a pending frame."""
