@@ -76,7 +76,7 @@ DATAGRAM_BATCH = 64
 #: per datagram).  A datagram after a quiet spell is read at once; one in a stream waits at
 #: most about COALESCE_S (the loop's timers have a 1 ms grain).  The socket's receive
 #: buffer holds far more than arrives in that time (see transport.UDP_RCVBUF).
-COALESCE_S = 0.0005
+COALESCE_S = 0.001
 COALESCE_GAP_S = 0.004
 #: Batches read back to back at most per wake-up, when each one fills DATAGRAM_BATCH.
 COALESCE_MAX_READS = 16
