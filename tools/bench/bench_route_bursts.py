@@ -17,7 +17,6 @@ mavlink-router's inside each repetition.
 from __future__ import annotations
 
 import argparse
-import os
 import socket
 import statistics
 import subprocess
@@ -27,20 +26,9 @@ import threading
 import time
 from pathlib import Path
 
+from bench_mavlink_router import _cpu_s as cpu_s  # (this directory: the script's own)
+from bench_mavlink_router import _free_udp_port as free_udp_port
 from pymavlink.dialects.v20 import common
-
-CLK = os.sysconf("SC_CLK_TCK")
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / CLK  # utime, stime
 
 
 def frames(n: int) -> list[bytes]:
