@@ -24,7 +24,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any, NamedTuple, NoReturn
 
-from gateway import __version__, config, exits, logjson, recording, registry, vehicles
+from gateway import __version__, config, exits, logjson, registry, vehicles
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
@@ -724,6 +724,7 @@ def _json_safe(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from gateway import recording
     from gateway.model import kind
     from gateway.wire import Decoder, to_wire_dict
 
@@ -853,6 +854,13 @@ COMMANDS = {"run": cmd_run, "decode": cmd_decode, "simulate": cmd_simulate,
             "record": cmd_record, "replay": cmd_replay}
 
 
+def _recording_errors() -> tuple[type[Exception], ...]:
+    """:class:`gateway.recording.RecordingError` once that module is imported (only a command
+    that reads or writes a recording imports it, and only it can raise one)."""
+    module = sys.modules.get("gateway.recording")
+    return (module.RecordingError,) if module is not None else ()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit status.  Ctrl-C anywhere (the backends' imports while the
     parser is built, start-up, a command without its own handler) is a quiet 130."""
@@ -892,7 +900,9 @@ def _main(argv: Sequence[str] | None) -> int:
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
         return handler(args)
-    except (ConfigError, recording.RecordingError) as exc:
+    except ValueError as exc:  # a ConfigError, or a RecordingError (not every other)
+        if not isinstance(exc, (ConfigError, *_recording_errors())):
+            raise
         print(f"aurora-gateway: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except ModuleNotFoundError as exc:  # a command's optional dependency (plot: matplotlib)
