@@ -300,8 +300,34 @@ class _Parser(argparse.ArgumentParser):
     configuration key; ``--help`` still prints the whole usage.  Subcommand parsers inherit
     this class."""
 
+    _checking = False  # in add_argument
+
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        self._checking = True
+        try:
+            return super().add_argument(*args, **kwargs)
+        finally:
+            self._checking = False
+
+    def add_subparsers(self, **kwargs: Any) -> Any:
+        self._checking = True
+        try:
+            return super().add_subparsers(**kwargs)
+        finally:
+            self._checking = False
+
+    def _get_formatter(self) -> argparse.HelpFormatter:
+        """argparse's formatter; that of add_argument (which checks a metavar against its
+        nargs) and add_subparsers (the subcommands' prog: one short line) is given a width:
+        the terminal's would import shutil (~2 ms of a start).  Help text gets the terminal's."""
+        if self._checking:
+            make: Any = self.formatter_class
+            formatter: argparse.HelpFormatter = make(prog=self.prog, width=80)
+            return formatter
+        return super()._get_formatter()
 
     def format_help(self) -> str:
         """The usage, then the exit-status table every command shares (:mod:`gateway.exits`)."""
