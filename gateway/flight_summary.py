@@ -23,7 +23,6 @@ import os
 import re
 import time
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -129,6 +128,8 @@ def utc_iso(t: float | None) -> str | None:
     """Unix time as ISO-8601 UTC to the millisecond (None stays None)."""
     if t is None:
         return None
+    from datetime import UTC, datetime  # here: a start needs none of it (~1 ms)
+
     return datetime.fromtimestamp(t, tz=UTC).isoformat(timespec="milliseconds")
 
 
@@ -194,6 +195,8 @@ def recording_name(started: float, name: str, suffix: str = RECORDING_SUFFIX) ->
     """``<UTC start, 2026-11-23T14-02-11>-<name>.aur`` (a replayed recording's name loses its
     own ``.aur``: ``replay:a.aur`` → ``…-replay_a.aur``); ``suffix``: another kind of file
     (``.tlog``)."""
+    from datetime import UTC, datetime
+
     stamp = datetime.fromtimestamp(started, tz=UTC).strftime("%Y-%m-%dT%H-%M-%S")
     base = safe_name(name)
     if base.endswith(RECORDING_SUFFIX) and len(base) > len(RECORDING_SUFFIX):

@@ -22,7 +22,6 @@ import logging
 import math
 import os
 import sys
-from datetime import UTC, datetime
 from typing import Any, TextIO
 
 FORMATS = ("text", "json")
@@ -36,6 +35,8 @@ class JsonFormatter(logging.Formatter):
     """Formats a record as one JSON object on one line."""
 
     def format(self, record: logging.LogRecord) -> str:
+        from datetime import UTC, datetime  # here: a text-logging start needs none of it
+
         doc: dict[str, Any] = {
             "time": datetime.fromtimestamp(record.created, tz=UTC).isoformat(
                 timespec="milliseconds"),

@@ -96,6 +96,9 @@ BAD_FLAGS = [
     (["decode", "/no/such/capture.bin"], "/no/such/capture.bin"),
     (["--duration", "soon"], "--duration"),  # the default command is run
     (["run", "--crsf-baud", "-5"], "--crsf"),  # a backend's flag: the key and the flag
+    # a flag of a backend that --only leaves out would be ignored: refused, naming both
+    (["run", "--only", "mavlink", "--zenoh-connect", "tcp/127.0.0.1:9"],
+     "--zenoh-connect: backend zenoh is left out by --only"),
 ]
 
 # Flag values the file's own keys refuse: one line naming the flag and what is allowed, even
@@ -689,6 +692,36 @@ def test_run_imports_only_the_backends_it_runs(argv: list[str], loaded: set[str]
     assert set(got) - {"pymavlink"} == loaded  # the dialect itself needs no pymavlink
     if "dialects.aurora_mavlink" not in loaded:
         assert "pymavlink" not in got
+
+
+OPTIONS_CHECK = IMPORT_CHECK.replace("if m in sys.modules", "if m in sys.modules or "
+                                     "any(n.startswith(m) for n in sys.modules)")
+
+
+def test_only_and_source_build_the_flags_of_what_they_name_alone() -> None:
+    """``--only`` and ``--source`` narrow ``run``'s parser to the options of the backends and
+    source types they name: no other backend's or source's options module is imported (each
+    costs start-up time); their flags still work."""
+    others = ("backends.zenoh", "backends.crsf", "backends.hc12", "backends.xbee",
+              "backends.uavtalk", "backends.http", "gateway.sources.options")
+    r = subprocess.run([sys.executable, "-c", OPTIONS_CHECK.replace(repr(HEAVY), repr(others)),
+                        "run", "--only", "mavlink", "--source", "mavlink:udpin:127.0.0.1:0",
+                        "--mavlink", "udpout:127.0.0.1:9", "--mavlink-sysid", "7",
+                        "--duration", "0"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT_S)
+    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("IMPORTS "))
+    got = json.loads(line.removeprefix("IMPORTS "))
+    assert got == {"code": 0, "loaded": []}, r.stderr
+
+
+def test_a_flag_outside_the_narrowed_scope_is_read_by_the_whole_parser() -> None:
+    """A source type's flag with no source of that type is checked and ignored, as before
+    the narrowing (the whole parser reads it): a bad value is still refused."""
+    ok = gw("run", "--only", "console", "--source", "sim", "--baud", "9600", "--duration", "0")
+    assert ok.returncode == 0, ok.stderr
+    bad = gw("run", "--only", "console", "--source", "sim", "--baud", "x", "--duration", "0")
+    assert bad.returncode == 2
+    assert own_lines(bad.stderr)[0].startswith("aurora-gateway: --baud"), bad.stderr
 
 
 def test_run_help_lists_every_backends_flags_and_imports_none() -> None:

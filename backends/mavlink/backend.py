@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from backends.mavlink import signing
 from backends.mavlink.endpoints import (
@@ -18,7 +18,6 @@ from backends.mavlink.endpoints import (
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
 from backends.mavlink.options import QGC_UDP, MavlinkOptions
 from backends.mavlink.router import LAST_ID, Router
-from backends.mavlink.tlog import TlogWriter
 from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__, vehicles
 from gateway.backend import Backend, BackendError, Outcome, Routes
@@ -38,6 +37,9 @@ from gateway.model import (
     Status,
     VehicleState,
 )
+
+if TYPE_CHECKING:
+    from backends.mavlink.tlog import TlogWriter
 
 log = logging.getLogger(__name__)
 
@@ -199,6 +201,8 @@ class MavlinkBackend(Backend):
             if planned and "" not in self.nodes:
                 self.nodes[""] = self._node_list[0]  # what comes without a vehicle name
         if self.options.tlog:
+            from backends.mavlink.tlog import TlogWriter  # with the recording format: ~2 ms
+
             try:
                 self.tlog = TlogWriter(self.options.tlog, self.name)
             except OSError as exc:

@@ -22,9 +22,9 @@ import sys
 import threading
 import traceback
 from collections.abc import Sequence
-from typing import Any, NoReturn
+from typing import Any, NamedTuple, NoReturn
 
-from gateway import __version__, config, exits, logjson, recording, registry, vehicles
+from gateway import __version__, config, exits, logjson, registry, vehicles
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
@@ -62,6 +62,80 @@ CLI_KEYS = Schema(
 )
 
 
+class FlagScope(NamedTuple):
+    """Whose flags ``run`` is built with: the source types and backends named (None: every
+    installed one).  Each source's and backend's options module costs start-up time: a run
+    that names its sources (``--source``) and backends (``--only``) needs only theirs
+    (:func:`_narrow_scope`)."""
+
+    sources: frozenset[str] | None = None
+    backends: frozenset[str] | None = None
+
+
+class _OutOfScope(Exception):
+    """A narrowed parser met something it does not have: parse again with every flag."""
+
+
+def _narrow_scope(argv: Sequence[str]) -> FlagScope | None:
+    """The flag scope ``run ARGS`` needs, read from the arguments: the source types of its
+    ``--source`` URLs (or the embedded default's ``sim``) unless ``--config`` names a file,
+    the backends of its ``--only``.  None when nothing narrows, or with ``--help`` (whose
+    text lists every flag)."""
+    if any(a == "-h" or a.startswith("--h") for a in argv):
+        return None
+    pre = _ScopedParser(add_help=False)
+    pre.add_argument("--config", "-c")
+    pre.add_argument("--source", "-s", action="append")
+    pre.add_argument("--only", action="append")
+    try:
+        known, _ = pre.parse_known_args(argv)
+    except _OutOfScope:
+        return None
+    return _scope_of(known)
+
+
+def _scope_of(args: argparse.Namespace) -> FlagScope | None:
+    """:func:`_narrow_scope` of parsed ``run`` arguments."""
+    sources: frozenset[str] | None = None
+    if args.config is None:
+        installed = registry.source_names()
+        types = set()
+        for text in args.source or ["sim"]:
+            head, _, rest = split_vehicle(text)[1].strip().partition(":")
+            types.add(head if head in installed and not rest.startswith("//") else "serial")
+        sources = frozenset(types)
+    backends = frozenset(args.only) if args.only else None
+    if sources is None and backends is None:
+        return None
+    return FlagScope(sources, backends)
+
+
+def _parse_run(argv: list[str], scope: FlagScope) -> argparse.Namespace | None:
+    """``run ARGS`` parsed by a parser with only ``scope``'s flags; None when that parser
+    cannot (a flag outside the scope, a usage error) or reads them otherwise than the scope
+    did: then the whole parser parses them, as it always did."""
+    parser = build_parser(plugin_command="", command="run", scope=scope)
+    try:
+        args = parser.parse_args(argv)
+    except _OutOfScope:
+        return None
+    return args if _scope_of(args) == scope else None
+
+
+def _left_out_flag(argv: Sequence[str], only: Sequence[str]) -> str | None:
+    """The error for a flag of a backend that ``--only`` leaves out (it would be ignored):
+    one line naming the flag and the backend; None when there is no such flag."""
+    given = {a.partition("=")[0] for a in argv if a.startswith("--")}
+    for name, flags in _backend_flags().items():
+        if name in only:
+            continue
+        probe = argparse.ArgumentParser(add_help=False)
+        _add_backend_flags(probe, flags, None)
+        for flag in sorted(given & set(probe._option_string_actions)):
+            return f"{flag}: backend {name} is left out by --only"
+    return None
+
+
 def _source_key(type_name: str, key: str) -> Key:
     opts = registry.load_source_options(type_name)
     schema = opts.schema() if opts is not None else config.schema_of(
@@ -82,11 +156,14 @@ def gateway_flag(p: Any, key: str) -> None:
     raise KeyError(key)
 
 
-def _source_options() -> dict[str, type[Options]]:
+def _source_options(types: frozenset[str] | None = None) -> dict[str, type[Options]]:
     """Source type → its options class (light modules: no source is imported); a source
-    without one, or a broken plug-in (reported once), is left out."""
+    without one, or a broken plug-in (reported once), is left out.  ``types``: only these
+    (:class:`FlagScope`); None: every installed one."""
     out = {}
     for name in registry.source_names():
+        if types is not None and name not in types:
+            continue
         try:
             opts = registry.load_source_options(name)
         except registry.RegistryError as exc:
@@ -135,12 +212,15 @@ def source_flags() -> tuple[tuple[str, str, str, str], ...]:
                  for key, flag, _ in opts.flags() if flag.sources)
 
 
-def _backend_flags() -> dict[str, Any]:
+def _backend_flags(names: frozenset[str] | None = None) -> dict[str, Any]:
     """Backend name → what adds its flags and reads them back (:func:`registry.load_flags`:
     a light module, so no backend is imported; else the class).  A broken plug-in is
-    reported once and left out."""
+    reported once and left out.  ``names``: only these (:class:`FlagScope`); None: every
+    installed one."""
     out = {}
     for name in registry.backend_names():
+        if names is not None and name not in names:
+            continue
         try:
             out[name] = registry.load_flags(name)
         except registry.RegistryError as exc:
@@ -151,13 +231,14 @@ def _backend_flags() -> dict[str, Any]:
 
 
 def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
-                         backend_flags: bool = True) -> None:
+                         backend_flags: bool = True, scope: FlagScope | None = None) -> None:
+    scope = FlagScope() if scope is None else scope
     p.add_argument("--config", "-c", metavar="FILE",
                    help="TOML configuration (default: the embedded one — the simulated "
                         "flight through every backend on loopback)")
     seen: set[str] = set()  # flags added, of fields two options classes share
     if sources:
-        add_source_options(p, seen)
+        add_source_options(p, seen, scope.sources)
     gateway_flag(p, "record")
     gateway_flag(p, "record_dir")
     p.add_argument("--disable", action="append", default=[], metavar="BACKEND",
@@ -169,19 +250,26 @@ def _add_gateway_options(p: argparse.ArgumentParser, *, sources: bool = True,
     gateway_flag(p, "link_timeout_s")
     if not backend_flags:
         return
-    for flags in _backend_flags().values():
-        opts = flags if isinstance(flags, type) and issubclass(flags, Options) else \
-            options_of(flags)
-        if opts is not None:
-            opts.add_cli_arguments(p, seen)
-            continue
-        add = getattr(flags, "add_cli_arguments", None)
-        if add is not None:
-            add(p)
-    p.set_defaults(backend_flags=True)  # config_from_args: this parser has the backends' flags
+    for flags in _backend_flags(scope.backends).values():
+        _add_backend_flags(p, flags, seen)
+    # config_from_args: this parser has the backends' flags (those of flag_scope's)
+    p.set_defaults(backend_flags=True, flag_scope=scope)
 
 
-def add_source_options(p: argparse.ArgumentParser, seen: set[str] | None = None) -> None:
+def _add_backend_flags(p: Any, flags: Any, seen: set[str] | None) -> None:
+    """Add one backend's flags (see :func:`_backend_flags`)."""
+    opts = flags if isinstance(flags, type) and issubclass(flags, Options) else \
+        options_of(flags)
+    if opts is not None:
+        opts.add_cli_arguments(p, seen)
+        return
+    add = getattr(flags, "add_cli_arguments", None)
+    if add is not None:
+        add(p)
+
+
+def add_source_options(p: argparse.ArgumentParser, seen: set[str] | None = None,
+                       types: frozenset[str] | None = None) -> None:
     p.add_argument("--source", "-s", action="append", metavar="[NAME=]URL",
                    help="a vehicle's source, named NAME (a letter, then letters, digits, "
                         "'_' or '-'; default: derived from the URL): 'sim', 'replay:FILE', "
@@ -194,7 +282,7 @@ def add_source_options(p: argparse.ArgumentParser, seen: set[str] | None = None)
                         "repeatable; replaces the configured sources")
     # each source type's flags (--baud, --sim-speed, --xbee-api), set on every source of it
     seen = set() if seen is None else seen
-    for opts in _source_options().values():
+    for opts in _source_options(types).values():
         opts.add_cli_arguments(p, seen, sources=True)
 
 
@@ -212,12 +300,47 @@ class _Parser(argparse.ArgumentParser):
     configuration key; ``--help`` still prints the whole usage.  Subcommand parsers inherit
     this class."""
 
+    _checking = False  # in add_argument
+
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        self._checking = True
+        try:
+            return super().add_argument(*args, **kwargs)
+        finally:
+            self._checking = False
+
+    def add_subparsers(self, **kwargs: Any) -> Any:
+        self._checking = True
+        try:
+            return super().add_subparsers(**kwargs)
+        finally:
+            self._checking = False
+
+    def _get_formatter(self) -> argparse.HelpFormatter:
+        """argparse's formatter; that of add_argument (which checks a metavar against its
+        nargs) and add_subparsers (the subcommands' prog: one short line) is given a width:
+        the terminal's would import shutil (~2 ms of a start).  Help text gets the terminal's."""
+        if self._checking:
+            make: Any = self.formatter_class
+            formatter: argparse.HelpFormatter = make(prog=self.prog, width=80)
+            return formatter
+        return super()._get_formatter()
 
     def format_help(self) -> str:
         """The usage, then the exit-status table every command shares (:mod:`gateway.exits`)."""
         return super().format_help().rstrip("\n") + "\n\n" + exits.HELP
+
+
+class _ScopedParser(_Parser):
+    """A parser built with a :class:`FlagScope` (and its subcommands' parsers): any error,
+    an unknown flag among them, raises :class:`_OutOfScope` instead of exiting, so that the
+    whole parser decides."""
+
+    def error(self, message: str) -> NoReturn:
+        raise _OutOfScope(message)
 
 
 #: the parser every command uses (a standalone ``python -m backends.….cli`` too)
@@ -245,18 +368,20 @@ def _add_plugin_commands(sub: Any, only: str | None) -> None:
 
 def build_parser(backend_flags: bool = True,
                  plugin_command: str | None = None,
-                 command: str | None = None) -> argparse.ArgumentParser:
+                 command: str | None = None,
+                 scope: FlagScope | None = None) -> argparse.ArgumentParser:
     """The whole command line.  ``backend_flags`` False leaves the backends' own flags out of
     ``run`` and ``replay`` (they come from light modules, :func:`registry.load_flags`: no
     backend is imported either way).  ``plugin_command``: see :func:`_add_plugin_commands`
     ("" adds none).  ``command``: the built-in command about to run: only its parser gets its
     arguments (the others' flags, every source's and backend's options among them, cost
-    start-up time and are never read); None builds them all (``--help``)."""
+    start-up time and are never read); None builds them all (``--help``).  ``scope``: the
+    sources and backends whose flags ``run`` gets (default: all)."""
 
     def full(name: str) -> bool:
         return command is None or command == name
 
-    parser = _Parser(
+    parser = (_Parser if scope is None else _ScopedParser)(
         prog="aurora-gateway",
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
                     "to every configured backend.",
@@ -267,7 +392,7 @@ def build_parser(backend_flags: bool = True,
     run = sub.add_parser("run", help="run the gateway (default: simulated flight, every "
                          "backend, loopback)")
     if full("run"):
-        _add_gateway_options(run, backend_flags=backend_flags)
+        _add_gateway_options(run, backend_flags=backend_flags, scope=scope)
 
     dec = sub.add_parser("decode", help="print the frames of a capture or recording (and its "
                          "other messages: positions, batteries …) as JSON lines")
@@ -276,19 +401,20 @@ def build_parser(backend_flags: bool = True,
                      help="a recording's frames of this vehicle only (default: every vehicle)")
 
     sim = sub.add_parser("simulate", help="write the simulated flight as wire frames to a port")
-    key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
-              metavar="URL", aliases=("-o",), required=True)
-    key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
-              metavar="N")
-    sim_help = {"rate_hz": ("SM_UPDATE rate (default 10)", "HZ"),
-                "status_hz": ("STATUS rate; 0 = none (default 1)", "HZ"),
-                "speed": ("compress time N-fold; 0 = flat out (default 1)", "N"),
-                "revision": ("SM_UPDATE payload length (default 64)", "N"),
-                "cycles": ("flights; 0 = for ever (default)", "N")}
-    for dest, flag, key in SIMULATE_FLAGS:
-        text, metavar = sim_help[key]
-        key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
-    gateway_flag(sim, "log_level")
+    if full("simulate"):
+        key_flag(sim, "--out", _source_key("serial", "url"), "pyserial port or URL",
+                  metavar="URL", aliases=("-o",), required=True)
+        key_flag(sim, "--baud", _source_key("serial", "baudrate"), "baud rate (default 115200)",
+                  metavar="N")
+        sim_help = {"rate_hz": ("SM_UPDATE rate (default 10)", "HZ"),
+                    "status_hz": ("STATUS rate; 0 = none (default 1)", "HZ"),
+                    "speed": ("compress time N-fold; 0 = flat out (default 1)", "N"),
+                    "revision": ("SM_UPDATE payload length (default 64)", "N"),
+                    "cycles": ("flights; 0 = for ever (default)", "N")}
+        for dest, flag, key in SIMULATE_FLAGS:
+            text, metavar = sim_help[key]
+            key_flag(sim, flag, _source_key("sim", key), text, dest=dest, metavar=metavar)
+        gateway_flag(sim, "log_level")
 
     rec = sub.add_parser("record", help="record what the sources receive, with no backends",
                          description="Record what the sources receive, with no backends, every "
@@ -379,8 +505,9 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
         value = checked_flag(args, dest, flag, gateway_key(key), f"gateway.{key}")
         if value is not None:
             gateway_opts[key] = value
+    scope: FlagScope = getattr(args, "flag_scope", None) or FlagScope()
     source_opts = []
-    for type_name, opts_cls in _source_options().items():
+    for type_name, opts_cls in _source_options(scope.sources).items():
         def sets(key: str, of: str = type_name) -> str:
             return f"{key} of {of} sources"
 
@@ -412,7 +539,8 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
     # Backend flags: each backend turns its own flags into options (and is enabled by them).
     # Only commands built with _add_gateway_options have them (`record` has no backends).
     by_name = {p.name: p for p in cfg.backends}
-    with_flags = _backend_flags() if getattr(args, "backend_flags", False) else {}
+    with_flags = _backend_flags(scope.backends) if getattr(args, "backend_flags", False) \
+        else {}
     for name, flags in with_flags.items():
         opts_fn = getattr(flags, "cli_options", None)
         opts = None
@@ -622,6 +750,7 @@ def _json_safe(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
+    from gateway import recording
     from gateway.model import kind
     from gateway.wire import Decoder, to_wire_dict
 
@@ -751,6 +880,13 @@ COMMANDS = {"run": cmd_run, "decode": cmd_decode, "simulate": cmd_simulate,
             "record": cmd_record, "replay": cmd_replay}
 
 
+def _recording_errors() -> tuple[type[Exception], ...]:
+    """:class:`gateway.recording.RecordingError` once that module is imported (only a command
+    that reads or writes a recording imports it, and only it can raise one)."""
+    module = sys.modules.get("gateway.recording")
+    return (module.RecordingError,) if module is not None else ()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit status.  Ctrl-C anywhere (the backends' imports while the
     parser is built, start-up, a command without its own handler) is a quiet 130."""
@@ -771,17 +907,28 @@ def _main(argv: Sequence[str] | None) -> int:
         plugin = first
     else:
         plugin = None  # --help, --version or a typo: list every command
-    try:
-        parser = build_parser(backend_flags=first in ("run", "replay"), plugin_command=plugin,
-                              command=first if first in COMMANDS else None)
-    except registry.MissingExtra as exc:
-        print(f"aurora-gateway: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    args = parser.parse_args(argv)
+    scope = _narrow_scope(argv[1:]) if first == "run" else None
+    args = _parse_run(argv, scope) if scope is not None else None
+    if args is None:
+        try:
+            parser = build_parser(backend_flags=first in ("run", "replay"),
+                                  plugin_command=plugin,
+                                  command=first if first in COMMANDS else None)
+        except registry.MissingExtra as exc:
+            print(f"aurora-gateway: {exc}", file=sys.stderr)
+            return EXIT_USAGE
+        args = parser.parse_args(argv)
+        left_out = _left_out_flag(argv[1:], args.only) if scope is not None and \
+            scope.backends is not None and getattr(args, "only", None) else None
+        if left_out is not None:
+            print(f"aurora-gateway: {left_out}", file=sys.stderr)
+            return EXIT_USAGE
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
     try:
         return handler(args)
-    except (ConfigError, recording.RecordingError) as exc:
+    except ValueError as exc:  # a ConfigError, or a RecordingError (not every other)
+        if not isinstance(exc, (ConfigError, *_recording_errors())):
+            raise
         print(f"aurora-gateway: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except ModuleNotFoundError as exc:  # a command's optional dependency (plot: matplotlib)

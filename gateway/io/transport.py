@@ -7,17 +7,19 @@ same code; TCP clients, accepted TCP connections and UDP sockets are ports here 
 from __future__ import annotations
 
 import contextlib
+import functools
+import ipaddress
 import select
 import socket
 import struct
 import time
 from collections import OrderedDict
-from typing import Any, Protocol
-
-import serial
-from serial.urlhandler import protocol_socket
+from typing import TYPE_CHECKING, Any, Protocol
 
 from gateway.io import mmsg
+
+if TYPE_CHECKING:  # pyserial is imported by the first serial port opened (~2 ms of a start)
+    import serial
 
 READ_SIZE = 65536
 
@@ -36,20 +38,28 @@ class TransportError(OSError):
     """A port could not be opened or used."""
 
 
-class SocketSerial(protocol_socket.Serial):
-    """pyserial's ``socket://`` port, whose ``close()`` does not sleep: pyserial's sleeps
-    0.3 s after closing ("in case of quick reconnects"), on the thread that closes it — a
-    shared loop's, held 0.3 s per TCP source at every stop (four sources: 1.2 s, past the
-    gateway's one-second stop budget).  Reopens are paced by the port engine's back-off."""
+@functools.cache
+def socket_serial() -> type:
+    """``SocketSerial``: pyserial's ``socket://`` port, whose ``close()`` does not sleep:
+    pyserial's sleeps 0.3 s after closing ("in case of quick reconnects"), on the thread that
+    closes it — a shared loop's, held 0.3 s per TCP source at every stop (four sources: 1.2
+    s, past the gateway's one-second stop budget).  Reopens are paced by the port engine's
+    back-off.  A class made on first use: pyserial is imported only with a serial port."""
+    from serial.urlhandler import protocol_socket
 
-    def close(self) -> None:
-        sock: socket.socket | None = getattr(self, "_socket", None)
-        self._socket = None
-        if sock is not None:
-            with contextlib.suppress(OSError):
-                sock.shutdown(socket.SHUT_RDWR)
-            sock.close()
-        self.is_open = False
+    class SocketSerial(protocol_socket.Serial):
+        __doc__ = socket_serial.__doc__
+
+        def close(self) -> None:
+            sock: socket.socket | None = getattr(self, "_socket", None)
+            self._socket = None
+            if sock is not None:
+                with contextlib.suppress(OSError):
+                    sock.shutdown(socket.SHUT_RDWR)
+                sock.close()
+            self.is_open = False
+
+    return SocketSerial
 
 
 def open_serial(
@@ -61,6 +71,8 @@ def open_serial(
     exclusive: bool | None = None,
 ) -> serial.SerialBase:
     """Open a pyserial port or URL; raises :class:`TransportError` with the URL in the text."""
+    import serial
+
     if url.startswith("rfc2217://"):
         write_timeout = None  # pyserial's RFC 2217 client refuses any write timeout
     kwargs: dict = {"baudrate": baudrate, "timeout": timeout, "write_timeout": write_timeout}
@@ -68,7 +80,8 @@ def open_serial(
         kwargs["exclusive"] = exclusive
     try:
         if url.startswith("socket://"):
-            return SocketSerial(url, **kwargs)
+            port: serial.SerialBase = socket_serial()(url, **kwargs)
+            return port
         return serial.serial_for_url(url, **kwargs)
     except (serial.SerialException, OSError, ValueError, NotImplementedError) as exc:
         raise TransportError(f"cannot open {url}: {exc}") from exc
@@ -132,6 +145,14 @@ LISTEN_BACKLOG = 1024
 
 def resolve(host: str, port: int, kind: int) -> tuple[int, Any]:
     """(family, address) of ``host:port`` for a socket of ``kind``; TransportError if unknown."""
+    try:  # an address literal needs no resolver (nor its IDNA codec: ~1 ms of a start)
+        ip = None if "%" in host else ipaddress.ip_address(host)  # "%": a zone, resolved
+    except ValueError:
+        ip = None
+    if ip is not None:
+        if ip.version == 4:
+            return socket.AF_INET, (host, port)
+        return socket.AF_INET6, (host, port, 0, 0)
     try:
         family, _, _, _, addr = socket.getaddrinfo(host, port, type=kind)[0]
     except (socket.gaierror, UnicodeError) as exc:
@@ -384,3 +405,10 @@ def open_tcp_listener(host: str, port: int, backlog: int = LISTEN_BACKLOG) -> so
         raise TransportError(f"cannot listen on tcp {host}:{port}: "
                              f"{exc.strerror or exc}") from None
     return sock
+
+
+def __getattr__(name: str) -> Any:
+    """``SocketSerial``: the class :func:`socket_serial` makes, when first asked for."""
+    if name == "SocketSerial":
+        return socket_serial()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
