@@ -41,7 +41,9 @@ A backend **may** implement:
     a plug-in with a hand-written ``CONFIG`` schema and no ``OPTIONS``: the keys as keyword
     arguments);
 ``EMBEDDED_DEFAULT``
-    its options in the embedded default run (loopback, no hardware); None leaves it out;
+    its options in the embedded default run (loopback, no hardware); None leaves it out
+    (a backend with an options entry point declares it on its ``OPTIONS`` class, which is what
+    the default run reads);
 ``add_cli_arguments(parser)`` / ``cli_options(args)``
     its quick flags on ``aurora-gateway run`` and the options they set (default: those its
     ``OPTIONS`` fields declare).

@@ -316,11 +316,13 @@ def embedded_default(keep: Callable[[str], bool] | None = None, *,
     that can run on loopback with its defaults (``keep``: see :func:`parse`).  ``sources``
     False leaves the simulated source out (``--source`` replaces it: it is not imported)."""
     backends: dict[str, Any] = {}
+    light = registry.names(registry.BACKEND_OPTIONS_GROUP)  # EMBEDDED_DEFAULT without the SDK
     for name in registry.backend_names():
         if keep is not None and not keep(name):
             continue
         try:
-            cls = registry.load(registry.BACKEND_GROUP, name)
+            cls = registry.load(registry.BACKEND_OPTIONS_GROUP if name in light
+                                else registry.BACKEND_GROUP, name)
         except registry.RegistryError:
             continue  # a broken third-party plug-in must not stop the default run
         default = getattr(cls, "EMBEDDED_DEFAULT", {})

@@ -292,6 +292,10 @@ class Options:
 
     #: names the flags' group in ``run --help`` (e.g. "CRSF backend")
     TITLE: ClassVar[str] = ""
+    #: (a backend's options) its table in the embedded default run (loopback, no hardware);
+    #: None leaves it out.  Declared here, on the light options module, so the default run
+    #: need not import the backends it leaves out (their SDKs: Cyclone DDS, Foxglove …)
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = None
 
     def __post_init__(self) -> None:
         for name, key in self.schema().keys.items():

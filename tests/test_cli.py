@@ -648,7 +648,8 @@ def test_config_from_args_overrides_the_embedded_default() -> None:
 # -- run imports only the backends it runs ------------------------------------------------------
 
 HEAVY = ("pymavlink", "dialects.aurora_mavlink", "zenoh", "backends.mavlink.backend",
-         "backends.zenoh.backend")
+         "backends.zenoh.backend", "cyclonedds", "foxglove", "backends.ros2.backend",
+         "backends.foxglove.backend", "backends.http.backend")
 # Ends as the console script does (os._exit): Zenoh's native threads can abort a normal
 # interpreter teardown (see gateway.commands.cli.console_main).
 IMPORT_CHECK = f"""
@@ -679,13 +680,15 @@ ZENOH = {"zenoh", "backends.zenoh.backend"}
 
 
 @pytest.mark.parametrize(("argv", "loaded"), [
+    (["run", "--duration", "0"], MAVLINK | ZENOH),  # not the backends the default leaves out
     (["run", "--disable", "mavlink", "--duration", "0"], ZENOH),
     (["run", "--only", "console", "--duration", "0"], set()),
     (["run", "--only", "mavlink", "--mavlink", "udpout:127.0.0.1:9", "--duration", "0"],
      MAVLINK),
     (["run", "--disable", "mavlink", "--disable", "zenoh", "--mavlink", "udpout:127.0.0.1:9",
       "--zenoh-mode", "client", "--duration", "0"], set()),
-], ids=["disable-mavlink", "only-console", "only-mavlink", "flags-of-left-out-backends"])
+], ids=["embedded-default", "disable-mavlink", "only-console", "only-mavlink",
+        "flags-of-left-out-backends"])
 def test_run_imports_only_the_backends_it_runs(argv: list[str], loaded: set[str]) -> None:
     code, got, _ = _imports_of(*argv)
     assert code == 0

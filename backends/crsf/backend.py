@@ -45,7 +45,7 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any
 
 from backends.crsf.decoder import Decoder
 from backends.crsf.frames import (
@@ -122,7 +122,7 @@ class CrsfBackend(Backend):
 
     NAME = "crsf"
     OPTIONS = CrsfOptions
-    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"url": PTY_URL}
+    EMBEDDED_DEFAULT = CrsfOptions.EMBEDDED_DEFAULT
 
     def __init__(self, options: CrsfOptions | None = None, name: str | None = None,
                  sink: Callable[[Any], Any] | None = None,

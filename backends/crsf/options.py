@@ -5,7 +5,7 @@ documentation come from here; a light module."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from gateway.io.endpoints import SERIAL, check_serial_port, text_of
 from gateway.options import Flag, option
@@ -45,6 +45,7 @@ class CrsfOptions(VehicleOptions):
     (``vehicle``; default: the first source's)."""
 
     TITLE: ClassVar[str] = "CRSF backend"
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"url": PTY_URL}
     url: str = option(PTY_URL, "receiver UART: serial port or pyserial URL (/dev/ttyUSB0, "
                       "socket://host:port, rfc2217://…); 'pty' = create a pseudo-terminal "
                       "and log "

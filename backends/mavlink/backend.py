@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any
 
 from backends.mavlink import signing
 from backends.mavlink.endpoints import (
@@ -16,7 +16,7 @@ from backends.mavlink.endpoints import (
     parse_endpoint,
 )
 from backends.mavlink.hub import GCS, VEHICLE, MavlinkHub
-from backends.mavlink.options import QGC_UDP, MavlinkOptions
+from backends.mavlink.options import MavlinkOptions
 from backends.mavlink.router import LAST_ID, Router
 from backends.mavlink.translate import VIA_MAVLINK, AuroraVehicle
 from gateway import __version__, vehicles
@@ -83,7 +83,7 @@ class MavlinkBackend(Backend):
     NAME = "mavlink"
     OPTIONS = MavlinkOptions
     #: The default run shows the rocket in a QGroundControl on this machine.
-    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
+    EMBEDDED_DEFAULT = MavlinkOptions.EMBEDDED_DEFAULT
 
     def __init__(self, options: MavlinkOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)

@@ -8,7 +8,7 @@ library), which checks every endpoint key and the ``--mavlink`` flag."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from gateway.io.endpoints import KINDS, list_validator, text_of, validator
 from gateway.options import ConfigError, Flag, ListenerOptions, Options, lazy, option
@@ -53,6 +53,7 @@ class MavlinkOptions(ListenerOptions):
     """``[backends.mavlink]``: the rocket to ground stations, and the router between them."""
 
     TITLE: ClassVar[str] = "MAVLink backend"
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {"endpoints": [QGC_UDP]}
     endpoints: list[str] = option(
         [QGC_UDP], "endpoints: udpout:/udpin:/tcpin:/tcp:HOST:PORT, serial:DEVICE[,BAUD]",
         validator=list_validator(KINDS),

@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any, ClassVar
+from typing import Any
 
 from backends.zenoh import encoding as enc
 from backends.zenoh.keys import (
@@ -113,7 +113,7 @@ class ZenohBackend(Backend):
 
     NAME = "zenoh"
     OPTIONS = ZenohOptions
-    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
+    EMBEDDED_DEFAULT = ZenohOptions.EMBEDDED_DEFAULT
 
     def __init__(self, options: ZenohOptions | None = None, name: str | None = None) -> None:
         super().__init__(name)

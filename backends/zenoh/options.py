@@ -147,6 +147,7 @@ class ZenohOptions(ZenohSessionOptions):
     """``[backends.zenoh]``: the rocket's frames and documents published over Zenoh."""
 
     TITLE: ClassVar[str] = "zenoh backend"
+    EMBEDDED_DEFAULT: ClassVar[dict[str, Any] | None] = {}
     prefix: str = option(DEFAULT_PREFIX, "first chunk(s) of every key: "
                          "<prefix>/<each message's vehicle>/…",
                          validator=check_prefix,
