@@ -111,7 +111,6 @@ class MmsgSocket:
         self.batch = batch
         self._fd = sock.fileno()
         self._rbuf = mmap.mmap(-1, batch * SLOT)
-        self._rview = memoryview(self._rbuf)
         rbase = ctypes.addressof(ctypes.c_char.from_buffer(self._rbuf))
         self._names = ctypes.create_string_buffer(batch * _SOCKADDR)
         nbase = ctypes.addressof(self._names)
@@ -132,7 +131,6 @@ class MmsgSocket:
         u32 = memoryview(self._rhdrs).cast("B").cast("I")
         self._lens = u32[_MMsgHdr.len.offset // 4::size // 4]
         self._namelens = u32[_MsgHdr.namelen.offset // 4::size // 4]
-        self._names_view = memoryview(self._names).cast("B")
         self._addr_cache: dict[bytes, Any] = {}
         # sending: one iovec per datagram, pointed at the bytes objects themselves
         self._siov = (_IoVec * batch)()
