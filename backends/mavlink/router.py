@@ -149,6 +149,11 @@ class Link:
     def send(self, data: bytes) -> bool:
         raise NotImplementedError
 
+    def batch_sink(self) -> list[bytes] | None:
+        """During a router batch, a list to append what is sent to instead of :meth:`send`
+        (the link counts and writes it when the batch ends), or None."""
+        return None
+
     def stats(self) -> dict[str, Any]:
         d: dict[str, Any] = self.counters.as_dict()
         fs = self.framer_stats
@@ -489,7 +494,8 @@ class Router:
         now = self._now
         c = link.counters
         route = self._route
-        dests: dict[int, tuple[Link, ...]] = {}  # source → links it goes to (this batch)
+        # source → where it goes this batch: the lists of links that take a batch, the rest
+        dests: dict[int, tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]] = {}
         boxes: dict[int, tuple[_Slot, ...] | None] = {}  # msgid → mailboxes (None: general)
         frames = nbytes = forwarded = mailboxed = 0
         for data in datagrams:
@@ -529,10 +535,14 @@ class Router:
                             for slot in box:
                                 slot.mailbox[(key << 24) | msgid] = (f, link)
                                 mailboxed += 1
-                        targets = dests.get(key)
-                        if targets is None:
-                            targets = dests[key] = tuple(o for o in others if key not in o.seen)
-                        for o in targets:
+                        entry = dests.get(key)
+                        if entry is None:
+                            entry = dests[key] = self._destinations(others, key)
+                        puts, rest = entry
+                        for put in puts:
+                            put(data)
+                        forwarded += len(puts)
+                        for o in rest:
                             if o.send(data):
                                 forwarded += 1
                         continue
@@ -544,6 +554,23 @@ class Router:
         c.rx_bytes += nbytes
         self.stats.forwarded += forwarded
         self.stats.mailboxed += mailboxed
+
+    @staticmethod
+    def _destinations(others: tuple[Link, ...], key: int
+                      ) -> tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]:
+        """Where a broadcast of source ``key`` goes: appends to the batches of the links that
+        take one, and the links to :meth:`Link.send` it to."""
+        puts: list[Callable[[bytes], Any]] = []
+        rest: list[Link] = []
+        for o in others:
+            if key in o.seen:
+                continue  # that is where it came from, by another way round
+            sink = o.batch_sink()
+            if sink is not None:
+                puts.append(sink.append)
+            else:
+                rest.append(o)
+        return tuple(puts), tuple(rest)
 
     def _mailboxes_of(self, msgid: int) -> tuple[_Slot, ...] | None:
         """The nodes that keep a broadcast ``msgid`` in their mailbox (those on the air), or
