@@ -32,6 +32,7 @@ import pytest
 import serial
 from helpers import BlockingTransport, run_within, wait_for
 
+from gateway.io import mmsg
 from gateway.io.backoff import Backoff
 from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.port import (
@@ -645,6 +646,45 @@ def test_udp_datagrams_go_to_feed_many_in_batches_and_its_errors_are_counted(
     peer.sendto(b"after", eng.port.address())
     assert ev.wait_data(b"after")
     assert (eng.stats.connects, eng.stats.disconnects, eng.stats.read_errors) == (1, 0, 0)
+
+
+@pytest.mark.skipif(not mmsg.AVAILABLE, reason="needs recvmmsg/sendmmsg")
+def test_a_bursty_sender_gets_one_read_per_burst_not_a_hold_each(
+        engines: Any, stack: contextlib.ExitStack) -> None:
+    proto = Batches()
+    ev = Events()
+    reads = [0]
+
+    def opener() -> Any:
+        port = open_udp("127.0.0.1", 0, listen=True)
+        read_many = port.read_many
+
+        def counted() -> list[bytes]:
+            reads[0] += 1
+            return read_many()
+
+        port.read_many = counted  # type: ignore[method-assign]
+        return port
+
+    eng = started(engines, opener, events=ev, protocol=proto, name="udpin")
+    peer = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+    peer.connect(eng.port.address())
+    sender = mmsg.MmsgSocket(peer)
+    burst = [b"d%d" % i for i in range(20)]
+    before = 0
+
+    def fed(count: int) -> bool:
+        return len(ev.datagrams()) == count
+
+    for n in range(1, 13):
+        if n == 8:
+            before = reads[0]
+        assert sender.send(burst) == (0, 0, 0)  # 20 datagrams in one system call
+        assert ev.wait(functools.partial(fed, 20 * n))
+        time.sleep(0.002)  # the sender's pace (a burst every ~2 ms), not a synchronisation
+    assert ev.datagrams() == burst * 12  # in order, none lost
+    # a hold after each burst would read once more, finding nothing: 2 reads a burst
+    assert reads[0] - before <= 5 + 2
 
 
 def test_loop_url_without_a_descriptor_is_polled_and_reopened(engines: Any) -> None:

@@ -252,6 +252,14 @@ class UdpEndpoint(Endpoint, PortLink):
         if self._batch is None and self.port is not None and self.port.mmsg is not None:
             self._batch = []
 
+    def batch_sink(self) -> list[bytes] | None:
+        """Where :meth:`send` puts a datagram during a batch (the router appends to it
+        directly; :meth:`flush_batch` counts and writes it), or None: call :meth:`send`."""
+        batch, port = self._batch, self.port
+        if batch is None or port is None or (self.listen and not port.peers):
+            return None
+        return batch
+
     def flush_batch(self) -> None:
         """Write what was kept since :meth:`start_batch`: one ``sendmmsg`` per destination
         when the engine can write now, else each through its queue."""
@@ -259,14 +267,17 @@ class UdpEndpoint(Endpoint, PortLink):
         if not batch:
             return
         engine = self.engine
-        if engine.send_datagrams(batch):  # type: ignore[union-attr]
-            return
         c = self.counters
-        for data in batch:  # counted sent when kept: a refusal here undoes that
+        if engine.send_datagrams(batch):  # type: ignore[union-attr]
+            c.tx_frames += len(batch)
+            c.tx_bytes += sum(map(len, batch))
+            return
+        for data in batch:
             outcome = engine.submit(data, rate_limited=False)  # type: ignore[union-attr]
-            if outcome is not ACCEPTED:
-                c.tx_frames -= 1
-                c.tx_bytes -= len(data)
+            if outcome is ACCEPTED:
+                c.tx_frames += 1
+                c.tx_bytes += len(data)
+            else:
                 if outcome is NOT_READY:
                     c.tx_not_up += 1
                 else:
@@ -281,9 +292,7 @@ class UdpEndpoint(Endpoint, PortLink):
                 return False
         batch = self._batch
         if batch is not None:
-            batch.append(data)
-            c.tx_frames += 1
-            c.tx_bytes += len(data)
+            batch.append(data)  # counted by flush_batch
             return True
         engine = self.engine
         if engine.send_datagram(data):  # type: ignore[union-attr]  # the router's hot path

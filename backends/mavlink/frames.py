@@ -41,7 +41,7 @@ STREAM_BUFFER_CAP = 4 * MAX_FRAME
 _MARKER = re.compile(rb"[\xfd\xfe]")
 
 # id → (CRC_EXTRA as one byte, max payload length, target_system offset, target_comp offset)
-_INFO: dict[int, tuple[bytes, int, int, int]] = {
+INFO: dict[int, tuple[bytes, int, int, int]] = {
     i: (bytes((m.crc_extra,)), m.max_len, m.target_system_ofs, m.target_component_ofs)
     for i, m in MESSAGES.items()
 }
@@ -63,7 +63,7 @@ class Frame(NamedTuple):
 
 
 #: A Frame from a tuple without the generated ``__new__``'s Python call (the router's hot path)
-_new_frame = tuple.__new__
+new_frame = tuple.__new__
 
 
 @dataclass
@@ -85,7 +85,7 @@ def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],
     in sync there (see the module docstring)."""
     n = len(buf)
     mv = memoryview(buf)
-    info_of = _INFO
+    info_of = INFO
     i = 0
     while i < n:
         b = buf[i]
@@ -176,7 +176,7 @@ def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
         crc_at = HEADER_V2 + plen
         if crc_at + 2 + (SIGNATURE_LEN if data[2] else 0) == n:
             msgid = data[7] | (data[8] << 8) | (data[9] << 16)
-            info = _INFO.get(msgid)
+            info = INFO.get(msgid)
             if (info is not None and plen <= info[1]
                     and mcrf4xx(data[1:crc_at] + info[0])  # one call: header, payload, extra
                     == data[crc_at] | (data[crc_at + 1] << 8)):
@@ -187,7 +187,7 @@ def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
                     tsys = data[HEADER_V2 + so] if so < plen else 0
                     tcomp = -1 if co < 0 else (data[HEADER_V2 + co] if co < plen else 0)
                 stats.frames += 1
-                return [_new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
+                return [new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
                                            bool(data[2]), 2))]
     out: list[Frame] = []
     end, _ = split(data, stats, out)

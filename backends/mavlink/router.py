@@ -64,10 +64,18 @@ from typing import Any, Protocol
 
 from backends.mavlink import signing
 from backends.mavlink.dialect import mav
-from backends.mavlink.frames import Frame, FramerStats, StreamFramer, split_datagram
+from backends.mavlink.frames import (
+    INFO,
+    Frame,
+    FramerStats,
+    StreamFramer,
+    new_frame,
+    split_datagram,
+)
 from backends.mavlink.ground_stations import NO_VOLTAGE, shows_no_battery
 from backends.mavlink.signing import Verdict
 from gateway.counters import Counters
+from gateway.crc import mcrf4xx
 from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop
 
@@ -140,6 +148,11 @@ class Link:
 
     def send(self, data: bytes) -> bool:
         raise NotImplementedError
+
+    def batch_sink(self) -> list[bytes] | None:
+        """During a router batch, a list to append what is sent to instead of :meth:`send`
+        (the link counts and writes it when the batch ends), or None."""
+        return None
 
     def stats(self) -> dict[str, Any]:
         d: dict[str, Any] = self.counters.as_dict()
@@ -456,12 +469,117 @@ class Router:
             for lk in batching:
                 lk.start_batch()  # type: ignore[attr-defined]
             try:
-                for data in datagrams:
-                    for f in split_datagram(data, stats):
-                        route(link, f)
+                if link.datagram and self.verifier is None and self.tap is None and self.forward:
+                    self._route_datagrams(link, datagrams)
+                else:
+                    for data in datagrams:
+                        for f in split_datagram(data, stats):
+                            route(link, f)
             finally:
                 for lk in batching:
                     lk.flush_batch()  # type: ignore[attr-defined]
+
+    def _route_datagrams(self, link: Link, datagrams: list[bytes]) -> None:
+        """:meth:`_route` of each datagram, with the common case inlined (the router's cost
+        per datagram is mostly Python steps): a datagram that is one MAVLink 2 frame of a
+        known id with a good CRC, broadcast (no target, or target system 0), from a source
+        already seen on this link, not using a node's id, read by no node or only into a
+        mailbox.  Its effects are :meth:`_route`'s, counted per batch; anything else (or any
+        doubt) takes the general path.  Only without signing and a tap (the caller checks)."""
+        stats = link.framer_stats
+        info_of, crc, make = INFO, mcrf4xx, new_frame
+        own, seen_at, seen = self._own, self.seen_at, link.seen
+        last_seq = link.last_seq
+        others = self._others.get(link, ())
+        now = self._now
+        c = link.counters
+        route = self._route
+        # source → where it goes this batch: the lists of links that take a batch, the rest
+        dests: dict[int, tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]] = {}
+        boxes: dict[int, tuple[_Slot, ...] | None] = {}  # msgid → mailboxes (None: general)
+        frames = nbytes = forwarded = mailboxed = 0
+        for data in datagrams:
+            n = len(data)
+            if n > 12 and data[0] == 0xFD and not data[2] & 0xFE:
+                plen = data[1]
+                crc_at = 10 + plen
+                msgid = data[7] | (data[8] << 8) | (data[9] << 16)
+                info = info_of.get(msgid)
+                sysid = data[5]
+                key = (sysid << 8) | data[6]
+                if (info is not None and crc_at + (15 if data[2] else 2) == n
+                        and plen <= info[1] and key in seen and sysid in seen_at
+                        and sysid not in own):
+                    so = info[2]
+                    tsys = -1 if so < 0 else (data[10 + so] if so < plen else 0)
+                    if msgid in boxes:
+                        box = boxes[msgid]
+                    else:
+                        box = boxes[msgid] = self._mailboxes_of(msgid)
+                    if (tsys <= 0 and box is not None
+                            and crc(data[1:crc_at] + info[0])
+                            == data[crc_at] | (data[crc_at + 1] << 8)):
+                        seq = data[4]
+                        last = last_seq.get(key)
+                        if last is not None and (seq - last - 1) & 0xFF:
+                            c.seq_lost += (seq - last - 1) & 0xFF
+                        last_seq[key] = seq
+                        seen_at[sysid] = now
+                        frames += 1
+                        nbytes += n
+                        if box:
+                            co = info[3]
+                            tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
+                            f = make(Frame, (data, msgid, sysid, data[6], seq, tsys, tcomp,
+                                             bool(data[2]), 2))
+                            for slot in box:
+                                slot.mailbox[(key << 24) | msgid] = (f, link)
+                                mailboxed += 1
+                        entry = dests.get(key)
+                        if entry is None:
+                            entry = dests[key] = self._destinations(others, key)
+                        puts, rest = entry
+                        for put in puts:
+                            put(data)
+                        forwarded += len(puts)
+                        for o in rest:
+                            if o.send(data):
+                                forwarded += 1
+                        continue
+            for f in split_datagram(data, stats):
+                route(link, f)
+        stats.frames += frames
+        stats.bytes_in += nbytes
+        c.rx_frames += frames
+        c.rx_bytes += nbytes
+        self.stats.forwarded += forwarded
+        self.stats.mailboxed += mailboxed
+
+    @staticmethod
+    def _destinations(others: tuple[Link, ...], key: int
+                      ) -> tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]:
+        """Where a broadcast of source ``key`` goes: appends to the batches of the links that
+        take one, and the links to :meth:`Link.send` it to."""
+        puts: list[Callable[[bytes], Any]] = []
+        rest: list[Link] = []
+        for o in others:
+            if key in o.seen:
+                continue  # that is where it came from, by another way round
+            sink = o.batch_sink()
+            if sink is not None:
+                puts.append(sink.append)
+            else:
+                rest.append(o)
+        return tuple(puts), tuple(rest)
+
+    def _mailboxes_of(self, msgid: int) -> tuple[_Slot, ...] | None:
+        """The nodes that keep a broadcast ``msgid`` in their mailbox (those on the air), or
+        None when one decodes it at once (the general path)."""
+        readers = self._wants.get(msgid, ())
+        mine = tuple(s for s in readers if s.claimed)
+        if any(msgid in s.consumed for s in mine):
+            return None
+        return mine
 
     def _route(self, link: Link, f: Frame) -> None:
         raw, msgid, sysid, compid, seq, tsys, tcomp, _, _ = f  # one unpack: the hot path

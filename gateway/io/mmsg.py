@@ -111,7 +111,6 @@ class MmsgSocket:
         self.batch = batch
         self._fd = sock.fileno()
         self._rbuf = mmap.mmap(-1, batch * SLOT)
-        self._rview = memoryview(self._rbuf)
         rbase = ctypes.addressof(ctypes.c_char.from_buffer(self._rbuf))
         self._names = ctypes.create_string_buffer(batch * _SOCKADDR)
         nbase = ctypes.addressof(self._names)
@@ -132,7 +131,6 @@ class MmsgSocket:
         u32 = memoryview(self._rhdrs).cast("B").cast("I")
         self._lens = u32[_MMsgHdr.len.offset // 4::size // 4]
         self._namelens = u32[_MsgHdr.namelen.offset // 4::size // 4]
-        self._names_view = memoryview(self._names).cast("B")
         self._addr_cache: dict[bytes, Any] = {}
         # sending: one iovec per datagram, pointed at the bytes objects themselves
         self._siov = (_IoVec * batch)()
@@ -145,6 +143,7 @@ class MmsgSocket:
         self._shdr_q = memoryview(self._shdrs).cast("B").cast("Q")
         self._hdr_words = size // 8
         self._dest_name: bytes | None = None
+        self._hdr_name = (0, 0)  # the destination every send header holds (none: connected)
         self._dest_buf = ctypes.create_string_buffer(_SOCKADDR)
         self.refused = 0  # ICMP "port unreachable" reported by a call (for an earlier send)
         self.truncated = 0
@@ -164,22 +163,26 @@ class MmsgSocket:
             raise OSError(err, os.strerror(err))
         if n == 0:
             return [], None
-        view = self._rview
-        lens = self._lens[:n].tolist()
-        data = [bytes(view[i * SLOT:i * SLOT + ln]) for i, ln in enumerate(lens)]
+        buf = self._rbuf  # an mmap slice is a bytes object: one copy, no view in between
+        data = [buf[o:o + ln] for o, ln in zip(range(0, n * SLOT, SLOT),
+                                                self._lens[:n].tolist(), strict=True)]
         if not with_addresses:
             return data, None
-        names = self._names_view
+        names = self._names.raw[:n * _SOCKADDR]
         cache = self._addr_cache
         addrs = []
-        for i, ln in enumerate(self._namelens[:n].tolist()):
-            raw = bytes(names[i * _SOCKADDR:i * _SOCKADDR + ln])
-            addr = cache.get(raw)
-            if addr is None:
-                if len(cache) >= 256:
-                    cache.clear()
-                addr = cache[raw] = _decode_addr(raw)
-            addrs.append(addr)
+        prev_raw, prev = b"", None
+        for o, ln in zip(range(0, n * _SOCKADDR, _SOCKADDR), self._namelens[:n].tolist(),
+                         strict=True):
+            raw = names[o:o + ln]
+            if raw != prev_raw:  # mostly a run from one sender: one lookup for the run
+                addr = cache.get(raw)
+                if addr is None:
+                    if len(cache) >= 256:
+                        cache.clear()
+                    addr = cache[raw] = _decode_addr(raw)
+                prev_raw, prev = raw, addr
+            addrs.append(prev)
         return data, addrs
 
     def send(self, datagrams: list[bytes], dest: Any = None) -> tuple[int, int, int]:
@@ -197,15 +200,20 @@ class MmsgSocket:
         total = len(datagrams)
         start = 0
         iov, hdr, words = self._siov_q, self._shdr_q, self._hdr_words
+        if (name_addr, name_len) != self._hdr_name:  # the headers' destination, when it changes
+            for i in range(self.batch):
+                hdr[i * words] = name_addr
+                hdr[i * words + 1] = name_len
+            self._hdr_name = (name_addr, name_len)
         while start < total:
             # (the list holds every datagram alive while the kernel reads it)
             chunk = [d if type(d) is bytes else bytes(d)
                      for d in datagrams[start:start + self.batch]]
-            for i, d in enumerate(chunk):
-                iov[2 * i] = id(d) + _BYTES_DATA
-                iov[2 * i + 1] = len(d)
-                hdr[i * words] = name_addr
-                hdr[i * words + 1] = name_len
+            i = 0
+            for d in chunk:
+                iov[i] = id(d) + _BYTES_DATA
+                iov[i + 1] = len(d)
+                i += 2
             n = self._send(self._fd, self._shdrs_addr, len(chunk), MSG_DONTWAIT)
             if n >= 0:
                 start += n

@@ -78,6 +78,9 @@ DATAGRAM_BATCH = 64
 #: buffer holds far more than arrives in that time (see transport.UDP_RCVBUF).
 COALESCE_S = 0.001
 COALESCE_GAP_S = 0.004
+#: A wake-up that reads at least this many datagrams at once, after a hold that found none,
+#: is a burst: the port is not held after it (nothing more is coming for a while).
+BURST_MIN = 4
 #: Batches read back to back at most per wake-up, when each one fills DATAGRAM_BATCH.
 COALESCE_MAX_READS = 16
 #: Without ``read_many``: one datagram per wake-up, as mavlink-router does, unless the loop
@@ -169,6 +172,7 @@ class PortEngine:
         self.protocol = protocol
         self._datagrams_done = 0.0  # when _read_datagrams last finished (monotonic)
         self._holding = False  # reads paused for COALESCE_S (see there)
+        self._bursty = False  # the sender writes bursts: no hold after a burst (see there)
         self._want_write = False
         #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
         self.coalesce_s = COALESCE_S
@@ -695,7 +699,15 @@ class PortEngine:
         now = time.monotonic()
         dense = now - self._datagrams_done < COALESCE_GAP_S
         self._datagrams_done = now
-        if got and dense and self.coalesce_s > 0:
+        # A hold that found nothing means the datagrams come in bursts, each read whole at
+        # once: holding after one only costs a wake-up.  Until a wake-up reads a few
+        # datagrams only (a paced stream again), batches are read as they come.
+        if self._holding:
+            if not got:
+                self._bursty = True
+        elif got < BURST_MIN:
+            self._bursty = False
+        if got and dense and self.coalesce_s > 0 and not (self._bursty and not self._holding):
             self._hold(port, read_many, feed_many)
         elif self._holding:
             self._holding = False

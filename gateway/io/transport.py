@@ -300,7 +300,11 @@ class UdpPort:
                 mm.refused = 0
         if addrs:
             peers = self.peers
+            prev = None
             for addr in addrs:
+                if addr is prev:  # a run from one sender (the decoded address is shared)
+                    continue
+                prev = addr
                 if addr in peers:
                     peers.move_to_end(addr)
                 else:
