@@ -168,27 +168,14 @@ class Dispatcher:
         """:meth:`dispatch` each of ``msgs`` in order (what one read of a source decoded), with
         the backends' hand-overs held: each backend's loop wakes once for the batch, not once
         per message.  Outcomes are counted as for :meth:`dispatch`."""
-        routes = self._routes
-        with self._lock:
+        dispatch = self.dispatch
+        with self._lock:  # (re-entrant: each dispatch takes it again)
             handovers = self._handovers
             for h in handovers:
                 h.hold()
             try:
                 for msg in msgs:
-                    hooks = routes.get(type(msg))
-                    if not hooks:
-                        self.unrouted += 1
-                        continue
-                    self.dispatched += 1
-                    for rec, fn in hooks:
-                        try:
-                            res = fn(msg)
-                            outcome = (ACCEPTED if res is None or res == 0 else
-                                       res if type(res) is Outcome else Outcome(res))
-                        except Exception as exc:
-                            outcome = Outcome.FAILED
-                            self._log_failure(rec, exc)
-                        rec.outcomes[outcome] += 1
+                    dispatch(msg)
             finally:
                 for h in handovers:
                     h.release()
