@@ -2,8 +2,10 @@
 
 The command's entry point is :func:`main` here, not in :mod:`gateway.commands.cli`, so that a
 Ctrl-C while that module and its imports load (the first ~0.1 s) ends quietly with status 130
-like a Ctrl-C later on, instead of a traceback; and a SIGTERM then ends it with 0, as it
-does a running command (the exit-status table: :mod:`gateway.exits`)."""
+like a Ctrl-C later on, instead of a traceback or a crash; and a SIGTERM then ends it with 0,
+as it does a running command (the exit-status table: :mod:`gateway.exits`).  From the first
+import on, both signals are held (:mod:`gateway.signals`) until the command line is
+parsed and the command's own code starts (:func:`gateway.commands.cli.main`)."""
 
 from __future__ import annotations
 
@@ -22,9 +24,12 @@ def main() -> None:
     """Import the command line, then run it (:func:`gateway.commands.cli.console_main`)."""
     signal.signal(signal.SIGTERM, _terminated)
     try:
+        from gateway import signals
+
+        signals.hold()  # released when the command starts, or as main returns
         from gateway.commands.cli import console_main
     except BaseException as exc:
-        # a Ctrl-C or SIGTERM during the imports, maybe wrapped by the class being created
+        # a Ctrl-C or SIGTERM before the hold, maybe wrapped by the class being created
         from gateway.exits import signalled
 
         status = signalled(exc)

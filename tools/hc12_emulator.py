@@ -596,7 +596,8 @@ def main(argv: list[str] | None = None) -> int:
         emu.model.set_fault(args.fault, args.fault_delay)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        # set from a thread: the handler may interrupt stop.wait() inside stop's own lock
+        signal.signal(sig, lambda *_: threading.Thread(target=stop.set, daemon=True).start())
     emu.start()
     print(emu.url, flush=True)
     if emu.air_port is not None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 import threading
 import time
@@ -36,6 +35,7 @@ from backends.crsf.frames import (
     encode,
 )
 from gateway.io.transport import TransportError, open_serial
+from gateway.signals import Stopper
 
 
 def _trunc_div(a: int, b: int) -> int:
@@ -220,10 +220,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"monitor: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
-    old_handlers = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            old_handlers[sig] = signal.signal(sig, lambda *_: stop.set())
+    stopper = Stopper(stop).install()
     dec, view = Decoder(), RadioView()
     start = last_line = last_stats = time.monotonic()
     until = list(args.until)
@@ -249,8 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 last_line = now
     finally:
         port.close()
-        for sig, handler in old_handlers.items():
-            signal.signal(sig, handler)
+        stopper.restore()
     if args.summary:
         print(view.summary())
     s = dec.stats

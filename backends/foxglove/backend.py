@@ -41,7 +41,6 @@ import time
 from typing import Any, ClassVar
 
 import foxglove
-import orjson
 from foxglove.channels import FrameTransformChannel, LocationFixChannel
 from foxglove.messages import FrameTransform, LocationFix, Quaternion, Timestamp, Vector3
 from foxglove.websocket import ServerListener
@@ -57,7 +56,11 @@ from gateway.io.ioloop import IoLoop, Timer
 from gateway.io.server import ClientLimits, server_stats
 from gateway.io.transport import TransportError, open_tcp_listener
 from gateway.model import LinkStats, Position, SmUpdate, Status
+from gateway.signals import held
 from gateway.vehicles import SERVICE as VEHICLES_SERVICE
+
+with held():  # a Ctrl-C inside orjson's module init crashes it (gateway/signals.py)
+    import orjson
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,6 @@ import argparse
 import json
 import math
 import queue
-import signal
 import sys
 import threading
 import time
@@ -36,6 +35,7 @@ from backends.zenoh.session import SessionOptions, zerror_text
 from gateway import exits
 from gateway.config import ConfigError
 from gateway.io.backoff import Backoff
+from gateway.signals import Stopper
 from gateway.wire import decode_all, to_wire_dict
 
 EXIT_USAGE = exits.USAGE
@@ -200,16 +200,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
 
     stop = stop if stop is not None else threading.Event()
     samples: queue.SimpleQueue[Any] = queue.SimpleQueue()
-    installed: dict[signal.Signals, Any] = {}
-    got: list[int] = []  # the signal that stopped it: SIGINT exits 130 (gateway.exits)
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        got.append(signum)
-        stop.set()
-
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            installed[sig] = signal.signal(sig, on_signal)
+    stopper = Stopper(stop).install()  # its signal: SIGINT exits 130 (gateway.exits)
     session = None
     tracker = SeqTracker()
     gateways: set[str] = set()
@@ -247,7 +238,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
                           f"{zerror_text(exc)}; retrying", file=err)
                 stop.wait(backoff.next())
         if session is None:
-            return exits.after_stop(got[-1] if got else None)
+            return stopper.status
         if args.gateways:
             # The gateways alive now are asked for (and queued) before any update can be:
             # so they print first, whatever --count says.  A token that appears between the
@@ -314,8 +305,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
     except BrokenPipeError:
         return 0
     finally:
-        for sig, old in installed.items():
-            signal.signal(sig, old)
+        stopper.restore()
         if session is not None:
             session.close()
         if compact is not None:
@@ -325,7 +315,7 @@ def run_listen(args: argparse.Namespace, out: TextIO | None = None,
           f"{tracker.lost} lost (sequence gaps), {tracker.restarts} publisher restarts"
           + (f", {dropped[0]} dropped (printing fell behind)" if dropped[0] else ""),
           file=err)
-    return exits.after_stop(got[-1] if got else None)
+    return stopper.status
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,8 +17,6 @@ import json
 import math
 from typing import Any
 
-import orjson
-
 from dialects.states import state_name
 from gateway import wire
 from gateway.model import (
@@ -35,6 +33,10 @@ from gateway.model import (
     Status,
     VehicleState,
 )
+from gateway.signals import held
+
+with held():  # a Ctrl-C inside orjson's module init crashes it (gateway/signals.py)
+    import orjson
 
 JSON = "application/json"
 SM_UPDATE_PACKED = "application/octet-stream;aurora.sm_update"

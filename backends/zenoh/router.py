@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 from collections.abc import Sequence
 from typing import Any
+
+from gateway.signals import Stopper
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
@@ -62,12 +63,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"zenoh_router: cannot start: {exc}", file=sys.stderr)
         return 1
     stop = threading.Event()
-
-    def _stop(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, _stop)
-    signal.signal(signal.SIGTERM, _stop)
+    Stopper(stop).install()
     endpoints = json.loads(cfg.get_json("listen/endpoints"))
     print(f"ready {' '.join(endpoints) if isinstance(endpoints, list) else endpoints} "
           f"zid {session.zid()}", flush=True)

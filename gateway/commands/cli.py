@@ -17,20 +17,20 @@ import json
 import logging
 import math
 import os
-import signal
 import sys
 import threading
 import traceback
 from collections.abc import Sequence
 from typing import Any, NamedTuple, NoReturn
 
-from gateway import __version__, config, exits, logjson, registry, vehicles
+from gateway import __version__, config, exits, logjson, registry, signals, vehicles
 from gateway.app import Gateway
 from gateway.config import ConfigError, GatewayConfig, GatewayOptions, Key, Schema
 from gateway.flight_summary import summary_lines
 from gateway.io.backoff import Backoff
 from gateway.io.server import SERVER_KEYS
 from gateway.options import Options, add_flag, options_of
+from gateway.signals import Stopper
 from gateway.sources import check_serial_url, parse_source_url
 
 log = logging.getLogger("aurora-gateway")
@@ -579,35 +579,6 @@ def config_from_args(args: argparse.Namespace, *, backends: bool = True) -> Gate
 
 # -- commands ----------------------------------------------------------------------------------
 
-class Stopper:
-    """SIGINT/SIGTERM set an event instead of raising in the middle of something; the last
-    one received is :attr:`signal`, and :attr:`status` the exit status it makes
-    (:func:`gateway.exits.after_stop`: 130 for SIGINT, 0 for SIGTERM or none)."""
-
-    def __init__(self, event: threading.Event) -> None:
-        self.event = event
-        self.signal: int | None = None
-        self._old: dict[int, Any] = {}
-
-    def __enter__(self) -> Stopper:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        self.signal = signum
-        self.event.set()
-
-    @property
-    def status(self) -> int:
-        return exits.after_stop(self.signal)
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, old in self._old.items():
-            signal.signal(sig, old)
-
-
 def setup_logging(level: str | None, fmt: str | None = None) -> None:
     logjson.setup_logging(level, fmt or "text")  # json: gateway/logjson.py
 
@@ -889,9 +860,14 @@ def _recording_errors() -> tuple[type[Exception], ...]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit status.  Ctrl-C anywhere (the backends' imports while the
-    parser is built, start-up, a command without its own handler) is a quiet 130."""
+    parser is built, start-up, a command without its own handler) is a quiet 130.  A signal
+    held while the modules loaded (:mod:`gateway.signals`) is delivered as the command
+    starts, or here if the command line ended before it (``--help``, a usage error)."""
     try:
-        return _main(argv)
+        try:
+            return _main(argv)
+        finally:
+            signals.release()
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
 
@@ -924,6 +900,7 @@ def _main(argv: Sequence[str] | None) -> int:
             print(f"aurora-gateway: {left_out}", file=sys.stderr)
             return EXIT_USAGE
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
+    signals.release()  # a Ctrl-C from here on reaches the command (or is its KeyboardInterrupt)
     try:
         return handler(args)
     except ValueError as exc:  # a ConfigError, or a RecordingError (not every other)

@@ -58,7 +58,6 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 from typing import IO, Any
 
-import orjson
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import Writer
 
@@ -75,6 +74,10 @@ from gateway.model import (
     Status,
     VehicleState,
 )
+from gateway.signals import held
+
+with held():  # a Ctrl-C inside orjson's module init crashes it (gateway/signals.py)
+    import orjson
 
 STATE = "/aurora/state"
 ALTITUDE = "/aurora/altitude"

@@ -45,6 +45,7 @@ from gateway.commands.live import (
 )
 from gateway.config import ConfigError
 from gateway.model import MESSAGE_TYPES, GatewayStats
+from gateway.signals import Stopper
 
 SPEECH_PROGRAM = "espeak-ng"
 TTY_REFRESH_S = 0.25
@@ -258,7 +259,7 @@ def run_monitor(args: argparse.Namespace) -> int:
     srcs = ", ".join(s.name for s in gw.sources)
     state.title = f"aurora-gateway monitor · {srcs}"
     stop = gw.stop_event
-    with cli.Stopper(stop) as stopper:
+    with Stopper(stop) as stopper:
         failures = gw.start()
         for name, err in failures:
             state.note(f"backend {name} did not start: {err}")
