@@ -10,6 +10,10 @@ in turn, ``--repeat`` times each, interleaved; the table gives medians and the r
 mavlink-router's inside each repetition.
 
     python tools/bench/bench_route_bursts.py --mavlink-routerd PATH [--rate 10000] [--burst 20]
+        [--floor]
+
+``--floor`` adds ``route_floor.py``: the same system calls as the gateway's router and no
+other work — where the gateway's cost would be with no Python per datagram.
 
 ``mavlink-routerd`` is built by ``tools/bench/build_mavlink_router.sh``.
 """
@@ -48,6 +52,9 @@ def argv_of(router: str, args: argparse.Namespace, port_in: int, port_out: int,
         conf.write_text("[General]\nTcpServerPort = 0\n")
         return [args.mavlink_routerd, "-t", "0", "-c", str(conf), "-e",
                 f"127.0.0.1:{port_out}", f"127.0.0.1:{port_in}"]
+    if router == "floor":
+        return [sys.executable, str(Path(__file__).with_name("route_floor.py")), str(port_in),
+                str(port_out)]
     return [args.aurora_gateway, "run", "--only", "mavlink", "--status-interval", "0",
             "--source", f"mavlink:udpin:127.0.0.1:{port_in}",
             "--mavlink", f"udpout:127.0.0.1:{port_out}"]
@@ -120,9 +127,13 @@ def main() -> int:
     p.add_argument("--burst", type=int, default=20, help="datagrams per burst")
     p.add_argument("--seconds", type=float, default=10.0)
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--floor", action="store_true",
+                   help="also run route_floor.py: recvmmsg → sendmmsg and nothing else")
     args = p.parse_args()
     payload = frames(int(args.rate * args.seconds))
     results: dict[str, list[dict[str, float]]] = {"mavlink-router": [], "aurora-gateway": []}
+    if args.floor:
+        results["floor"] = []
     for i in range(args.repeat):
         for router in results:
             r = measure(router, args, payload)
@@ -138,6 +149,11 @@ def main() -> int:
               f"100k, lost {statistics.median(r['lost_pct'] for r in rs):.2f} %")
     print(f"  ratio ours / mavlink-router's, per repetition: "
           f"{', '.join(f'{x:.2f}' for x in ratios)}; median {statistics.median(ratios):.2f}×")
+    if args.floor:
+        floor = [f["cpu_per_100k_s"] / m["cpu_per_100k_s"]
+                 for f, m in zip(results["floor"], results["mavlink-router"], strict=True)]
+        print(f"  ratio floor / mavlink-router's, per repetition: "
+              f"{', '.join(f'{x:.2f}' for x in floor)}; median {statistics.median(floor):.2f}×")
     return 0
 
 
