@@ -136,6 +136,42 @@ def test_a_refusal_reported_to_a_connected_socket_is_counted_and_the_rest_still_
     assert refused >= 1
 
 
+@needs_mmsg
+def test_a_batch_to_a_peer_that_is_not_listening_costs_two_calls_not_one_per_datagram(
+        stack: contextlib.ExitStack) -> None:
+    """Each datagram to a closed port comes back as "port unreachable", and sendmmsg stops
+    after one datagram each call: the rest of the batch is counted refused after two such
+    calls, and once the peer listens, a batch goes whole again."""
+    gone = udp(stack)
+    addr = gone.getsockname()
+    gone.close()
+    tx = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+    tx.connect(addr)
+    tx.setblocking(False)
+    mm = mmsg.MmsgSocket(tx)
+    real, calls = mm._send, [0]
+
+    def counted(*args: object) -> int:
+        calls[0] += 1
+        return int(real(*args))
+
+    mm._send = counted
+    batch = [bytes([i]) * 20 for i in range(20)]
+    for _ in range(3):
+        calls[0] = 0
+        refused, dropped, failed = mm.send(batch)
+        assert (refused, dropped, failed) == (refused, 0, 0)
+        assert refused >= 18, refused  # at most the first two calls' datagrams left
+        assert calls[0] <= 3, calls[0]  # (one more when a refusal is reported as an error)
+    rx = stack.enter_context(socket.socket(socket.AF_INET, socket.SOCK_DGRAM))
+    rx.bind(addr)
+    rx.settimeout(5.0)
+    refused, dropped, failed = mm.send(batch)
+    assert refused <= 1 and (dropped, failed) == (0, 0)  # one error may still be pending
+    got = recv_all(rx, 20 - refused)
+    assert got == batch[refused:]
+
+
 def test_udp_port_reads_and_writes_batches_the_same_way_either_path(
         mode: str, stack: contextlib.ExitStack) -> None:
     listener = stack.enter_context(contextlib.closing(open_udp("127.0.0.1", 0, listen=True)))

@@ -18,6 +18,7 @@ import ctypes
 import errno
 import mmap
 import os
+import select
 import socket
 import sys
 from typing import Any
@@ -188,7 +189,14 @@ class MmsgSocket:
     def send(self, datagrams: list[bytes], dest: Any = None) -> tuple[int, int, int]:
         """Write ``datagrams`` in order (to ``dest``, or on the connected socket); returns
         (refused, dropped, failed): "port unreachable" reported (that datagram is lost),
-        the rest of a batch the socket had no room for (EAGAIN), refused by another error."""
+        the rest of a batch the socket had no room for (EAGAIN), refused by another error.
+
+        A connected socket whose peer is not listening gets "port unreachable" back for
+        each datagram, and the kernel's ``sendmmsg`` then stops after one datagram per call
+        without saying why: a batch would cost a call per datagram (twice mavlink-router's
+        CPU while a ground station is down).  After two such calls in a row, with room to
+        write, the rest of the batch is counted as refused and not sent — it would have
+        been refused too."""
         name_addr, name_len = 0, 0
         if dest is not None:
             name = encode_addr(self.family, dest)
@@ -205,6 +213,7 @@ class MmsgSocket:
                 hdr[i * words] = name_addr
                 hdr[i * words + 1] = name_len
             self._hdr_name = (name_addr, name_len)
+        short = 0  # calls in a row that stopped after one datagram of several
         while start < total:
             # (the list holds every datagram alive while the kernel reads it)
             chunk = [d if type(d) is bytes else bytes(d)
@@ -217,6 +226,14 @@ class MmsgSocket:
             n = self._send(self._fd, self._shdrs_addr, len(chunk), MSG_DONTWAIT)
             if n >= 0:
                 start += n
+                if n == 1 < len(chunk) and not name_addr:
+                    short += 1
+                    if short >= 2 and start < total:
+                        if select.select((), (self._fd,), (), 0)[1]:
+                            return refused + total - start, 0, failed  # a refusing peer
+                        return refused, total - start, failed  # no room: as EAGAIN
+                else:
+                    short = 0
                 continue
             err = ctypes.get_errno()
             if err == errno.EINTR:
@@ -227,5 +244,6 @@ class MmsgSocket:
                 refused += 1
             else:
                 failed += 1
+                short = 0  # (another error: the short calls were not a refusing peer's)
             start += 1  # that one is lost; the rest goes on
         return refused, 0, failed
