@@ -1,17 +1,20 @@
 """``python -m gateway`` and the ``aurora-gateway`` command.
 
-The command's entry point is :func:`main` here, not in :mod:`gateway.commands.cli`, so that a
-Ctrl-C while that module and its imports load (the first ~0.1 s) ends quietly with status 130
-like a Ctrl-C later on, instead of a traceback or a crash; and a SIGTERM then ends it with 0,
-as it does a running command (the exit-status table: :mod:`gateway.exits`).  From the first
-import on, both signals are held (:mod:`gateway.signals`) until the command line is
-parsed and the command's own code starts (:func:`gateway.commands.cli.main`)."""
+The command's entry point is :func:`main` here, not in :mod:`gateway.commands.cli`, so that
+its first act can be to hold SIGINT and SIGTERM (:mod:`gateway.signals`): from then on
+until the command installs its own stop (or starts, for a command without one), a signal
+is noted, never raised into whatever runs — an import's bookkeeping, where Python prints a
+KeyboardInterrupt and drops it, or a C extension's initialisation, which can crash.  A
+Ctrl-C then ends the command quietly with status 130, and a SIGTERM with 0, whenever it
+comes (the exit-status table: :mod:`gateway.exits`)."""
 
 from __future__ import annotations
 
 import os
 import signal
 import sys
+
+from gateway import signals
 
 
 def _terminated(signum: int, frame: object) -> None:
@@ -21,15 +24,14 @@ def _terminated(signum: int, frame: object) -> None:
 
 
 def main() -> None:
-    """Import the command line, then run it (:func:`gateway.commands.cli.console_main`)."""
-    signal.signal(signal.SIGTERM, _terminated)
+    """Hold the signals, import the command line, run it
+    (:func:`gateway.commands.cli.console_main`)."""
+    signals.hold(after={signal.SIGTERM: _terminated})  # released or taken over by the command
     try:
-        from gateway import signals
-
-        signals.hold()  # released when the command starts, or as main returns
         from gateway.commands.cli import console_main
     except BaseException as exc:
-        # a Ctrl-C or SIGTERM before the hold, maybe wrapped by the class being created
+        # (a signal's exception cannot arise while held; kept for one that escaped a hold,
+        # maybe wrapped by a class being created)
         from gateway.exits import signalled
 
         status = signalled(exc)

@@ -156,3 +156,56 @@ def test_a_stop_signal_inside_the_events_own_lock_still_stops(sig: str, status: 
     except subprocess.TimeoutExpired:
         pytest.fail("the handler deadlocked on the event's lock")
     assert (proc.returncode, proc.stdout) == (0, f"True {status}\n"), proc.stderr[-2000:]
+
+
+#: a Ctrl-C the instant the entry point has caught SIGTERM (its first act, and what
+#: tests/test_exit_codes.py waits for before it signals): it surfaces from that very call
+FIRST_ACT = textwrap.dedent("""
+    import signal, sys
+    real = signal.signal
+    def catching(sig, handler):
+        old = real(sig, handler)
+        if sig == signal.SIGTERM and handler is not signal.SIG_DFL:
+            signal.signal = real
+            signal.raise_signal(signal.SIGINT)
+        return old
+    signal.signal = catching
+    sys.argv = ["aurora-gateway", "run", "--only", "console", "--duration", "5"]
+    from gateway.__main__ import main
+    main()
+""")
+
+
+def test_a_ctrl_c_as_the_entry_point_catches_sigterm_is_a_quiet_130() -> None:
+    proc = subprocess.run([sys.executable, "-c", FIRST_ACT], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60)
+    assert (proc.returncode, proc.stderr) == (exits.INTERRUPTED, "")
+
+
+def test_handlers_are_all_put_back_even_when_one_raises(handlers: list[int]) -> None:
+    """Putting back SIGINT's handler can raise (a Ctrl-C arriving right then, through the
+    handler just put back); SIGTERM's is put back all the same."""
+    mine = signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    with pytest.raises(TypeError):  # (a bad handler: the simplest raise there is)
+        signals._put_back([(signal.SIGINT, "not a handler"), (signal.SIGTERM, mine)])
+    assert signal.getsignal(signal.SIGTERM) is mine
+
+
+def test_a_stopper_installed_while_held_ends_the_hold_raising_what_it_noted(
+        handlers: list[int]) -> None:
+    """(run, record, replay, monitor, simulate and listen are held until their Stopper: no
+    moment between where a Ctrl-C raises into whatever runs, and the one that came
+    meanwhile ends them before they start.)"""
+    assert signals.hold()
+    signal.raise_signal(signal.SIGINT)  # noted, not raised
+    stop = threading.Event()
+    with pytest.raises(KeyboardInterrupt):
+        signals.Stopper(stop).install()
+    assert not signals.holding() and not stop.is_set()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    stopper = signals.Stopper(stop).install()  # not held: installs as usual
+    signal.raise_signal(signal.SIGTERM)
+    assert stop.wait(5) and stopper.status == exits.OK and handlers == []
+    stopper.restore()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -594,10 +594,9 @@ def main(argv: list[str] | None = None) -> int:
                        air_port=args.air_port, tx_buffer=args.tx_buffer)
     if args.fault:
         emu.model.set_fault(args.fault, args.fault_delay)
-    stop = threading.Event()
+    stopped: list[int] = []  # a handler takes no lock: it may interrupt the one it needs
     for sig in (signal.SIGINT, signal.SIGTERM):
-        # set from a thread: the handler may interrupt stop.wait() inside stop's own lock
-        signal.signal(sig, lambda *_: threading.Thread(target=stop.set, daemon=True).start())
+        signal.signal(sig, lambda signum, _frame: stopped.append(signum))
     emu.start()
     print(emu.url, flush=True)
     if emu.air_port is not None:
@@ -605,7 +604,8 @@ def main(argv: list[str] | None = None) -> int:
     s = emu.model.settings
     print(f"HC-12 emulator: FU{s.mode} {s.baud} baud channel {s.channel} power {s.power}; "
           f"SET on {args.set_line}", flush=True)
-    stop.wait()
+    while not stopped:
+        time.sleep(0.1)
     emu.stop()
     return 0
 

@@ -23,6 +23,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: what a quiet stop never prints (tests/test_exit_codes.py's list)
+NOISE = ("Traceback", "KeyboardInterrupt", "Exception ignored", "Fatal Python error")
 STOP_TIMEOUT_S = 20.0  # the commands run 60 s: a signal lost shows, a hang too
 
 
@@ -91,7 +93,7 @@ def main() -> int:
             counts = Counter(status for status, _ in results)
             odd = [(round(at, 3), status, err.strip().splitlines()[-1:])
                    for at, (status, err) in zip(moments, results, strict=True)
-                   if status != want or "Traceback" in err]
+                   if status != want or any(n in err for n in NOISE)]
             bad += len(odd)
             print(f"{name:9s} {dict(sorted(counts.items()))}", flush=True)
             for row in odd[:5]:

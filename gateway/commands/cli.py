@@ -721,9 +721,10 @@ def _json_safe(d: dict[str, Any]) -> dict[str, Any]:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
-    from gateway import recording
-    from gateway.model import kind
-    from gateway.wire import Decoder, to_wire_dict
+    with signals.held():  # (an import's bookkeeping is where a KeyboardInterrupt is lost)
+        from gateway import recording
+        from gateway.model import kind
+        from gateway.wire import Decoder, to_wire_dict
 
     dec = Decoder()
     out = sys.stdout
@@ -858,6 +859,14 @@ def _recording_errors() -> tuple[type[Exception], ...]:
     return (module.RecordingError,) if module is not None else ()
 
 
+#: Commands whose handler installs a :class:`Stopper` before it does anything long (through
+#: run_gateway, the monitor, simulate's and listen's own): signals stay held until it does,
+#: and a signal noted meanwhile is raised as it is installed (the command never starts).
+#: The others (decode, the short ones) start with the hold released: a Ctrl-C is their
+#: KeyboardInterrupt.
+HELD_TO_STOPPER = frozenset({"run", "record", "replay", "monitor", "simulate", "listen"})
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run one command; its exit status.  Ctrl-C anywhere (the backends' imports while the
     parser is built, start-up, a command without its own handler) is a quiet 130.  A signal
@@ -900,7 +909,8 @@ def _main(argv: Sequence[str] | None) -> int:
             print(f"aurora-gateway: {left_out}", file=sys.stderr)
             return EXIT_USAGE
     handler = getattr(args, "handler", None) or COMMANDS[args.command]
-    signals.release()  # a Ctrl-C from here on reaches the command (or is its KeyboardInterrupt)
+    if args.command not in HELD_TO_STOPPER:
+        signals.release()  # a Ctrl-C from here on reaches the command (its KeyboardInterrupt)
     try:
         return handler(args)
     except ValueError as exc:  # a ConfigError, or a RecordingError (not every other)
