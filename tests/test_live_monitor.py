@@ -365,7 +365,7 @@ def test_ctrl_c_stops_the_status_lines_cleanly() -> None:
 
 
 #: a terminal's escape sequences (colours, cursor moves), to read the text between them
-ANSI = re.compile(rb"\x1b\[[0-9;?]*[A-Za-z]")
+ANSI_BYTES = re.compile(rb"\x1b\[[0-9;?]*[A-Za-z]")
 
 
 def read_until(fd: int, needle: bytes, deadline: float) -> bytes:
@@ -429,7 +429,7 @@ def test_two_sources_two_rows_and_down_selects_the_second() -> None:
         # table show it from the start): the down arrow wraps round the vehicle rows there
         # are, and with alpha's alone it stays there
         beta_row = re.compile(rb"beta +[A-Z]")
-        while not beta_row.search(ANSI.sub(b"", shown)):
+        while not beta_row.search(ANSI_BYTES.sub(b"", shown)):
             shown += read_until(master, b"beta", time.monotonic() + 10)
         os.write(master, b"\x1b[B")  # down
         read_until(master, b"vehicle beta", time.monotonic() + 10)
