@@ -35,11 +35,12 @@ from gateway import exits
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 _saved: dict[int, Any] | None = None  # the handlers the hold replaced, while it holds
-_noted: list[int] = []  # signals that arrived while held, in order
+_noted: int | None = None  # the last signal that arrived while held (a flood keeps one)
 
 
 def _note(signum: int, frame: object) -> None:
-    _noted.append(signum)
+    global _noted
+    _noted = signum
 
 
 def holding() -> bool:
@@ -54,10 +55,7 @@ def hold(after: dict[int, Any] | None = None) -> bool:
     global _saved
     if _saved is not None or threading.current_thread() is not threading.main_thread():
         return False
-    saved: dict[int, Any] = {}
-    for sig in SIGNALS:
-        old = signal.signal(sig, _note)
-        saved[sig] = signal.SIG_DFL if old is None else old  # None: not set from Python
+    saved: dict[int, Any] = {sig: signal.signal(sig, _note) for sig in SIGNALS}
     _saved = {**saved, **(after or {})}
     return True
 
@@ -65,20 +63,20 @@ def hold(after: dict[int, Any] | None = None) -> bool:
 def release() -> None:
     """Stop holding: the previous handlers again, then the last signal that arrived while
     held, raised now through its own handler (a :class:`KeyboardInterrupt`, say)."""
-    global _saved
+    global _saved, _noted
     if _saved is None:
         return
     saved, _saved = _saved, None
     _put_back(list(saved.items()))
-    if _noted:
-        last = _noted[-1]
-        _noted.clear()
+    if _noted is not None:
+        last, _noted = _noted, None
         signal.raise_signal(last)
 
 
 def _put_back(handlers: list[tuple[int, Any]]) -> None:
-    """Install each (signal, handler), all of them even if a signal arriving meanwhile
-    raises through one just put back (its exception then goes on once all are in)."""
+    """Install each (signal, handler) (None, a handler not set from Python: the default),
+    all of them even if a signal arriving meanwhile raises through one just put back (its
+    exception then goes on once all are in)."""
     if handlers:
         (sig, handler), rest = handlers[0], handlers[1:]
         try:
@@ -139,7 +137,8 @@ class Stopper:
 
     def _handle(self, signum: int, frame: Any) -> None:
         self.signal = signum
-        self._relay.put(signum)  # no lock taken here (see the module's docstring)
+        if not self.event.is_set():  # (a flood of signals queues nothing more)
+            self._relay.put(signum)  # no lock taken here (see the module's docstring)
 
     def _run_relay(self) -> None:
         while self._relay.get() is not None:
