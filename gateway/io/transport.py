@@ -269,16 +269,20 @@ class UdpPort:
                 continue
             data = bytes(self._view[:n])
             if self.dest is None:
-                peers = self.peers
-                if addr in peers:
-                    peers.move_to_end(addr)
-                else:
-                    peers[addr] = time.monotonic()
-                    self.new_peers += 1
-                    if len(peers) > self.max_peers:
-                        peers.popitem(last=False)
+                self._saw_peer(addr)
             self.last_peer = addr
             return data
+
+    def _saw_peer(self, addr: Any) -> None:
+        """``addr`` sent a datagram: the most recent in the bounded peer table."""
+        peers = self.peers
+        if addr in peers:
+            peers.move_to_end(addr)
+        else:
+            peers[addr] = time.monotonic()
+            self.new_peers += 1
+            if len(peers) > self.max_peers:
+                peers.popitem(last=False)
 
     def read_many(self) -> list[bytes]:
         """Every datagram waiting, up to :data:`gateway.io.mmsg.BATCH` (one system call
@@ -299,19 +303,11 @@ class UdpPort:
                 self.send_refused += mm.refused
                 mm.refused = 0
         if addrs:
-            peers = self.peers
             prev = None
             for addr in addrs:
-                if addr is prev:  # a run from one sender (the decoded address is shared)
-                    continue
-                prev = addr
-                if addr in peers:
-                    peers.move_to_end(addr)
-                else:
-                    peers[addr] = time.monotonic()
-                    self.new_peers += 1
-                    if len(peers) > self.max_peers:
-                        peers.popitem(last=False)
+                if addr is not prev:  # once per run from one sender (its address is shared)
+                    self._saw_peer(addr)
+                    prev = addr
             self.last_peer = addrs[-1]
         return datagrams
 
