@@ -28,6 +28,9 @@ PYTEST_ARGS ?=
 PYTEST_WORKERS ?= 4
 
 PACKAGES := gateway backends dialects
+# The compiled fast paths (pyproject's ext-modules): the editable install builds them in place
+# (next to their packages' modules); an edit to one rebuilds them.
+SPEEDUPS := backends/mavlink/_route_speedups.c gateway/io/_mmsg_speedups.c
 
 .PHONY: run test lint bench clean bytecode wheel-check
 
@@ -46,11 +49,19 @@ $(STAMP): pyproject.toml Makefile
 		mavproxy==1.8.75 defusedxml==0.7.1 pynmeagps==1.1.8
 	touch $(STAMP)
 
+$(VENV)/.speedups-stamp: $(STAMP) $(SPEEDUPS)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
+	touch $@
+
+$(RUN_VENV)/.speedups-stamp: $(RUN_STAMP) $(SPEEDUPS)
+	$(RUN_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps -e .
+	touch $@
+
 # Bytecode of what changed since the last compile (an edit, a git pull).
-bytecode: $(STAMP)
+bytecode: $(STAMP) $(VENV)/.speedups-stamp
 	$(BIN)/python -m compileall -q $(PACKAGES)
 
-run: $(RUN_STAMP)
+run: $(RUN_STAMP) $(RUN_VENV)/.speedups-stamp
 	$(RUN_VENV)/bin/python -m compileall -q $(PACKAGES)
 	$(RUN_VENV)/bin/aurora-gateway run $(ARGS)
 

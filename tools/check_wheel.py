@@ -54,6 +54,8 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 FAILURE_MARKS = ("did not start", "Traceback", "failed to start")
 STEP_TIMEOUT_S = 600
 
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
+
 failures: list[str] = []
 
 
@@ -136,7 +138,7 @@ def data_files() -> list[str]:
     README beside a backend's modules is documentation, not package data)."""
     r = subprocess.run(["git", "ls-files", *PACKAGES], cwd=ROOT, capture_output=True,
                        text=True, check=True)
-    return [p for p in r.stdout.split() if not p.endswith(".py")
+    return [p for p in r.stdout.split() if not p.endswith((".py", ".c"))
             and not (p.endswith("README.md") and not p.startswith("dialects/"))]
 
 
@@ -146,6 +148,12 @@ def check_contents(wheel: Path) -> None:
     xml = sum(1 for n in names if n.startswith("dialects/uavtalk/") and n.endswith(".xml"))
     check(f"the wheel holds every data file of the packages ({xml} UAVTalk objects)",
           not missing and xml > 0, f"missing {missing[:10]}")
+    # the compiled fast paths, built from their C sources (pyproject's ext-modules)
+    exts = [e["name"] for e in PYPROJECT["tool"]["setuptools"]["ext-modules"]]
+    built = [e for e in exts if any(n.startswith(e.replace(".", "/") + ".") and
+                                    n.endswith(".so") for n in names)]
+    check(f"the wheel holds the compiled modules ({', '.join(built) or 'none'})",
+          built == exts, f"missing {sorted(set(exts) - set(built))}")
 
 
 def make_venv(where: Path, wheel: Path, extras: str) -> Path:
@@ -232,6 +240,11 @@ def run_all(exe: Path, work: Path) -> None:
     check(f"fprime-dictionary ({channels} channels)", r.returncode == 0 and channels > 0,
           r.stderr[-2000:], started)
     expect_ok(exe, work, ["mavlink-modes"], "mavlink-modes")
+    started = time.monotonic()
+    r = sh([exe, "--version"], cwd=work)
+    check("--version: the compiled MAVLink routing and recvmmsg/sendmmsg are in use",
+          r.returncode == 0 and "compiled: MAVLink routing, recvmmsg/sendmmsg\n" in r.stdout,
+          f"exit {r.returncode}: {r.stdout!r}", started)
     expect_ok(exe, work, ["export", recording.name, "--format", "mcap", "-o", "flight.mcap"],
               "export --format mcap", work / "flight.mcap", MCAP_MAGIC)
     expect_ok(exe, work, ["export", recording.name, "--format", "rosbag2", "-o", "flight_bag"],
@@ -304,7 +317,7 @@ def main() -> int:
     ap.add_argument("--keep", action="store_true", help="keep the temporary directory")
     args = ap.parse_args()
     t0 = time.monotonic()
-    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    version = PYPROJECT["project"]["version"]
     tmp = Path(tempfile.mkdtemp(prefix="aurora-wheel-"))
     say(f"check_wheel: {DIST} {version} in {tmp}")
     try:

@@ -56,6 +56,7 @@ thread reads them, and every ``Link.send`` is non-blocking.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -78,6 +79,15 @@ from gateway.counters import Counters
 from gateway.crc import mcrf4xx
 from gateway.io.burstlog import BurstLog
 from gateway.io.ioloop import IoLoop
+
+try:  # the common case of routing compiled (optional: the wheel may be built without it)
+    from backends.mavlink import _route_speedups as _speedups
+except ImportError:
+    _speedups = None  # type: ignore[assignment]
+if os.environ.get("AURORA_NO_SPEEDUPS"):
+    _speedups = None  # type: ignore[assignment]
+#: Whether the compiled loop routes the common case (else the pure-Python one does).
+COMPILED = _speedups is not None
 
 log = logging.getLogger(__name__)
 
@@ -470,7 +480,10 @@ class Router:
                 lk.start_batch()  # type: ignore[attr-defined]
             try:
                 if link.datagram and self.verifier is None and self.tap is None and self.forward:
-                    self._route_datagrams(link, datagrams)
+                    if _speedups is not None and type(datagrams) is list:
+                        self._route_datagrams_compiled(link, datagrams)
+                    else:
+                        self._route_datagrams(link, datagrams)
                 else:
                     for data in datagrams:
                         for f in split_datagram(data, stats):
@@ -495,7 +508,7 @@ class Router:
         c = link.counters
         route = self._route
         # source → where it goes this batch: the lists of links that take a batch, the rest
-        dests: dict[int, tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]] = {}
+        dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]] = {}
         boxes: dict[int, tuple[_Slot, ...] | None] = {}  # msgid → mailboxes (None: general)
         frames = nbytes = forwarded = mailboxed = 0
         for data in datagrams:
@@ -538,12 +551,12 @@ class Router:
                         entry = dests.get(key)
                         if entry is None:
                             entry = dests[key] = self._destinations(others, key)
-                        puts, rest = entry
-                        for put in puts:
-                            put(data)
-                        forwarded += len(puts)
-                        for o in rest:
-                            if o.send(data):
+                        sinks, sends = entry
+                        for sink in sinks:
+                            sink.append(data)
+                        forwarded += len(sinks)
+                        for send in sends:
+                            if send(data):
                                 forwarded += 1
                         continue
             for f in split_datagram(data, stats):
@@ -555,22 +568,87 @@ class Router:
         self.stats.forwarded += forwarded
         self.stats.mailboxed += mailboxed
 
+    def _route_datagrams_compiled(self, link: Link, datagrams: list[bytes]) -> None:
+        """:meth:`_route_datagrams` with its common case compiled (``_route_speedups``): the
+        compiled loop routes datagrams until one needs the general path, which routes that
+        one here; the frames kept for nodes are put in their mailboxes after each run."""
+        stats = link.framer_stats
+        others = self._others.get(link, ())
+        c = link.counters
+        route, fast = self._route, _speedups.route
+        seen, seen_at, own, last_seq = link.seen, self.seen_at, self._own, link.last_seq
+        now = self._now
+        boxes: dict[int, tuple[_Slot, ...] | None] = {}
+        boxes_of = self._mailboxes_of
+        dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]]
+        dests = {}
+
+        def dests_of(key: int) -> tuple[tuple[list[bytes], ...],
+                                         tuple[Callable[[bytes], Any], ...]]:
+            return self._destinations(others, key)
+
+        pending: dict[int, bytes] = {}
+        total = len(datagrams)
+        i = frames = nbytes = forwarded = mailboxed = lost = 0
+        try:
+            while i < total:
+                stop, f_n, b_n, fw_n, mb_n, lost_n = fast(
+                    datagrams, i, INFO, seen, seen_at, own, last_seq, now, boxes, boxes_of,
+                    dests, dests_of, pending)
+                frames += f_n
+                nbytes += b_n
+                forwarded += fw_n
+                mailboxed += mb_n
+                lost += lost_n
+                if pending:
+                    self._post(link, pending, boxes)
+                if stop < total:
+                    for f in split_datagram(datagrams[stop], stats):
+                        route(link, f)
+                i = stop + 1
+        finally:
+            stats.frames += frames
+            stats.bytes_in += nbytes
+            c.rx_frames += frames
+            c.rx_bytes += nbytes
+            c.seq_lost += lost
+            self.stats.forwarded += forwarded
+            self.stats.mailboxed += mailboxed
+
+    @staticmethod
+    def _post(link: Link, pending: dict[int, bytes],
+              boxes: dict[int, tuple[_Slot, ...] | None]) -> None:
+        """The frames the compiled loop kept (the last of each source and id, in the order
+        first seen) into the mailboxes of the nodes that read them; empties ``pending``."""
+        make = new_frame
+        for box_key, data in pending.items():
+            msgid = box_key & 0xFFFFFF
+            plen = data[1]
+            _, _, so, co = INFO[msgid]
+            tsys = -1 if so < 0 else (data[10 + so] if so < plen else 0)
+            tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
+            f = make(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
+                             bool(data[2]), 2))
+            for slot in boxes[msgid] or ():
+                slot.mailbox[box_key] = (f, link)
+        pending.clear()
+
     @staticmethod
     def _destinations(others: tuple[Link, ...], key: int
-                      ) -> tuple[tuple[Callable[[bytes], Any], ...], tuple[Link, ...]]:
-        """Where a broadcast of source ``key`` goes: appends to the batches of the links that
-        take one, and the links to :meth:`Link.send` it to."""
-        puts: list[Callable[[bytes], Any]] = []
-        rest: list[Link] = []
+                      ) -> tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]:
+        """Where a broadcast of source ``key`` goes: the batches of the links that take one
+        (lists to append it to), and the ``send`` of the others."""
+        sinks: list[list[bytes]] = []
+        sends: list[Callable[[bytes], Any]] = []
         for o in others:
             if key in o.seen:
                 continue  # that is where it came from, by another way round
             sink = o.batch_sink()
             if sink is not None:
-                puts.append(sink.append)
+                sinks.append(sink)
             else:
-                rest.append(o)
-        return tuple(puts), tuple(rest)
+                sends.append(o.send)
+        return tuple(sinks), tuple(sends)
 
     def _mailboxes_of(self, msgid: int) -> tuple[_Slot, ...] | None:
         """The nodes that keep a broadcast ``msgid`` in their mailbox (those on the air), or

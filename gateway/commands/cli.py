@@ -76,6 +76,39 @@ class _OutOfScope(Exception):
     """A narrowed parser met something it does not have: parse again with every flag."""
 
 
+
+#: The compiled fast paths (pyproject's ext-modules), by what they speed up.
+SPEEDUPS = {"MAVLink routing": "backends.mavlink._route_speedups",
+            "recvmmsg/sendmmsg": "gateway.io._mmsg_speedups"}
+
+
+def speedups_built() -> dict[str, bool]:
+    """Which compiled fast paths this install has (each missing one's pure-Python path runs
+    instead: the same behaviour, more CPU)."""
+    import importlib.util
+    return {what: importlib.util.find_spec(mod) is not None for what, mod in SPEEDUPS.items()}
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the version, and which compiled fast paths the install has."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS,
+                 default: str = argparse.SUPPRESS, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=default,
+                         help=help or "show the version and the compiled paths, and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: Any, option_string: str | None = None) -> None:
+        built = speedups_built()
+        have = [w for w, ok in built.items() if ok]
+        lacking = [w for w, ok in built.items() if not ok]
+        line = f"{parser.prog} {__version__}"
+        line += f"; compiled: {', '.join(have)}" if have else "; compiled: none"
+        if lacking:
+            line += f" (pure Python: {', '.join(lacking)})"
+        sys.stdout.write(line + "\n")
+        parser.exit()
+
 def _narrow_scope(argv: Sequence[str]) -> FlagScope | None:
     """The flag scope ``run ARGS`` needs, read from the arguments: the source types of its
     ``--source`` URLs (or the embedded default's ``sim``) unless ``--config`` names a file,
@@ -386,7 +419,7 @@ def build_parser(backend_flags: bool = True,
         description="Aurora telemetry gateway: takes the rocket's frames in and fans them out "
                     "to every configured backend.",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     run = sub.add_parser("run", help="run the gateway (default: simulated flight, every "

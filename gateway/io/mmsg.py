@@ -74,6 +74,16 @@ def _load() -> tuple[Any, Any] | None:
 _FUNCS = _load()
 AVAILABLE = _FUNCS is not None
 
+try:  # the per-datagram work compiled (optional: the wheel may be built without it)
+    from gateway.io import _mmsg_speedups as _speedups
+except ImportError:
+    _speedups = None  # type: ignore[assignment]
+if _speedups is not None and (not hasattr(_speedups, "recv")
+                              or os.environ.get("AURORA_NO_SPEEDUPS")):
+    _speedups = None  # type: ignore[assignment]
+#: Whether the compiled helpers do the per-datagram work (else the ctypes path below).
+COMPILED = _speedups is not None
+
 
 def _decode_addr(raw: bytes) -> Any:
     """A ``sockaddr`` as Python's socket module gives it: (host, port) or, for IPv6,
@@ -146,16 +156,31 @@ class MmsgSocket:
         self._dest_name: bytes | None = None
         self._hdr_name = (0, 0)  # the destination every send header holds (none: connected)
         self._dest_buf = ctypes.create_string_buffer(_SOCKADDR)
+        self._fast_recv = _speedups.recv if _speedups is not None else None
+        self._fast_send = _speedups.send if _speedups is not None else None
         self.refused = 0  # ICMP "port unreachable" reported by a call (for an earlier send)
         self.truncated = 0
 
     def recv(self, with_addresses: bool) -> tuple[list[bytes], list[Any] | None]:
         """Every datagram waiting (up to :attr:`batch`), and their senders when asked."""
+        fast = self._fast_recv
         while True:
-            n = self._recv(self._fd, self._rhdrs_addr, self.batch, MSG_DONTWAIT, None)
-            if n >= 0:
-                break
-            err = ctypes.get_errno()
+            if fast is not None:
+                got = fast(self._fd, self._rhdrs_addr, self.batch)
+                if isinstance(got, list):
+                    data: list[bytes] = got
+                    n = len(data)
+                    break
+                err = -got
+            else:
+                n = self._recv(self._fd, self._rhdrs_addr, self.batch, MSG_DONTWAIT, None)
+                if n >= 0:
+                    buf = self._rbuf  # an mmap slice is a bytes object: one copy, no view
+                    data = [buf[o:o + ln] for o, ln in zip(range(0, n * SLOT, SLOT),
+                                                            self._lens[:n].tolist(),
+                                                            strict=True)]
+                    break
+                err = ctypes.get_errno()
             if err in (errno.EAGAIN, errno.EINTR):
                 return [], None
             if err == errno.ECONNREFUSED:
@@ -164,9 +189,6 @@ class MmsgSocket:
             raise OSError(err, os.strerror(err))
         if n == 0:
             return [], None
-        buf = self._rbuf  # an mmap slice is a bytes object: one copy, no view in between
-        data = [buf[o:o + ln] for o, ln in zip(range(0, n * SLOT, SLOT),
-                                                self._lens[:n].tolist(), strict=True)]
         if not with_addresses:
             return data, None
         names = self._names.raw[:n * _SOCKADDR]
@@ -214,19 +236,29 @@ class MmsgSocket:
                 hdr[i * words + 1] = name_len
             self._hdr_name = (name_addr, name_len)
         short = 0  # calls in a row that stopped after one datagram of several
+        fast = self._fast_send
+        if fast is not None and type(datagrams) is not list:
+            datagrams = list(datagrams)
         while start < total:
-            # (the list holds every datagram alive while the kernel reads it)
-            chunk = [d if type(d) is bytes else bytes(d)
-                     for d in datagrams[start:start + self.batch]]
-            i = 0
-            for d in chunk:
-                iov[i] = id(d) + _BYTES_DATA
-                iov[i + 1] = len(d)
-                i += 2
-            n = self._send(self._fd, self._shdrs_addr, len(chunk), MSG_DONTWAIT)
+            if fast is not None:  # (it copies what is not bytes, and keeps each alive)
+                size = min(self.batch, total - start)
+                n = fast(self._fd, self._shdrs_addr, size, datagrams, start)
+                err = -n
+            else:
+                # (the list holds every datagram alive while the kernel reads it)
+                chunk = [d if type(d) is bytes else bytes(d)
+                         for d in datagrams[start:start + self.batch]]
+                size = len(chunk)
+                i = 0
+                for d in chunk:
+                    iov[i] = id(d) + _BYTES_DATA
+                    iov[i + 1] = len(d)
+                    i += 2
+                n = self._send(self._fd, self._shdrs_addr, size, MSG_DONTWAIT)
+                err = ctypes.get_errno() if n < 0 else 0
             if n >= 0:
                 start += n
-                if n == 1 < len(chunk) and not name_addr:
+                if n == 1 < size and not name_addr:
                     short += 1
                     if short >= 2 and start < total:
                         if select.select((), (self._fd,), (), 0)[1]:
@@ -235,7 +267,6 @@ class MmsgSocket:
                 else:
                     short = 0
                 continue
-            err = ctypes.get_errno()
             if err == errno.EINTR:
                 continue
             if err in (errno.EAGAIN, errno.ENOBUFS):

@@ -1,0 +1,13 @@
+"""The MAVLink router's common case, compiled (``_route_speedups.c``)."""
+
+from collections.abc import Callable
+from typing import Any
+
+def route(datagrams: list[bytes], start: int, info: dict[int, tuple[bytes, int, int, int]],
+          seen: set[int], seen_at: dict[int, float], own: dict[int, Any],
+          last_seq: dict[int, int], now: float, boxes: dict[int, Any],
+          boxes_of: Callable[[int], tuple[Any, ...] | None],
+          dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]],
+          dests_of: Callable[[int], tuple[tuple[list[bytes], ...],
+                                          tuple[Callable[[bytes], Any], ...]]],
+          pending: dict[int, bytes]) -> tuple[int, int, int, int, int, int]: ...
