@@ -96,6 +96,35 @@ def test_recvmmsg_reads_every_waiting_datagram_in_order_with_its_sender(
 
 
 @needs_mmsg
+def test_recv_senders_gives_one_sender_per_run_of_datagrams(stack: contextlib.ExitStack
+                                                             ) -> None:
+    rx = udp(stack)
+    rx.setblocking(False)
+    a, b = udp(stack), udp(stack)
+    mm = mmsg.MmsgSocket(rx)
+    assert mm.recv_senders() == ([], [])
+    order = [a, a, a, b, a, b, b]
+    for i, peer in enumerate(order):
+        peer.sendto(b"s%d" % i, rx.getsockname())
+    data: list[bytes] = []
+    senders: list[Any] = []
+
+    def read() -> bool:
+        d, s = mm.recv_senders()
+        if d:
+            data.extend(d)
+            if senders and s and s[0] == senders[-1]:  # a run split across two reads
+                s = s[1:]
+            senders.extend(s)
+        return len(data) == len(order)
+
+    assert wait_for(read)
+    assert data == [b"s%d" % i for i in range(len(order))]
+    runs = [a, b, a, b]
+    assert senders == [p.getsockname() for p in runs]
+
+
+@needs_mmsg
 def test_sendmmsg_writes_a_batch_in_order_to_a_connected_socket_or_a_destination(
         stack: contextlib.ExitStack) -> None:
     rx = udp(stack)

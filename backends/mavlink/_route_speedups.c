@@ -1,15 +1,15 @@
 /* The MAVLink router's common case, compiled: see Router._route_datagrams.
  *
  * route(datagrams, start, info, seen, seen_at, own, last_seq, now, boxes, boxes_of, dests,
- *       dests_of, pending) walks the datagrams from index ``start`` while each one is a
+ *       dests_of, link) walks the datagrams from index ``start`` while each one is a
  * single MAVLink 2 frame of a known id with a good CRC, broadcast (no target, or target
  * system 0), from a source already seen on the link, not using a node's id, and not read
  * at once by a node (``boxes[msgid]`` is not None).  For each it does what the Python path
- * does: counts sequence gaps, marks the system heard at ``now``, keeps the last frame of
- * each (source, id) that nodes read later in ``pending`` (the caller puts them in the
- * mailboxes), and forwards it: appended to the batch lists and passed to the send callables
- * of ``dests[key]`` (``dests_of(key)`` fills a missing entry, ``boxes_of(msgid)`` a missing
- * ``boxes`` entry).  It stops at the first datagram that is anything else and returns
+ * does: counts sequence gaps, marks the system heard at ``now``, keeps it as (bytes,
+ * link) in the mailboxes of ``boxes[msgid]`` (dicts of the nodes that read it later, keyed
+ * (source << 24) | id), and forwards it: appended to the batch lists and passed to the send
+ * callables of ``dests[key]`` (``dests_of(key)`` fills a missing entry, ``boxes_of(msgid)``
+ * a missing ``boxes`` entry).  It stops at the first datagram that is anything else and returns
  *
  *     (stop index, frames, bytes, forwarded, mailboxed, sequence numbers lost)
  *
@@ -84,12 +84,12 @@ static PyObject *route(PyObject *module, PyObject *const *args, Py_ssize_t nargs
     Py_ssize_t i = PyLong_AsSsize_t(args[1]);
     PyObject *info_of = args[2], *seen = args[3], *seen_at = args[4], *own = args[5];
     PyObject *last_seq = args[6], *now = args[7], *boxes = args[8], *boxes_of = args[9];
-    PyObject *dests = args[10], *dests_of = args[11], *pending = args[12];
+    PyObject *dests = args[10], *dests_of = args[11], *link = args[12];
     if (i == -1 && PyErr_Occurred())
         return NULL;
     if (!PyList_Check(datagrams) || !PyDict_Check(info_of) || !PyAnySet_Check(seen)
         || !PyDict_Check(seen_at) || !PyDict_Check(own) || !PyDict_Check(last_seq)
-        || !PyDict_Check(boxes) || !PyDict_Check(dests) || !PyDict_Check(pending)) {
+        || !PyDict_Check(boxes) || !PyDict_Check(dests)) {
         PyErr_SetString(PyExc_TypeError, "route(): a list, then dicts and a set");
         return NULL;
     }
@@ -171,10 +171,24 @@ static PyObject *route(PyObject *module, PyObject *const *args, Py_ssize_t nargs
         Py_ssize_t nbox = PyTuple_GET_SIZE(box);
         if (nbox) {
             PyObject *box_key = PyLong_FromLongLong(((long long)key << 24) | msgid);
-            if (box_key == NULL) { failed = 1; break; }
-            r = PyDict_SetItem(pending, box_key, item);
-            Py_DECREF(box_key);
-            if (r < 0) { failed = 1; break; }
+            PyObject *kept = box_key ? PyTuple_Pack(2, item, link) : NULL;
+            for (Py_ssize_t b = 0; kept != NULL && b < nbox; b++) {
+                PyObject *mailbox = PyTuple_GET_ITEM(box, b);
+                if (!PyDict_Check(mailbox)) {
+                    PyErr_SetString(PyExc_TypeError, "boxes_of() must give dicts");
+                    failed = 1;
+                } else if (PyDict_SetItem(mailbox, box_key, kept) < 0) {
+                    failed = 1;
+                }
+                if (failed)
+                    break;
+            }
+            if (kept == NULL)
+                failed = 1;
+            Py_XDECREF(kept);
+            Py_XDECREF(box_key);
+            if (failed)
+                break;
             mailboxed += nbox;
         }
         PyObject *entry_d = cached(dests, key_obj, dests_of);
@@ -232,7 +246,7 @@ static PyObject *route(PyObject *module, PyObject *const *args, Py_ssize_t nargs
 static PyMethodDef methods[] = {
     {"route", (PyCFunction)(void (*)(void))route, METH_FASTCALL,
      "route(datagrams, start, info, seen, seen_at, own, last_seq, now, boxes, boxes_of, "
-     "dests, dests_of, pending) -> (stop, frames, bytes, forwarded, mailboxed, lost)\n\n"
+     "dests, dests_of, link) -> (stop, frames, bytes, forwarded, mailboxed, lost)\n\n"
      "Route the datagrams from index start on while each takes the router's common path; "
      "see backends/mavlink/router.py (Router._route_datagrams)."},
     {NULL, NULL, 0, NULL},

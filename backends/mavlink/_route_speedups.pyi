@@ -5,9 +5,10 @@ from typing import Any
 
 def route(datagrams: list[bytes], start: int, info: dict[int, tuple[bytes, int, int, int]],
           seen: set[int], seen_at: dict[int, float], own: dict[int, Any],
-          last_seq: dict[int, int], now: float, boxes: dict[int, Any],
-          boxes_of: Callable[[int], tuple[Any, ...] | None],
+          last_seq: dict[int, int], now: float,
+          boxes: dict[int, tuple[dict[int, Any], ...] | None],
+          boxes_of: Callable[[int], tuple[dict[int, Any], ...] | None],
           dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]],
           dests_of: Callable[[int], tuple[tuple[list[bytes], ...],
                                           tuple[Callable[[bytes], Any], ...]]],
-          pending: dict[int, bytes]) -> tuple[int, int, int, int, int, int]: ...
+          link: Any) -> tuple[int, int, int, int, int, int]: ...

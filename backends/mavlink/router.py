@@ -49,12 +49,20 @@ delivery).  When no id is free, a node keeps its own and the conflict is counted
 burst, with a count per interval (:class:`~gateway.io.burstlog.BurstLog`), once the router has
 a loop (:meth:`Router.use_loop`).
 
+**Batches.**  :meth:`Router.receive_many` routes what one read returned; the common datagram
+(one good MAVLink 2 frame, broadcast, from a source already seen on the link, not using a
+node's id, read by no node or only into a mailbox) is routed by a loop compiled from
+``_route_speedups.c`` where the install built it (:data:`COMPILED`), else by the same loop in
+Python (:meth:`Router._route_datagrams`); anything else takes the general path.  Both are
+tested to route alike (``tests/test_route_speedups.py``).
+
 All state is guarded by :attr:`Router.lock`; links call :meth:`Router.receive` from whatever
 thread reads them, and every ``Link.send`` is non-blocking.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import threading
@@ -212,7 +220,10 @@ class _Slot:
         self.compids: set[int] = {node.compid}
         self.sent_ids: set[int] = set()
         self.claimed = False
-        self.mailbox: dict[int, tuple[Frame, Link]] = {}
+        #: (source << 24) | id → the latest frame (or, from the batch paths, its bytes: made
+        #: a Frame when collected) and the link it came on; the same dict for the slot's life
+        #: (the batch paths keep it in :attr:`Router._boxes`)
+        self.mailbox: dict[int, tuple[Frame | bytes | bytearray, Link]] = {}
         #: in conflict (no free id): when to look for one again (not on every frame)
         self.retry_at = 0.0
 
@@ -220,6 +231,21 @@ class _Slot:
         """Whether a frame with these targets is for the node (broadcast, or its id)."""
         node = self.node
         return tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))
+
+
+def _frame_v2(data: bytes | bytearray) -> Frame:
+    """The Frame of a datagram the batch paths kept: one whole MAVLink 2 frame of a known id,
+    checked when it arrived."""
+    msgid = data[7] | (data[8] << 8) | (data[9] << 16)
+    plen = data[1]
+    _, _, so, co = INFO[msgid]
+    if so < 0:  # (as split_datagram makes it)
+        tsys = tcomp = -1
+    else:
+        tsys = data[10 + so] if so < plen else 0
+        tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
+    return new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
+                             bool(data[2]), 2))
 
 
 class Router:
@@ -231,6 +257,8 @@ class Router:
         self.forward = forward
         self.links: list[Link] = []
         self._others: dict[Link, tuple[Link, ...]] = {}
+        #: link → key → where a broadcast of that source read on the link goes (a batch's)
+        self._dests_of: dict[Link, Callable[[int], Any]] = {}
         self._batching: tuple[Link, ...] = ()  # links that write what a batch routes at once
         self.stats = RouterStats()
         self.signing_key: bytes | None = None
@@ -240,6 +268,10 @@ class Router:
         self._slots: list[_Slot] = []
         self._by_node: dict[int, _Slot] = {}
         self._wants: dict[int, tuple[_Slot, ...]] = {}  # msgid → nodes that read it
+        #: msgid → the mailboxes a broadcast of it goes to, or None: decoded at once (the
+        #: general path); filled by the batch paths, emptied when a node is added, removed
+        #: or claims its id
+        self._boxes: dict[int, tuple[dict[int, Any], ...] | None] = {}
         self._own: dict[int, _Slot] = {}  # system id → the claimed node using it
         #: systems seen (the identity evidence, see the module docstring): id → when last
         #: heard (monotonic), and → the link it was first heard on; ≤ 256 entries each
@@ -327,6 +359,7 @@ class Router:
             return {g for s in self._slots for g in (s.groups or ())}
 
     def _index(self) -> None:
+        self._boxes.clear()
         wants: dict[int, list[_Slot]] = {}
         for s in self._slots:
             for msgid in s.consumed | s.latest:
@@ -351,6 +384,8 @@ class Router:
 
     def _rebuild(self) -> None:
         self._others = {lk: tuple(o for o in self.links if o is not lk) for lk in self.links}
+        self._dests_of = {lk: functools.partial(self._destinations, others)
+                          for lk, others in self._others.items()}
         self._batching = tuple(lk for lk in self.links if hasattr(lk, "flush_batch"))
 
     # -- system ids ----------------------------------------------------------------------------
@@ -409,6 +444,7 @@ class Router:
                                  self.seen_systems.get(old, "this gateway"),
                                  type(node).__name__, node.sysid)
                 slot.claimed = True
+                self._boxes.clear()
                 self._own.setdefault(node.sysid, slot)
             return node.sysid
 
@@ -500,7 +536,7 @@ class Router:
         mailbox.  Its effects are :meth:`_route`'s, counted per batch; anything else (or any
         doubt) takes the general path.  Only without signing and a tap (the caller checks)."""
         stats = link.framer_stats
-        info_of, crc, make = INFO, mcrf4xx, new_frame
+        info_of, crc = INFO, mcrf4xx
         own, seen_at, seen = self._own, self.seen_at, link.seen
         last_seq = link.last_seq
         others = self._others.get(link, ())
@@ -509,7 +545,7 @@ class Router:
         route = self._route
         # source → where it goes this batch: the lists of links that take a batch, the rest
         dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]] = {}
-        boxes: dict[int, tuple[_Slot, ...] | None] = {}  # msgid → mailboxes (None: general)
+        boxes, boxes_of = self._boxes, self._mailboxes_of
         frames = nbytes = forwarded = mailboxed = 0
         for data in datagrams:
             n = len(data)
@@ -528,7 +564,7 @@ class Router:
                     if msgid in boxes:
                         box = boxes[msgid]
                     else:
-                        box = boxes[msgid] = self._mailboxes_of(msgid)
+                        box = boxes[msgid] = boxes_of(msgid)
                     if (tsys <= 0 and box is not None
                             and crc(data[1:crc_at] + info[0])
                             == data[crc_at] | (data[crc_at + 1] << 8)):
@@ -541,13 +577,10 @@ class Router:
                         frames += 1
                         nbytes += n
                         if box:
-                            co = info[3]
-                            tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
-                            f = make(Frame, (data, msgid, sysid, data[6], seq, tsys, tcomp,
-                                             bool(data[2]), 2))
-                            for slot in box:
-                                slot.mailbox[(key << 24) | msgid] = (f, link)
-                                mailboxed += 1
+                            kept = (data, link)  # a Frame once collected
+                            for mailbox in box:
+                                mailbox[(key << 24) | msgid] = kept
+                            mailboxed += len(box)
                         entry = dests.get(key)
                         if entry is None:
                             entry = dests[key] = self._destinations(others, key)
@@ -571,37 +604,28 @@ class Router:
     def _route_datagrams_compiled(self, link: Link, datagrams: list[bytes]) -> None:
         """:meth:`_route_datagrams` with its common case compiled (``_route_speedups``): the
         compiled loop routes datagrams until one needs the general path, which routes that
-        one here; the frames kept for nodes are put in their mailboxes after each run."""
+        one here, and goes on after it."""
         stats = link.framer_stats
-        others = self._others.get(link, ())
         c = link.counters
         route, fast = self._route, _speedups.route
         seen, seen_at, own, last_seq = link.seen, self.seen_at, self._own, link.last_seq
         now = self._now
-        boxes: dict[int, tuple[_Slot, ...] | None] = {}
-        boxes_of = self._mailboxes_of
+        boxes, boxes_of = self._boxes, self._mailboxes_of
         dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]]
         dests = {}
-
-        def dests_of(key: int) -> tuple[tuple[list[bytes], ...],
-                                         tuple[Callable[[bytes], Any], ...]]:
-            return self._destinations(others, key)
-
-        pending: dict[int, bytes] = {}
+        dests_of = self._dests_of.get(link) or functools.partial(self._destinations, ())
         total = len(datagrams)
         i = frames = nbytes = forwarded = mailboxed = lost = 0
         try:
             while i < total:
                 stop, f_n, b_n, fw_n, mb_n, lost_n = fast(
                     datagrams, i, INFO, seen, seen_at, own, last_seq, now, boxes, boxes_of,
-                    dests, dests_of, pending)
+                    dests, dests_of, link)
                 frames += f_n
                 nbytes += b_n
                 forwarded += fw_n
                 mailboxed += mb_n
                 lost += lost_n
-                if pending:
-                    self._post(link, pending, boxes)
                 if stop < total:
                     for f in split_datagram(datagrams[stop], stats):
                         route(link, f)
@@ -614,24 +638,6 @@ class Router:
             c.seq_lost += lost
             self.stats.forwarded += forwarded
             self.stats.mailboxed += mailboxed
-
-    @staticmethod
-    def _post(link: Link, pending: dict[int, bytes],
-              boxes: dict[int, tuple[_Slot, ...] | None]) -> None:
-        """The frames the compiled loop kept (the last of each source and id, in the order
-        first seen) into the mailboxes of the nodes that read them; empties ``pending``."""
-        make = new_frame
-        for box_key, data in pending.items():
-            msgid = box_key & 0xFFFFFF
-            plen = data[1]
-            _, _, so, co = INFO[msgid]
-            tsys = -1 if so < 0 else (data[10 + so] if so < plen else 0)
-            tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
-            f = make(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
-                             bool(data[2]), 2))
-            for slot in boxes[msgid] or ():
-                slot.mailbox[box_key] = (f, link)
-        pending.clear()
 
     @staticmethod
     def _destinations(others: tuple[Link, ...], key: int
@@ -650,14 +656,14 @@ class Router:
                 sends.append(o.send)
         return tuple(sinks), tuple(sends)
 
-    def _mailboxes_of(self, msgid: int) -> tuple[_Slot, ...] | None:
-        """The nodes that keep a broadcast ``msgid`` in their mailbox (those on the air), or
+    def _mailboxes_of(self, msgid: int) -> tuple[dict[int, Any], ...] | None:
+        """The mailboxes of the nodes that keep a broadcast ``msgid`` (those on the air), or
         None when one decodes it at once (the general path)."""
         readers = self._wants.get(msgid, ())
         mine = tuple(s for s in readers if s.claimed)
         if any(msgid in s.consumed for s in mine):
             return None
-        return mine
+        return tuple(s.mailbox for s in mine)
 
     def _route(self, link: Link, f: Frame) -> None:
         raw, msgid, sysid, compid, seq, tsys, tcomp, _, _ = f  # one unpack: the hot path
@@ -776,11 +782,13 @@ class Router:
         them to it, oldest first; returns how many."""
         with self.lock:
             slot = self._by_node[id(node)]
-            box = slot.mailbox
-            if not box:
+            mailbox = slot.mailbox
+            if not mailbox:
                 return 0
-            slot.mailbox = {}
-            for f, link in box.values():  # verified when kept
+            box = list(mailbox.values())
+            mailbox.clear()  # (the same dict: the batch paths hold it)
+            for kept, link in box:  # verified when kept
+                f = kept if isinstance(kept, Frame) else _frame_v2(kept)
                 msg = self._decode(link, f)
                 if msg is not None:
                     self._handle(slot, link, f, msg)

@@ -11,19 +11,46 @@
 
 #ifdef __linux__  /* (Python.h defines _GNU_SOURCE: recvmmsg and sendmmsg are declared) */
 #include <errno.h>
+#include <string.h>
 #include <sys/socket.h>
 
-/* recv(fd, headers, count) -> list of bytes, or -errno (nothing read) */
+/* The senders of datagrams [0, n): the raw sockaddr of each run of consecutive datagrams
+ * from one sender, in order (a list of bytes; NULL: error). */
+static PyObject *sender_runs(struct mmsghdr *hdrs, int n)
+{
+    PyObject *runs = PyList_New(0);
+    const void *prev = NULL;
+    socklen_t prev_len = 0;
+    for (int i = 0; runs != NULL && i < n; i++) {
+        const void *name = hdrs[i].msg_hdr.msg_name;
+        socklen_t len = hdrs[i].msg_hdr.msg_namelen;
+        if (prev != NULL && len == prev_len && memcmp(name, prev, len) == 0)
+            continue;
+        PyObject *raw = PyBytes_FromStringAndSize((const char *)name, (Py_ssize_t)len);
+        if (raw == NULL || PyList_Append(runs, raw) < 0)
+            Py_CLEAR(runs);
+        Py_XDECREF(raw);
+        prev = name;
+        prev_len = len;
+    }
+    return runs;
+}
+
+/* recv(fd, headers, count[, senders]) -> list of bytes (with senders: (list, sender runs)),
+ * or -errno (nothing read) */
 static PyObject *recv_batch(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
     int fd;
     unsigned long long addr;
     unsigned int count;
-    if (nargs != 3) {
-        PyErr_SetString(PyExc_TypeError, "recv() takes 3 arguments");
+    int senders = 0;
+    if (nargs != 3 && nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "recv() takes 3 or 4 arguments");
         return NULL;
     }
+    if (nargs == 4 && (senders = PyObject_IsTrue(args[3])) < 0)
+        return NULL;
     fd = (int)PyLong_AsLong(args[0]);
     addr = PyLong_AsUnsignedLongLong(args[1]);
     count = (unsigned int)PyLong_AsUnsignedLong(args[2]);
@@ -53,7 +80,17 @@ static PyObject *recv_batch(PyObject *module, PyObject *const *args, Py_ssize_t 
         }
         PyList_SET_ITEM(out, i, b);
     }
-    return out;
+    if (!senders)
+        return out;
+    PyObject *runs = sender_runs(hdrs, n);
+    if (runs == NULL) {
+        Py_DECREF(out);
+        return NULL;
+    }
+    PyObject *both = PyTuple_Pack(2, out, runs);
+    Py_DECREF(out);
+    Py_DECREF(runs);
+    return both;
 }
 
 /* send(fd, headers, count, datagrams, start) -> datagrams written, or -errno.  Writes
@@ -116,8 +153,9 @@ static PyObject *send_batch(PyObject *module, PyObject *const *args, Py_ssize_t 
 
 static PyMethodDef methods[] = {
     {"recv", (PyCFunction)(void (*)(void))recv_batch, METH_FASTCALL,
-     "recv(fd, headers, count) -> list[bytes] | -errno: one recvmmsg (MSG_DONTWAIT) into "
-     "the headers at address `headers`, what it read as bytes."},
+     "recv(fd, headers, count[, senders]) -> list[bytes] | (list[bytes], list[bytes]) | "
+     "-errno: one recvmmsg (MSG_DONTWAIT) into the headers at address `headers`, what it read "
+     "as bytes; with senders, also the raw sockaddr of each run of datagrams from one sender."},
     {"send", (PyCFunction)(void (*)(void))send_batch, METH_FASTCALL,
      "send(fd, headers, count, datagrams, start) -> written | -errno: one sendmmsg "
      "(MSG_DONTWAIT) of datagrams[start:start + count], the headers' iovecs pointed at them."},

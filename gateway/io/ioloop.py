@@ -403,6 +403,12 @@ class IoLoop:
             self.call_soon(lambda: self._push(timer))
         return timer
 
+    def call_later_here(self, delay: float, fn: Callable[[], Any]) -> Timer:
+        """:meth:`call_later` from the loop's own thread (unchecked: a hot path's timer)."""
+        timer = Timer(time.monotonic() + delay, fn)
+        heapq.heappush(self._timers, (timer.due, next(self._counter), timer))
+        return timer
+
     def call_every(self, period: float, fn: Callable[[], Any], *, first: float = 0.0) -> Timer:
         """Run ``fn`` every ``period`` seconds, the first time after ``first``; the returned
         timer's :meth:`~Timer.cancel` ends the series."""

@@ -10,6 +10,11 @@ exports both); :class:`MmsgSocket` is only made where it is true, and every call
 plain ``recvfrom_into``/``send`` path for the rest (:class:`gateway.io.transport.UdpPort`).
 ``AURORA_NO_MMSG=1`` in the environment turns the fast path off (to compare, and to test the
 fallback on Linux).
+
+The per-datagram work around the two calls — the list of bytes made from what ``recvmmsg``
+wrote, the iovecs pointed at what ``sendmmsg`` writes — is done by the compiled
+``_mmsg_speedups`` where the install built it (:data:`COMPILED`), on the same headers, else in
+Python here; ``AURORA_NO_SPEEDUPS=1`` turns it off.
 """
 
 from __future__ import annotations
@@ -181,32 +186,62 @@ class MmsgSocket:
                                                             strict=True)]
                     break
                 err = ctypes.get_errno()
-            if err in (errno.EAGAIN, errno.EINTR):
+            if not self._retry(err):
                 return [], None
-            if err == errno.ECONNREFUSED:
-                self.refused += 1
-                continue
-            raise OSError(err, os.strerror(err))
         if n == 0:
             return [], None
         if not with_addresses:
             return data, None
         names = self._names.raw[:n * _SOCKADDR]
-        cache = self._addr_cache
         addrs = []
         prev_raw, prev = b"", None
         for o, ln in zip(range(0, n * _SOCKADDR, _SOCKADDR), self._namelens[:n].tolist(),
                          strict=True):
             raw = names[o:o + ln]
             if raw != prev_raw:  # mostly a run from one sender: one lookup for the run
-                addr = cache.get(raw)
-                if addr is None:
-                    if len(cache) >= 256:
-                        cache.clear()
-                    addr = cache[raw] = _decode_addr(raw)
-                prev_raw, prev = raw, addr
+                prev_raw, prev = raw, self._address(raw)
             addrs.append(prev)
         return data, addrs
+
+    def recv_senders(self) -> tuple[list[bytes], list[Any]]:
+        """Every datagram waiting, as :meth:`recv`, and the sender of each run of consecutive
+        datagrams from one sender, in order (what a table of peers needs)."""
+        fast = self._fast_recv
+        if fast is None:
+            data, addrs = self.recv(True)
+            senders: list[Any] = []
+            prev = None
+            for addr in addrs or ():
+                if addr is not prev:  # (one object per run: see recv)
+                    senders.append(addr)
+                    prev = addr
+            return data, senders
+        while True:
+            got = fast(self._fd, self._rhdrs_addr, self.batch, True)
+            if isinstance(got, tuple):
+                data, raws = got
+                return data, [self._address(raw) for raw in raws]
+            if not self._retry(-got):
+                return [], []
+
+    def _retry(self, err: int) -> bool:
+        """After a failed ``recvmmsg``: whether to call again ("port unreachable" reported
+        for an earlier send: counted), or that nothing is waiting (False); raises the rest."""
+        if err in (errno.EAGAIN, errno.EINTR):
+            return False
+        if err == errno.ECONNREFUSED:
+            self.refused += 1
+            return True
+        raise OSError(err, os.strerror(err))
+
+    def _address(self, raw: bytes) -> Any:
+        cache = self._addr_cache
+        addr = cache.get(raw)
+        if addr is None:
+            if len(cache) >= 256:
+                cache.clear()
+            addr = cache[raw] = _decode_addr(raw)
+        return addr
 
     def send(self, datagrams: list[bytes], dest: Any = None) -> tuple[int, int, int]:
         """Write ``datagrams`` in order (to ``dest``, or on the connected socket); returns

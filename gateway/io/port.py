@@ -173,6 +173,7 @@ class PortEngine:
         self._datagrams_done = 0.0  # when _read_datagrams last finished (monotonic)
         self._holding = False  # reads paused for COALESCE_S (see there)
         self._bursty = False  # the sender writes bursts: no hold after a burst (see there)
+        self._held: tuple[Any, Any, Any] = (None, None, None)  # what _resume reads
         self._want_write = False
         #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
         self.coalesce_s = COALESCE_S
@@ -719,12 +720,14 @@ class PortEngine:
         if not self._holding:
             self._holding = True
             self._set_interest(write=self._want_write)
+        self._held = (port, read_many, feed_many)
+        self._loop.call_later_here(self.coalesce_s, self._resume)  # (the loop's thread)
 
-        def resume() -> None:
-            if self._port is port and self._holding:
-                self._read_batches(port, read_many, feed_many)
-
-        self._loop.call_later(self.coalesce_s, resume)
+    def _resume(self) -> None:
+        """The end of a hold: read what came meanwhile (unless the port changed)."""
+        port, read_many, feed_many = self._held
+        if self._port is port and self._holding:
+            self._read_batches(port, read_many, feed_many)
 
     def _feed_batch(self, batch: list[bytes], feed_many: Callable[[list[bytes]], Any]) -> None:
         self.stats.received_bytes += sum(map(len, batch))

@@ -297,18 +297,17 @@ class UdpPort:
                 out.append(data)
             return out
         try:
-            datagrams, addrs = mm.recv(self.dest is None)
+            if self.dest is not None:
+                return mm.recv(False)[0]
+            datagrams, senders = mm.recv_senders()
         finally:
             if mm.refused:
                 self.send_refused += mm.refused
                 mm.refused = 0
-        if addrs:
-            prev = None
-            for addr in addrs:
-                if addr is not prev:  # once per run from one sender (its address is shared)
-                    self._saw_peer(addr)
-                    prev = addr
-            self.last_peer = addrs[-1]
+        if senders:
+            for addr in senders:  # once per run of datagrams from one sender
+                self._saw_peer(addr)
+            self.last_peer = senders[-1]
         return datagrams
 
     def write_many(self, datagrams: list[bytes]) -> None:
