@@ -164,6 +164,25 @@ def split(buf: bytes | bytearray, stats: FramerStats, out: list[Frame],
     return i, synced
 
 
+def frame_v2(data: bytes | bytearray, msgid: int | None = None,
+             info: tuple[bytes, int, int, int] | None = None) -> Frame:
+    """The Frame of a datagram that is one whole MAVLink 2 frame of a known id, already
+    checked (its id and ``INFO`` entry are found when not given)."""
+    if msgid is None:
+        msgid = data[7] | (data[8] << 8) | (data[9] << 16)
+    if info is None:
+        info = INFO[msgid]
+    so, co = info[2], info[3]
+    plen = data[1]
+    if so < 0:
+        tsys = tcomp = -1
+    else:
+        tsys = data[HEADER_V2 + so] if so < plen else 0
+        tcomp = -1 if co < 0 else (data[HEADER_V2 + co] if co < plen else 0)
+    return new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
+                             bool(data[2]), 2))
+
+
 def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
     """Every frame in one UDP datagram; a trailing partial frame is counted and dropped."""
     n = len(data)
@@ -180,15 +199,8 @@ def split_datagram(data: bytes, stats: FramerStats) -> list[Frame]:
             if (info is not None and plen <= info[1]
                     and mcrf4xx(data[1:crc_at] + info[0])  # one call: header, payload, extra
                     == data[crc_at] | (data[crc_at + 1] << 8)):
-                so, co = info[2], info[3]
-                if so < 0:
-                    tsys = tcomp = -1
-                else:
-                    tsys = data[HEADER_V2 + so] if so < plen else 0
-                    tcomp = -1 if co < 0 else (data[HEADER_V2 + co] if co < plen else 0)
                 stats.frames += 1
-                return [new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
-                                           bool(data[2]), 2))]
+                return [frame_v2(data, msgid, info)]
     out: list[Frame] = []
     end, _ = split(data, stats, out)
     if end < len(data):

@@ -78,7 +78,7 @@ from backends.mavlink.frames import (
     Frame,
     FramerStats,
     StreamFramer,
-    new_frame,
+    frame_v2,
     split_datagram,
 )
 from backends.mavlink.ground_stations import NO_VOLTAGE, shows_no_battery
@@ -231,21 +231,6 @@ class _Slot:
         """Whether a frame with these targets is for the node (broadcast, or its id)."""
         node = self.node
         return tsys <= 0 or (tsys == node.sysid and tcomp in (-1, 0, node.compid))
-
-
-def _frame_v2(data: bytes | bytearray) -> Frame:
-    """The Frame of a datagram the batch paths kept: one whole MAVLink 2 frame of a known id,
-    checked when it arrived."""
-    msgid = data[7] | (data[8] << 8) | (data[9] << 16)
-    plen = data[1]
-    _, _, so, co = INFO[msgid]
-    if so < 0:  # (as split_datagram makes it)
-        tsys = tcomp = -1
-    else:
-        tsys = data[10 + so] if so < plen else 0
-        tcomp = -1 if co < 0 else (data[10 + co] if co < plen else 0)
-    return new_frame(Frame, (data, msgid, data[5], data[6], data[4], tsys, tcomp,
-                             bool(data[2]), 2))
 
 
 class Router:
@@ -594,19 +579,13 @@ class Router:
                         continue
             for f in split_datagram(data, stats):
                 route(link, f)
-        stats.frames += frames
-        stats.bytes_in += nbytes
-        c.rx_frames += frames
-        c.rx_bytes += nbytes
-        self.stats.forwarded += forwarded
-        self.stats.mailboxed += mailboxed
+        self._count_batch(link, frames, nbytes, forwarded, mailboxed)
 
     def _route_datagrams_compiled(self, link: Link, datagrams: list[bytes]) -> None:
         """:meth:`_route_datagrams` with its common case compiled (``_route_speedups``): the
         compiled loop routes datagrams until one needs the general path, which routes that
         one here, and goes on after it."""
         stats = link.framer_stats
-        c = link.counters
         route, fast = self._route, _speedups.route
         seen, seen_at, own, last_seq = link.seen, self.seen_at, self._own, link.last_seq
         now = self._now
@@ -631,13 +610,19 @@ class Router:
                         route(link, f)
                 i = stop + 1
         finally:
-            stats.frames += frames
-            stats.bytes_in += nbytes
-            c.rx_frames += frames
-            c.rx_bytes += nbytes
-            c.seq_lost += lost
-            self.stats.forwarded += forwarded
-            self.stats.mailboxed += mailboxed
+            link.counters.seq_lost += lost
+            self._count_batch(link, frames, nbytes, forwarded, mailboxed)
+
+    def _count_batch(self, link: Link, frames: int, nbytes: int, forwarded: int,
+                     mailboxed: int) -> None:
+        """What the batch loops counted, added once per batch."""
+        stats, c = link.framer_stats, link.counters
+        stats.frames += frames
+        stats.bytes_in += nbytes
+        c.rx_frames += frames
+        c.rx_bytes += nbytes
+        self.stats.forwarded += forwarded
+        self.stats.mailboxed += mailboxed
 
     @staticmethod
     def _destinations(others: tuple[Link, ...], key: int
@@ -788,7 +773,7 @@ class Router:
             box = list(mailbox.values())
             mailbox.clear()  # (the same dict: the batch paths hold it)
             for kept, link in box:  # verified when kept
-                f = kept if isinstance(kept, Frame) else _frame_v2(kept)
+                f = kept if isinstance(kept, Frame) else frame_v2(kept)
                 msg = self._decode(link, f)
                 if msg is not None:
                     self._handle(slot, link, f, msg)
