@@ -259,3 +259,47 @@ def test_damaged_and_random_datagrams_are_routed_as_the_python_loop_does(
     with pytest.MonkeyPatch.context() as mp:
         compiled = run_raw(batches_, SPEEDUPS, mp)
     assert compiled == python
+
+
+class FailingLink(SendLink):
+    """A link whose third send raises (a bug in a link): the error must come out of
+    ``receive_many`` as it does from the Python loop, and the router go on routing."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.calls = 0
+
+    def send(self, data: bytes) -> bool:
+        self.calls += 1
+        if self.calls == 3:
+            raise RuntimeError("link bug")
+        self.sent.append(data)
+        return True
+
+
+def link_error_case(speedups: Any, monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    monkeypatch.setattr(router_mod, "_speedups", speedups)
+    router = Router()
+    src, bad, good = BatchLink("in"), FailingLink("bad"), BatchLink("good")
+    for lk in (src, bad, good):
+        router.add_link(lk)
+    mav = dev.MAVLink(None, 1, 1)
+    router.receive(src, pack(mav, dev.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3)))
+    frames = [pack(mav, dev.MAVLink_attitude_message(i, 0, 0, 0, 0, 0, 0)) for i in range(6)]
+    with pytest.raises(RuntimeError, match="link bug"):
+        router.receive_many(src, frames)
+    assert len(bad.sent) == 2 and good.sent[-2:] == frames[:2]  # up to the failing send
+    more = [pack(mav, dev.MAVLink_attitude_message(i, 0, 0, 0, 0, 0, 0)) for i in range(4)]
+    router.receive_many(src, more)
+    assert bad.sent[-4:] == more and good.sent[-4:] == more
+    return {"sent": (bad.sent, good.sent), "stats": [lk.stats() for lk in (src, bad, good)],
+            "router": router.stats.as_dict(), "last_seq": src.last_seq}
+
+
+@pytest.mark.skipif(SPEEDUPS is None, reason="the compiled router was not built")
+def test_an_error_in_a_link_comes_out_and_routing_goes_on() -> None:
+    with pytest.MonkeyPatch.context() as mp:
+        python = link_error_case(None, mp)
+    with pytest.MonkeyPatch.context() as mp:
+        compiled = link_error_case(SPEEDUPS, mp)
+    assert compiled == python
