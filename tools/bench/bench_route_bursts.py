@@ -14,6 +14,8 @@ mavlink-router's inside each repetition.
 
 ``--floor`` adds ``route_floor.py``: the same system calls as the gateway's router and no
 other work — where the gateway's cost would be with no Python per datagram.
+``--sender-process`` sends the same bursts from ``burst_sender.py``, a process of its own: the
+sender then shares no interpreter lock with the receiver thread (a second harness's view).
 
 ``mavlink-routerd`` is built by ``tools/bench/build_mavlink_router.sh``.
 """
@@ -95,15 +97,30 @@ def measure(router: str, args: argparse.Namespace, payload: list[bytes]) -> dict
             time.sleep(0.3)
             got[0] = 0
             period = args.burst / args.rate
+            sender = None
+            if args.sender_process:  # the same bursts from a process of its own
+                sender = subprocess.Popen(
+                    [sys.executable, str(Path(__file__).with_name("burst_sender.py")),
+                     str(port_in), "--rate", str(args.rate), "--burst", str(args.burst),
+                     "--seconds", str(args.seconds)],
+                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                assert sender.stdin is not None and sender.stdout is not None
+                if sender.stdout.readline().strip() != "ready":
+                    raise SystemExit("burst_sender.py did not start")
             c0, t0 = cpu_s(proc.pid), time.monotonic()
             nxt = t0
-            for i in range(0, len(payload), args.burst):
-                for f in payload[i:i + args.burst]:
-                    tx.sendto(f, ("127.0.0.1", port_in))
-                nxt += period
-                delay = nxt - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
+            if sender is not None:
+                sender.stdin.write("go\n")  # type: ignore[union-attr]
+                sender.stdin.flush()  # type: ignore[union-attr]
+                sender.wait()
+            else:
+                for i in range(0, len(payload), args.burst):
+                    for f in payload[i:i + args.burst]:
+                        tx.sendto(f, ("127.0.0.1", port_in))
+                    nxt += period
+                    delay = nxt - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
             time.sleep(0.3)  # the last ones out
             c1, t1 = cpu_s(proc.pid), time.monotonic()
         finally:
@@ -129,6 +146,9 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--floor", action="store_true",
                    help="also run route_floor.py: recvmmsg → sendmmsg and nothing else")
+    p.add_argument("--sender-process", action="store_true",
+                   help="send from burst_sender.py, a process of its own (no lock shared "
+                        "with the receiver thread; its start-up is in the measured phase)")
     args = p.parse_args()
     payload = frames(int(args.rate * args.seconds))
     results: dict[str, list[dict[str, float]]] = {"mavlink-router": [], "aurora-gateway": []}
