@@ -524,7 +524,7 @@ class Router:
         info_of, crc = INFO, mcrf4xx
         own, seen_at, seen = self._own, self.seen_at, link.seen
         last_seq = link.last_seq
-        others = self._others.get(link, ())
+        dests_of = self._dests_for(link)
         now = self._now
         c = link.counters
         route = self._route
@@ -568,7 +568,7 @@ class Router:
                             mailboxed += len(box)
                         entry = dests.get(key)
                         if entry is None:
-                            entry = dests[key] = self._destinations(others, key)
+                            entry = dests[key] = dests_of(key)
                         sinks, sends = entry
                         for sink in sinks:
                             sink.append(data)
@@ -592,7 +592,7 @@ class Router:
         boxes, boxes_of = self._boxes, self._mailboxes_of
         dests: dict[int, tuple[tuple[list[bytes], ...], tuple[Callable[[bytes], Any], ...]]]
         dests = {}
-        dests_of = self._dests_of.get(link) or functools.partial(self._destinations, ())
+        dests_of = self._dests_for(link)
         total = len(datagrams)
         i = frames = nbytes = forwarded = mailboxed = lost = 0
         try:
@@ -623,6 +623,11 @@ class Router:
         c.rx_bytes += nbytes
         self.stats.forwarded += forwarded
         self.stats.mailboxed += mailboxed
+
+    def _dests_for(self, link: Link) -> Callable[[int], Any]:
+        """:meth:`_destinations` of a broadcast read on ``link``, by source (none: a link
+        no longer routed)."""
+        return self._dests_of.get(link) or functools.partial(self._destinations, ())
 
     @staticmethod
     def _destinations(others: tuple[Link, ...], key: int
