@@ -36,9 +36,9 @@ class BurstLog:
         """One event: a line if it starts a burst, else counted (``detail`` names the first)."""
         self.events += 1
         if self._timer is None:
-            self.lines += 1
             self.logger.log(self.level, "%s%s (more are counted, one line per %.0f s)",
                             self.text, f": {detail}" if detail else "", self.interval_s)
+            self.lines += 1  # (after: a line counted is a line written, for another thread)
             self._timer = self.loop.call_later(self.interval_s, self._summary)
         else:
             self._more += 1
@@ -47,9 +47,9 @@ class BurstLog:
         if not self._more:
             self._timer = None  # the burst is over
             return
-        self.lines += 1
         self.logger.log(self.level, "%s: %d more in the last %.0f s", self.text, self._more,
                         self.interval_s)
+        self.lines += 1
         self._more = 0
         self._timer = self.loop.call_later(self.interval_s, self._summary)
 
