@@ -7,6 +7,7 @@ same: the same datagrams, in the same order, to the same peers."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import socket
 import threading
 import time
@@ -324,3 +325,64 @@ def test_the_router_forwards_a_stream_in_order_through_batches(
     reply = gcs_mav.heartbeat_encode(6, 8, 0, 0, 0).pack(gcs_mav)
     gcs.sendto(reply, ("127.0.0.1", vout.port.sock.getsockname()[1]))  # type: ignore[attr-defined]
     assert vehicle.recv(65536) == reply
+
+
+def test_a_udp_port_keeps_its_peers_in_order_of_their_latest_datagram(
+        mode: str, stack: contextlib.ExitStack) -> None:
+    """The peer table of ``udpin`` (whom it answers) follows each read's senders, also when a
+    read's one sender is the one of the read before."""
+    p = open_udp("127.0.0.1", 0, listen=True)
+    stack.callback(p.close)
+    a, b = udp(stack), udp(stack)
+    got: list[bytes] = []
+
+    def read(n: int) -> bool:
+        got.extend(p.read_many())
+        return len(got) == n
+
+    for i, peer in enumerate([a, a, b, b, a]):
+        peer.sendto(b"p%d" % i, p.address())
+        assert wait_for(functools.partial(read, i + 1))
+        assert p.last_peer == peer.getsockname()
+    assert got == [b"p%d" % i for i in range(5)]
+    assert list(p.peers) == [b.getsockname(), a.getsockname()]
+    b.sendto(b"again", p.address())
+    assert wait_for(lambda: p.read_many() == [b"again"])
+    assert list(p.peers) == [a.getsockname(), b.getsockname()]
+
+
+def test_a_router_failing_on_a_batch_is_counted_and_the_port_routes_on(
+        mode: str, stack: contextlib.ExitStack, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the router raises on is the protocol's fault, not the socket's: counted, that
+    batch skipped, the port kept (not reopened) and the next datagrams forwarded."""
+    gcs = udp(stack)
+    loop = IoLoop("router")
+    loop.start()
+    stack.callback(loop.close)
+    stack.callback(loop.stop)
+    router = Router()
+    router.use_loop(loop)
+    vin = make_endpoint(parse_endpoint("udpin:127.0.0.1:0"))
+    vout = make_endpoint(parse_endpoint(f"udpout:127.0.0.1:{gcs.getsockname()[1]}"))
+    for ep in (vin, vout):
+        ep.start(loop, router)
+        stack.callback(ep.close)
+    routed = router.receive_many
+    failures = [RuntimeError("a fault in the router")]
+
+    def receive_many(link: Any, datagrams: list[bytes]) -> None:
+        if failures:
+            raise failures.pop()
+        routed(link, datagrams)
+
+    monkeypatch.setattr(router, "receive_many", receive_many)
+    vehicle = udp(stack)
+    frames = _frames(3)
+    vehicle.sendto(frames[0], vin.address)  # type: ignore[attr-defined]
+    engine = vin.engine  # type: ignore[attr-defined]
+    assert wait_for(lambda: engine.stats.protocol_errors == 1)
+    for f in frames[1:]:
+        vehicle.sendto(f, vin.address)  # type: ignore[attr-defined]
+    assert recv_all(gcs, 2) == frames[1:]
+    st = engine.stats
+    assert (st.connects, st.read_errors, st.protocol_errors) == (1, 0, 1)

@@ -15,6 +15,7 @@ attempt.  Nothing sleeps as synchronisation.
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import logging
 import os
@@ -1272,3 +1273,66 @@ def test_a_socket_url_port_closes_without_pyserials_sleep(monkeypatch: Any) -> N
             assert not port.is_open
             conn.settimeout(5)
             assert conn.recv(1) == b""
+
+
+# -- datagram ports read in batches ---------------------------------------------------------------
+
+class DatagramPair:
+    """A datagram port with ``read_many`` over a real socket pair (``peer`` is the far end):
+    a datagram ``FAIL`` makes the read fail, as a socket's error would."""
+
+    datagram = True
+
+    def __init__(self) -> None:
+        self.sock, self.peer = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.peer.settimeout(DEADLINE_S)
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def read(self, size: int = 1) -> bytes:
+        try:
+            return self.sock.recv(size)
+        except BlockingIOError:
+            return b""
+
+    def read_many(self) -> list[bytes]:
+        out = []
+        while data := self.read(65536):
+            if data == b"FAIL":
+                raise OSError(errno.EIO, "the socket failed")
+            out.append(data)
+        return out
+
+    def write(self, data: bytes) -> int:
+        return self.sock.send(data)
+
+    def close(self) -> None:
+        self.sock.close()
+        self.peer.close()
+
+
+def test_a_batch_read_port_counts_a_failed_read_as_the_ports_and_a_bad_batch_as_the_protocols(
+        engines: Any) -> None:
+    """A failed ``read_many`` fails the port (reopened); a batch the protocol raises on is
+    counted and skipped, and the port reads on."""
+    ports = [DatagramPair(), DatagramPair()]
+    opened = list(ports)
+    ev = Events()
+    eng = started(engines, lambda: opened.pop(0), events=ev, protocol=Batches())
+    first = ports[0]
+    first.peer.send(b"one")
+    assert ev.wait_data(b"one")
+    first.peer.send(b"boom")
+    assert wait_for(lambda: eng.stats.protocol_errors == 1)
+    first.peer.send(b"two")
+    assert ev.wait(lambda: ev.datagrams() == [b"one", b"two"])
+    st = eng.stats
+    assert (st.connects, st.read_errors) == (1, 0)  # the protocol's fault: the port reads on
+    first.peer.send(b"FAIL")
+    assert ev.wait_links(True, False, True)  # the port's fault: reopened
+    assert (eng.stats.read_errors, eng.stats.disconnects) == (1, 1)
+    ports[1].peer.send(b"three")
+    assert ev.wait(lambda: ev.datagrams() == [b"one", b"two", b"three"])
+    assert eng.stats.protocol_errors == 1

@@ -113,6 +113,10 @@ def encode_addr(family: int, addr: Any) -> bytes:
             + scope.to_bytes(4, sys.byteorder))
 
 
+_UNNAMED = (0, 0)  # send headers with no destination (a connected socket)
+_ALL_SENT = (0, 0, 0)
+
+
 class MmsgSocket:
     """``recvmmsg``/``sendmmsg`` on one non-blocking UDP socket (only where
     :data:`AVAILABLE`).  Errors are returned as counts, never raised, except a read error
@@ -148,6 +152,8 @@ class MmsgSocket:
         self._lens = u32[_MMsgHdr.len.offset // 4::size // 4]
         self._namelens = u32[_MsgHdr.namelen.offset // 4::size // 4]
         self._addr_cache: dict[bytes, Any] = {}
+        #: recv_senders: the sender of the last call's one run, and what it returned for it
+        self._last_sender: tuple[bytes, list[Any]] = (b"", [])
         # sending: one iovec per datagram, pointed at the bytes objects themselves
         self._siov = (_IoVec * batch)()
         self._shdrs = (_MMsgHdr * batch)()
@@ -159,7 +165,7 @@ class MmsgSocket:
         self._shdr_q = memoryview(self._shdrs).cast("B").cast("Q")
         self._hdr_words = size // 8
         self._dest_name: bytes | None = None
-        self._hdr_name = (0, 0)  # the destination every send header holds (none: connected)
+        self._hdr_name = _UNNAMED  # the destination every send header holds (none: connected)
         self._dest_buf = ctypes.create_string_buffer(_SOCKADDR)
         self._fast_recv = _speedups.recv if _speedups is not None else None
         self._fast_send = _speedups.send if _speedups is not None else None
@@ -205,7 +211,8 @@ class MmsgSocket:
 
     def recv_senders(self) -> tuple[list[bytes], list[Any]]:
         """Every datagram waiting, as :meth:`recv`, and the sender of each run of consecutive
-        datagrams from one sender, in order (what a table of peers needs)."""
+        datagrams from one sender, in order (what a table of peers needs; not to be changed:
+        a list may be returned again)."""
         fast = self._fast_recv
         if fast is None:
             data, addrs = self.recv(True)
@@ -220,6 +227,11 @@ class MmsgSocket:
             got = fast(self._fd, self._rhdrs_addr, self.batch, True)
             if isinstance(got, tuple):
                 data, raws = got
+                if len(raws) == 1:  # mostly: one sender, the one of the last call
+                    last = self._last_sender
+                    if raws[0] != last[0]:
+                        last = self._last_sender = (raws[0], [self._address(raws[0])])
+                    return data, last[1]
                 return data, [self._address(raw) for raw in raws]
             if not self._retry(-got):
                 return [], []
@@ -254,6 +266,15 @@ class MmsgSocket:
         CPU while a ground station is down).  After two such calls in a row, with room to
         write, the rest of the batch is counted as refused and not sent — it would have
         been refused too."""
+        fast = self._fast_send
+        first = None  # the first call's result, when made before the set-up below
+        if dest is None and fast is not None and type(datagrams) is list and \
+                self._hdr_name == _UNNAMED:
+            total = len(datagrams)  # a connected socket's batch (the router's hot path)
+            if 0 < total <= self.batch:
+                first = fast(self._fd, self._shdrs_addr, total, datagrams, 0)
+                if first == total:
+                    return _ALL_SENT
         name_addr, name_len = 0, 0
         if dest is not None:
             name = encode_addr(self.family, dest)
@@ -271,11 +292,13 @@ class MmsgSocket:
                 hdr[i * words + 1] = name_len
             self._hdr_name = (name_addr, name_len)
         short = 0  # calls in a row that stopped after one datagram of several
-        fast = self._fast_send
         if fast is not None and type(datagrams) is not list:
             datagrams = list(datagrams)
         while start < total:
-            if fast is not None:  # (it copies what is not bytes, and keeps each alive)
+            if first is not None:  # made above, for the whole batch
+                size, n, first = total, first, None
+                err = -n
+            elif fast is not None:  # (it copies what is not bytes, and keeps each alive)
                 size = min(self.batch, total - start)
                 n = fast(self._fd, self._shdrs_addr, size, datagrams, start)
                 err = -n

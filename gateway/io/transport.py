@@ -304,7 +304,8 @@ class UdpPort:
             if mm.refused:
                 self.send_refused += mm.refused
                 mm.refused = 0
-        if senders:
+        # (a run from the latest peer again: it is last in the table already)
+        if senders and (len(senders) > 1 or senders[0] != self.last_peer):
             for addr in senders:  # once per run of datagrams from one sender
                 self._saw_peer(addr)
             self.last_peer = senders[-1]
