@@ -290,11 +290,9 @@ def _frames(n: int) -> list[bytes]:
     return out
 
 
-def test_the_router_forwards_a_stream_in_order_through_batches(
-        mode: str, stack: contextlib.ExitStack) -> None:
-    """A vehicle's stream into ``udpin`` comes out of ``udpout`` complete, in order, byte
-    for byte, decoded by pymavlink (datagrams read and written in batches)."""
-    gcs = udp(stack)
+def udp_route(stack: contextlib.ExitStack, gcs: socket.socket) -> tuple[Router, Any, Any]:
+    """A router on a loop of its own between ``udpin`` on an ephemeral port (the vehicle's
+    side) and ``udpout`` to ``gcs``; all closed with ``stack``."""
     loop = IoLoop("router")
     loop.start()
     stack.callback(loop.close)
@@ -306,6 +304,15 @@ def test_the_router_forwards_a_stream_in_order_through_batches(
     for ep in (vin, vout):
         ep.start(loop, router)
         stack.callback(ep.close)
+    return router, vin, vout
+
+
+def test_the_router_forwards_a_stream_in_order_through_batches(
+        mode: str, stack: contextlib.ExitStack) -> None:
+    """A vehicle's stream into ``udpin`` comes out of ``udpout`` complete, in order, byte
+    for byte, decoded by pymavlink (datagrams read and written in batches)."""
+    gcs = udp(stack)
+    router, vin, vout = udp_route(stack, gcs)
     vehicle = udp(stack)
     frames = _frames(2000)
     got: list[bytes] = []
@@ -356,17 +363,7 @@ def test_a_router_failing_on_a_batch_is_counted_and_the_port_routes_on(
     """What the router raises on is the protocol's fault, not the socket's: counted, that
     batch skipped, the port kept (not reopened) and the next datagrams forwarded."""
     gcs = udp(stack)
-    loop = IoLoop("router")
-    loop.start()
-    stack.callback(loop.close)
-    stack.callback(loop.stop)
-    router = Router()
-    router.use_loop(loop)
-    vin = make_endpoint(parse_endpoint("udpin:127.0.0.1:0"))
-    vout = make_endpoint(parse_endpoint(f"udpout:127.0.0.1:{gcs.getsockname()[1]}"))
-    for ep in (vin, vout):
-        ep.start(loop, router)
-        stack.callback(ep.close)
+    router, vin, _ = udp_route(stack, gcs)
     routed = router.receive_many
     failures = [RuntimeError("a fault in the router")]
 

@@ -31,7 +31,6 @@ be bound fails the start at once, with the endpoint's name in the message.
 
 from __future__ import annotations
 
-import functools
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -43,7 +42,7 @@ from gateway.io.endpoints import KINDS, usage
 from gateway.io.endpoints import Endpoint as EndpointSpec
 from gateway.io.endpoints import parse_endpoint as _parse
 from gateway.io.ioloop import IoLoop
-from gateway.io.port import PortEngine, PortStats, ReadFailed
+from gateway.io.port import PortEngine
 from gateway.io.server import ClientLimits, PortServer, server_stats
 from gateway.io.transport import (
     SocketPort,
@@ -247,35 +246,6 @@ class UdpEndpoint(Endpoint, PortLink):
             log.info("%s: peer %s", self.name, port.last_peer)
         self.router.receive_many(self, datagrams)  # type: ignore[union-attr]
         return ()
-
-    def batch_reader(self, port: Any, engine: PortEngine) -> Callable[[], int] | None:
-        """How the engine reads ``port`` (the router's hot path): what is waiting, read,
-        routed and written in one step per batch (see :meth:`_read_and_route`)."""
-        mine = self.port
-        if mine is None or port is not mine:
-            return None  # (not ours: read_many and feed_many)
-        return functools.partial(self._read_and_route, mine, engine.stats)
-
-    def _read_and_route(self, port: UdpPort, stats: PortStats) -> int:
-        """The engine's ``read_many`` then ``feed_many``, without the steps between them
-        (a wake-up's fixed cost is most of a router's cost in a stream of bursts)."""
-        try:
-            datagrams = port.read_many()
-        except Exception as exc:
-            raise ReadFailed(str(exc)) from exc
-        if not datagrams:
-            return 0
-        stats.received_bytes += sum(map(len, datagrams))
-        if port.new_peers != self._new_peers:
-            self._new_peers = port.new_peers
-            log.info("%s: peer %s", self.name, port.last_peer)
-        try:
-            self.router.receive_many(self, datagrams)  # type: ignore[union-attr]
-        except Exception:
-            stats.protocol_errors += 1
-            log.exception("%s: the router failed on %d datagrams (skipped)", self.name,
-                          len(datagrams))
-        return len(datagrams)
 
     def start_batch(self) -> None:
         """Keep what is sent from now on for :meth:`flush_batch` (the router's batches)."""

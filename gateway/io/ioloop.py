@@ -403,14 +403,9 @@ class IoLoop:
             self.call_soon(lambda: self._push(timer))
         return timer
 
-    def call_later_here(self, delay: float, fn: Callable[[], Any]) -> Timer:
-        """:meth:`call_later` from the loop's own thread (unchecked: a hot path's timer)."""
-        timer = Timer(time.monotonic() + delay, fn)
-        heapq.heappush(self._timers, (timer.due, next(self._counter), timer))
-        return timer
-
     def call_at_here(self, due: float, fn: Callable[[], Any]) -> Timer:
-        """:meth:`call_later_here` at ``due`` (``time.monotonic()`` time)."""
+        """Run ``fn`` on the loop thread at ``due`` (``time.monotonic()`` time); from the
+        loop's own thread only (unchecked: a hot path's timer)."""
         timer = Timer(due, fn)
         heapq.heappush(self._timers, (due, next(self._counter), timer))
         return timer

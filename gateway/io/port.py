@@ -36,7 +36,6 @@ sockets of :mod:`gateway.io.transport` are such ports.
 from __future__ import annotations
 
 import contextlib
-import functools
 import logging
 import selectors
 import threading
@@ -110,12 +109,6 @@ class PortNotReady(OSError):
     """The port is down, the engine is not running, or it could not be had in time."""
 
 
-class ReadFailed(Exception):
-    """Raised by a batch reader (see :meth:`PortEngine._reader`) when the port's read failed
-    (the cause is chained): the engine counts it and fails the port.  Anything else a reader
-    raises is the protocol's (handled where it is raised)."""
-
-
 @dataclass
 class PortStats(Counters):
     """Counters of one port engine; :meth:`as_dict` adds the totals every backend reports."""
@@ -180,8 +173,9 @@ class PortEngine:
         self._datagrams_done = 0.0  # when _read_datagrams last finished (monotonic)
         self._holding = False  # reads paused for COALESCE_S (see there)
         self._bursty = False  # the sender writes bursts: no hold after a burst (see there)
-        self._held: tuple[Any, Any] = (None, None)  # what _resume reads
-        self._batches: Callable[[], int] | None = None  # _read_batches' reader (see _reader)
+        self._held: tuple[Any, Any, Any] = (None, None, None)  # what _resume reads
+        #: a batch-read datagram port's read_many and its protocol's feed_many (see _reader)
+        self._batches: tuple[Callable[[], list[bytes]], Callable[[list[bytes]], Any]] | None = None
         self._want_write = False
         #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
         self.coalesce_s = COALESCE_S
@@ -638,7 +632,7 @@ class PortEngine:
             return
         batches = self._batches
         if batches is not None:
-            self._read_batches(port, batches)
+            self._read_batches(port, *batches)
             return
         datagram = getattr(port, "datagram", False)
         many = getattr(self.protocol, "feed_many", None) if datagram else None
@@ -688,52 +682,38 @@ class PortEngine:
             self.stats.read_errors += 1
             self._fail(error, "read failed")
 
-    def _reader(self, port: Any) -> Callable[[], int] | None:
-        """How a batch-read datagram port is read (see :meth:`_read_batches`): the protocol's
-        own ``batch_reader(port, engine)`` (a router reading, routing and writing a batch in
-        one step), or ``read_many`` then ``feed_many``; None for any other port."""
-        protocol = self.protocol
-        if protocol is None or not getattr(port, "datagram", False):
+    def _reader(self, port: Any) -> tuple[Callable[[], list[bytes]],
+                                          Callable[[list[bytes]], Any]] | None:
+        """How :meth:`_read_batches` reads ``port`` (found once per open, not per wake-up):
+        a datagram port's ``read_many`` and its protocol's ``feed_many``; None otherwise."""
+        if not getattr(port, "datagram", False):
             return None
-        make = getattr(protocol, "batch_reader", None)
-        reader = make(port, self) if make is not None else None
-        if reader is not None:
-            return reader
         read_many = getattr(port, "read_many", None)
-        feed_many = getattr(protocol, "feed_many", None)
+        feed_many = getattr(self.protocol, "feed_many", None)
         if read_many is None or feed_many is None:
             return None
-        return functools.partial(self._read_and_feed, read_many, feed_many)
+        return read_many, feed_many
 
-    def _read_and_feed(self, read_many: Callable[[], list[bytes]],
-                       feed_many: Callable[[list[bytes]], Any]) -> int:
-        """One batch: what ``read_many`` returns, handed to ``feed_many``; how many."""
-        try:
-            batch = read_many()
-        except Exception as exc:  # pyserial: SerialException / OSError / TypeError
-            raise ReadFailed(str(exc)) from exc
-        if batch:
-            self._feed_batch(batch, feed_many)
-        return len(batch)
-
-    def _read_batches(self, port: Any, read: Callable[[], int]) -> None:
-        """What is waiting on a batch-read datagram port: ``read()`` reads and hands over
-        one batch (how many it read), again while batches come
-        full (:class:`ReadFailed`: the read failed); then, inside a stream, the port is held
-        (see COALESCE_S)."""
+    def _read_batches(self, port: Any, read_many: Callable[[], list[bytes]],
+                      feed_many: Callable[[list[bytes]], Any]) -> None:
+        """What is waiting on a batch-read datagram port, each batch handed over in one call,
+        again while batches come full; then, inside a stream, the port is held (see
+        COALESCE_S)."""
         got = 0
         for _ in range(COALESCE_MAX_READS):
             try:
-                n = read()
-            except ReadFailed as exc:
+                batch = read_many()
+            except Exception as exc:
                 if self._port is port:
                     self.stats.read_errors += 1
-                    self._fail(exc.__cause__ or exc, "read failed")
+                    self._fail(exc, "read failed")
                 return
-            got += n
-            if self._port is not port:
-                return  # the protocol closed or reopened the port
-            if n < DATAGRAM_BATCH:
+            if batch:
+                got += len(batch)
+                self._feed_batch(batch, feed_many)
+                if self._port is not port:
+                    return  # the protocol closed or reopened the port
+            if len(batch) < DATAGRAM_BATCH:
                 break
         now = time.monotonic()
         dense = now - self._datagrams_done < COALESCE_GAP_S
@@ -751,7 +731,7 @@ class PortEngine:
             if not holding:  # leave the port unwatched for coalesce_s, then read it again
                 self._holding = True
                 self._set_interest(write=self._want_write)
-            self._held = (port, read)
+            self._held = (port, read_many, feed_many)
             self._loop.call_at_here(now + self.coalesce_s, self._resume)
         elif holding:
             self._holding = False
@@ -759,9 +739,9 @@ class PortEngine:
 
     def _resume(self) -> None:
         """The end of a hold: read what came meanwhile (unless the port changed)."""
-        port, read = self._held
+        port, read_many, feed_many = self._held
         if self._port is port and self._holding:
-            self._read_batches(port, read)
+            self._read_batches(port, read_many, feed_many)
 
     def _feed_batch(self, batch: list[bytes], feed_many: Callable[[list[bytes]], Any]) -> None:
         self.stats.received_bytes += sum(map(len, batch))
@@ -916,7 +896,7 @@ class PortEngine:
             self._fd = None
         self._holding = False
         self._batches = None
-        self._held = (None, None)
+        self._held = (None, None, None)
         if self._poll is not None:
             self._poll.cancel()
             self._poll = None
