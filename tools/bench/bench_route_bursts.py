@@ -12,8 +12,14 @@ mavlink-router's inside each repetition.
     python tools/bench/bench_route_bursts.py --mavlink-routerd PATH [--rate 10000] [--burst 20]
         [--floor]
 
-``--floor`` adds ``route_floor.py``: the same system calls as the gateway's router and no
-other work — where the gateway's cost would be with no Python per datagram.
+``--floor`` adds ``route_floor.py``: the same system calls as the gateway's router, with its
+1 ms hold (``--floor-hold`` to change it), and no other work — where the gateway's cost would
+be with no Python per datagram.
+
+Besides the CPU per 100k datagrams, each line splits it: user and system seconds (from
+``/proc/PID/stat``, the whole process) and the context switches the router's threads made,
+voluntary (it waited: one per wake-up, about) and involuntary (it was preempted: by the
+sender or the receiver it woke, mid-work), summed over ``/proc/PID/task/*/status``.
 ``--sender-process`` sends the same bursts from ``burst_sender.py``, a process of its own: the
 sender then shares no interpreter lock with the receiver thread (a second harness's view).
 
@@ -23,6 +29,7 @@ sender then shares no interpreter lock with the receiver thread (a second harnes
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 import statistics
 import subprocess
@@ -35,6 +42,28 @@ from pathlib import Path
 from bench_mavlink_router import _cpu_s as cpu_s  # (this directory: the script's own)
 from bench_mavlink_router import _free_udp_port as free_udp_port
 from pymavlink.dialects.v20 import common
+
+TICKS = os.sysconf("SC_CLK_TCK")
+
+
+def proc_split(pid: int) -> tuple[float, float, int, int]:
+    """User and system CPU seconds of process ``pid`` (its threads, ended ones too), and the
+    voluntary and involuntary context switches of its live threads."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rpartition(")")[2].split()
+    user, system = int(fields[11]) / TICKS, int(fields[12]) / TICKS
+    vol = invol = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/status") as f:
+                for line in f:
+                    if line.startswith("voluntary_ctxt_switches:"):
+                        vol += int(line.split()[1])
+                    elif line.startswith("nonvoluntary_ctxt_switches:"):
+                        invol += int(line.split()[1])
+        except OSError:  # (a thread that ended meanwhile)
+            continue
+    return user, system, vol, invol
 
 
 def frames(n: int) -> list[bytes]:
@@ -55,8 +84,9 @@ def argv_of(router: str, args: argparse.Namespace, port_in: int, port_out: int,
         return [args.mavlink_routerd, "-t", "0", "-c", str(conf), "-e",
                 f"127.0.0.1:{port_out}", f"127.0.0.1:{port_in}"]
     if router == "floor":
+        hold = [] if args.floor_hold is None else ["--hold", str(args.floor_hold)]
         return [sys.executable, str(Path(__file__).with_name("route_floor.py")), str(port_in),
-                str(port_out)]
+                str(port_out), *hold]
     return [args.aurora_gateway, "run", "--only", "mavlink", "--status-interval", "0",
             "--source", f"mavlink:udpin:127.0.0.1:{port_in}",
             "--mavlink", f"udpout:127.0.0.1:{port_out}"]
@@ -107,7 +137,7 @@ def measure(router: str, args: argparse.Namespace, payload: list[bytes]) -> dict
                 assert sender.stdin is not None and sender.stdout is not None
                 if sender.stdout.readline().strip() != "ready":
                     raise SystemExit("burst_sender.py did not start")
-            c0, t0 = cpu_s(proc.pid), time.monotonic()
+            c0, t0, s0 = cpu_s(proc.pid), time.monotonic(), proc_split(proc.pid)
             nxt = t0
             if sender is not None:
                 sender.stdin.write("go\n")  # type: ignore[union-attr]
@@ -122,7 +152,7 @@ def measure(router: str, args: argparse.Namespace, payload: list[bytes]) -> dict
                     if delay > 0:
                         time.sleep(delay)
             time.sleep(0.3)  # the last ones out
-            c1, t1 = cpu_s(proc.pid), time.monotonic()
+            c1, t1, s1 = cpu_s(proc.pid), time.monotonic(), proc_split(proc.pid)
         finally:
             stop.set()
             proc.terminate()
@@ -131,8 +161,17 @@ def measure(router: str, args: argparse.Namespace, payload: list[bytes]) -> dict
             rx.close()
             tx.close()
     n = len(payload)
-    return {"cpu_per_100k_s": (c1 - c0) * 100_000 / n, "lost_pct": 100 * (n - got[0]) / n,
-            "rate": n / (t1 - t0 - 0.3)}
+    per = 100_000 / n
+    user, system, vol, invol = ((b - a) * per for a, b in zip(s0, s1, strict=True))
+    return {"cpu_per_100k_s": (c1 - c0) * per, "lost_pct": 100 * (n - got[0]) / n,
+            "rate": n / (t1 - t0 - 0.3), "user_s": user, "sys_s": system,
+            "voluntary": vol, "involuntary": invol}
+
+
+def split_text(r: dict[str, float]) -> str:
+    """The CPU's split, per 100k datagrams."""
+    return (f"user {r['user_s']:.2f} s, system {r['sys_s']:.2f} s, "
+            f"switches {r['voluntary']:,.0f} waited / {r['involuntary']:,.0f} preempted")
 
 
 def main() -> int:
@@ -146,6 +185,9 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--floor", action="store_true",
                    help="also run route_floor.py: recvmmsg → sendmmsg and nothing else")
+    p.add_argument("--floor-hold", type=float, metavar="SECONDS",
+                   help="route_floor.py's hold between reads in a stream (default: the "
+                        "gateway's COALESCE_S; 0: none)")
     p.add_argument("--sender-process", action="store_true",
                    help="send from burst_sender.py, a process of its own (no lock shared "
                         "with the receiver thread; its start-up is in the measured phase)")
@@ -159,14 +201,16 @@ def main() -> int:
             r = measure(router, args, payload)
             results[router].append(r)
             print(f"[{i + 1}/{args.repeat}] {router}: CPU {r['cpu_per_100k_s']:.2f} s per 100k, "
-                  f"lost {r['lost_pct']:.2f} %, {r['rate']:.0f} msg/s", flush=True)
+                  f"lost {r['lost_pct']:.2f} %, {r['rate']:.0f} msg/s; {split_text(r)}",
+                  flush=True)
     ratios = [a["cpu_per_100k_s"] / m["cpu_per_100k_s"]
               for a, m in zip(results["aurora-gateway"], results["mavlink-router"], strict=True)]
     print(f"\nbursts of {args.burst} at {args.rate:.0f} datagrams/s, {args.seconds:.0f} s, "
           f"{args.repeat} repetitions (medians):")
     for router, rs in results.items():
-        print(f"  {router}: CPU {statistics.median(r['cpu_per_100k_s'] for r in rs):.2f} s per "
-              f"100k, lost {statistics.median(r['lost_pct'] for r in rs):.2f} %")
+        med = {k: statistics.median(r[k] for r in rs) for k in rs[0]}
+        print(f"  {router}: CPU {med['cpu_per_100k_s']:.2f} s per 100k, lost "
+              f"{med['lost_pct']:.2f} %; {split_text(med)}")
     print(f"  ratio ours / mavlink-router's, per repetition: "
           f"{', '.join(f'{x:.2f}' for x in ratios)}; median {statistics.median(ratios):.2f}×")
     if args.floor:
