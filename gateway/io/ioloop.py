@@ -117,6 +117,9 @@ class _EpollPoller:
             out.append((entry[0], mask & entry[1]))
         return out
 
+    def fileno(self) -> int:
+        return self._ep.fileno()
+
     def close(self) -> None:
         self._ep.close()
 
@@ -476,6 +479,21 @@ class IoLoop:
         with contextlib.suppress(OSError):
             self._sel.close()
         self._waker.close()
+
+    def lane_wait(self) -> tuple[int, float] | None:
+        """For a callback that waits in compiled code on the loop's behalf (a router's
+        lane), from the loop's thread: the descriptor to watch beside its own — ready when
+        the loop has anything to do — and until when (``time.monotonic()``: the next timer);
+        None when calls are waiting or the loop cannot be watched this way.  Another
+        thread's :meth:`call_soon` from now on makes the descriptor ready."""
+        sel = self._sel
+        if not isinstance(sel, _EpollPoller):
+            return None
+        self._woken = False  # (a wake-up from now on writes the waker)
+        if self._calls:
+            return None
+        due = self._timers[0][0] if self._timers else time.monotonic() + MAX_WAIT_S
+        return sel.fileno(), due
 
     def _on_wake(self, mask: int) -> None:
         self._waker.clear()

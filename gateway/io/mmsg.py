@@ -236,6 +236,20 @@ class MmsgSocket:
             if not self._retry(-got):
                 return [], []
 
+    def senders_of(self, raws: list[bytes]) -> list[Any]:
+        """The sender of each run of consecutive datagrams from one sender, as
+        :meth:`recv_senders` gives them, from each datagram's raw address."""
+        runs: list[bytes] = []
+        for raw in raws:
+            if not runs or runs[-1] != raw:
+                runs.append(raw)
+        if len(runs) == 1:
+            last = self._last_sender
+            if runs[0] != last[0]:
+                last = self._last_sender = (runs[0], [self._address(runs[0])])
+            return last[1]
+        return [self._address(raw) for raw in runs]
+
     def _retry(self, err: int) -> bool:
         """After a failed ``recvmmsg``: whether to call again ("port unreachable" reported
         for an earlier send: counted), or that nothing is waiting (False); raises the rest."""
@@ -255,7 +269,8 @@ class MmsgSocket:
             addr = cache[raw] = _decode_addr(raw)
         return addr
 
-    def send(self, datagrams: list[bytes], dest: Any = None) -> tuple[int, int, int]:
+    def send(self, datagrams: list[bytes], dest: Any = None,
+             first: int | None = None) -> tuple[int, int, int]:
         """Write ``datagrams`` in order (to ``dest``, or on the connected socket); returns
         (refused, dropped, failed): "port unreachable" reported (that datagram is lost),
         the rest of a batch the socket had no room for (EAGAIN), refused by another error.
@@ -265,10 +280,16 @@ class MmsgSocket:
         without saying why: a batch would cost a call per datagram (twice mavlink-router's
         CPU while a ground station is down).  After two such calls in a row, with room to
         write, the rest of the batch is counted as refused and not sent — it would have
-        been refused too."""
+        been refused too.
+
+        ``first``: the result of a ``sendmmsg`` of the whole batch on the connected socket
+        that the caller already made (written, or -errno: a compiled lane's); the rest goes on
+        from there."""
         fast = self._fast_send
-        first = None  # the first call's result, when made before the set-up below
-        if dest is None and fast is not None and type(datagrams) is list and \
+        if first is not None and (dest is not None or fast is None or type(datagrams) is not list
+                                  or self._hdr_name != _UNNAMED):
+            raise ValueError("first: only after a connected batch's compiled call")
+        if first is None and dest is None and fast is not None and type(datagrams) is list and \
                 self._hdr_name == _UNNAMED:
             total = len(datagrams)  # a connected socket's batch (the router's hot path)
             if 0 < total <= self.batch:

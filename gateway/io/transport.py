@@ -304,17 +304,30 @@ class UdpPort:
             if mm.refused:
                 self.send_refused += mm.refused
                 mm.refused = 0
+        self.took(senders)
+        return datagrams
+
+    def took(self, senders: list[Any]) -> None:
+        """The peer table after datagrams from ``senders`` (one per run from one sender, in
+        order) were read."""
         # (a run from the latest peer again: it is last in the table already)
         if senders and (len(senders) > 1 or senders[0] != self.last_peer):
             for addr in senders:  # once per run of datagrams from one sender
                 self._saw_peer(addr)
             self.last_peer = senders[-1]
-        return datagrams
 
-    def write_many(self, datagrams: list[bytes]) -> None:
+    def write_many(self, datagrams: list[bytes], first: int | None = None) -> None:
         """:meth:`write` each of ``datagrams``, in order (one system call per destination
-        where ``sendmmsg`` exists)."""
+        where ``sendmmsg`` exists).  ``first``: see :meth:`MmsgSocket.send` (connected
+        only)."""
         mm = self.mmsg
+        if first is not None:
+            assert mm is not None and self.connected
+            refused, dropped, failed = mm.send(datagrams, None, first)
+            self.send_refused += refused
+            self.send_dropped += dropped
+            self.send_errors += failed
+            return
         if mm is None or (not self.connected and self.dest is not None):
             for data in datagrams:
                 self.write(data)
