@@ -12,3 +12,8 @@ def route(datagrams: list[bytes], start: int, info: dict[int, tuple[bytes, int, 
           dests_of: Callable[[int], tuple[tuple[list[bytes], ...],
                                           tuple[Callable[[bytes], Any], ...]]],
           link: Any) -> tuple[int, int, int, int, int, int]: ...
+
+def lane(rx_fd: int, recv_headers: int, batch: int, loop_fd: int, due: float,
+         expect: bytes | None, route_args: tuple[Any, ...], outs: tuple[tuple[Any, ...], ...],
+         in_stats: Any, framer_stats: Any, counters: Any, router: Any,
+         lock: Any, batching: tuple[Any, ...]) -> tuple[Any, ...]: ...

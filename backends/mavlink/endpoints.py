@@ -36,6 +36,7 @@ from collections.abc import Callable
 from typing import Any
 
 from backends.mavlink.frames import StreamFramer
+from backends.mavlink.lane import lane_runner
 from backends.mavlink.router import Link, Router
 from gateway.io.burstlog import BurstLog
 from gateway.io.endpoints import KINDS, usage
@@ -247,6 +248,12 @@ class UdpEndpoint(Endpoint, PortLink):
         self.router.receive_many(self, datagrams)  # type: ignore[union-attr]
         return ()
 
+    def lane_for(self, engine: Any, port: Any,
+                 feed: Callable[[list[bytes], list[Any]], None]
+                 ) -> Callable[[Callable[[], None]], bool] | None:
+        """The compiled lane for this endpoint's port (see backends/mavlink/lane.py)."""
+        return lane_runner(self, engine, port, feed)
+
     def start_batch(self) -> None:
         """Keep what is sent from now on for :meth:`flush_batch` (the router's batches)."""
         if self._batch is None and self.port is not None and self.port.mmsg is not None:
@@ -260,15 +267,16 @@ class UdpEndpoint(Endpoint, PortLink):
             return None
         return batch
 
-    def flush_batch(self) -> None:
+    def flush_batch(self, first: int | None = None) -> None:
         """Write what was kept since :meth:`start_batch`: one ``sendmmsg`` per destination
-        when the engine can write now, else each through its queue."""
+        when the engine can write now, else each through its queue.  ``first``: a compiled
+        lane's call for the whole batch, already made (see ``MmsgSocket.send``)."""
         batch, self._batch = self._batch, None
         if not batch:
             return
         engine = self.engine
         c = self.counters
-        if engine.send_datagrams(batch):  # type: ignore[union-attr]
+        if engine.send_datagrams(batch, first):  # type: ignore[union-attr]
             c.tx_frames += len(batch)
             c.tx_bytes += sum(map(len, batch))
             return

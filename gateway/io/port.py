@@ -176,6 +176,8 @@ class PortEngine:
         self._held: tuple[Any, Any, Any] = (None, None, None)  # what _resume reads
         #: a batch-read datagram port's read_many and its protocol's feed_many (see _reader)
         self._batches: tuple[Callable[[], list[bytes]], Callable[[list[bytes]], Any]] | None = None
+        self._lane: Callable[[Callable[[], None]], bool] | None = None  # see _run_lane
+        self.lane_runs = 0  # times the lane ran (a compiled router's wake-ups: see _run_lane)
         self._want_write = False
         #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
         self.coalesce_s = COALESCE_S
@@ -306,19 +308,24 @@ class PortEngine:
         st.sent_bytes += len(data)
         return True
 
-    def send_datagrams(self, datagrams: list[bytes]) -> bool:
+    def send_datagrams(self, datagrams: list[bytes], first: int | None = None) -> bool:
         """:meth:`send_datagram` for several at once, in order, through the port's
         ``write_many`` (one system call where the platform allows); False, with nothing
-        written, when they cannot be written directly now (then :meth:`submit` each)."""
-        if not self._up or self._writing or self._flush_scheduled or \
-                _get_ident() != self._loop_ident:
+        written, when they cannot be written directly now (then :meth:`submit` each).
+        ``first``: a compiled lane already made the first call (it checked that the port
+        could be written), see ``MmsgSocket.send``."""
+        if first is None and (not self._up or self._writing or self._flush_scheduled or
+                              _get_ident() != self._loop_ident):
             return False
         st = self.stats
         n = len(datagrams)
         st.submitted += n
         st.accepted += n
         try:
-            self._port.write_many(datagrams)
+            if first is None:
+                self._port.write_many(datagrams)
+            else:
+                self._port.write_many(datagrams, first)
         except Exception as exc:
             st.write_errors += 1
             self._fail(exc, "write failed")
@@ -583,6 +590,7 @@ class PortEngine:
         self._port = port
         self._fd = fd
         self._batches = self._reader(port)
+        self._lane = self._lane_of(port) if self._batches is not None else None
         self._loop_ident = threading.get_ident()
         if fd is not None:
             self._set_interest(write=False)
@@ -715,6 +723,9 @@ class PortEngine:
                     return  # the protocol closed or reopened the port
             if len(batch) < DATAGRAM_BATCH:
                 break
+        lane = self._lane
+        if got and lane is not None and self._run_lane(port, lane):
+            return
         now = time.monotonic()
         dense = now - self._datagrams_done < COALESCE_GAP_S
         self._datagrams_done = now
@@ -736,6 +747,51 @@ class PortEngine:
         elif holding:
             self._holding = False
             self._set_interest(write=self._want_write)
+
+    def _lane_of(self, port: Any) -> Callable[[Callable[[], None]], bool] | None:
+        """The protocol's compiled lane for ``port`` (``lane_for(engine, port, feed)``), if it
+        has one; ``feed(datagrams, senders)`` is the port's own path for what it hands back."""
+        lane_for = getattr(self.protocol, "lane_for", None)
+        if lane_for is None or self._batches is None:
+            return None
+        feed_many = self._batches[1]
+
+        def feed(datagrams: list[bytes], senders: list[Any]) -> None:
+            port.took(senders)
+            self._feed_batch(datagrams, feed_many)
+
+        lane: Callable[[Callable[[], None]], bool] | None = lane_for(self, port, feed)
+        return lane
+
+    def _run_lane(self, port: Any, lane: Callable[[Callable[[], None]], bool]) -> bool:
+        """Run the lane (the loop's thread waits and routes in compiled code until the loop
+        has work); the port's descriptor is not watched meanwhile.  False: it did not apply
+        now (then the port is read and held as before)."""
+        started = False
+
+        def begin() -> None:
+            nonlocal started
+            started = True
+            self._holding = True
+            self._set_interest(write=self._want_write)
+
+        ran = True
+        try:
+            ran = lane(begin)
+            self.lane_runs += ran
+        except OSError as exc:  # a read failed
+            if self._port is port:
+                self.stats.read_errors += 1
+                self._fail(exc, "read failed")
+        except Exception:
+            self.stats.protocol_errors += 1
+            log.exception("%s: the router's lane failed (the Python path goes on)", self.name)
+            self._lane = None
+        finally:
+            if started and self._port is port:
+                self._holding = False
+                self._set_interest(write=self._want_write)
+        return ran
 
     def _resume(self) -> None:
         """The end of a hold: read what came meanwhile (unless the port changed)."""
@@ -896,6 +952,7 @@ class PortEngine:
             self._fd = None
         self._holding = False
         self._batches = None
+        self._lane = None
         self._held = (None, None, None)
         if self._poll is not None:
             self._poll.cancel()
