@@ -247,6 +247,7 @@ static PyObject *route(PyObject *module, PyObject *const *args, Py_ssize_t nargs
 #ifdef __linux__
 #include <errno.h>
 #include <string.h>
+#include <poll.h>
 #include <sys/epoll.h>
 #include <sys/socket.h>
 #include <sys/syscall.h>
@@ -335,17 +336,30 @@ static int intern_names(void)
  * link counters). */
 enum { OUT_FD, OUT_HDRS, OUT_LIST, OUT_LINK, OUT_ENGINE, OUT_STATS, OUT_COUNTERS, OUT_N };
 
+/* The lane's hold (the port engine's COALESCE_S): a read at readiness that finds fewer than
+ * `burst_min` datagrams, within `gap` s of the last read, is a paced stream: the port is
+ * then read again `hold` s after each read instead of at once, while those reads find
+ * datagrams.  A read that finds `burst_min` or more at readiness is a burst, read whole as it
+ * comes (in C a wake-up costs less than holding it: tools/bench/README.md).  Every
+ * HOLD_PROBE holds, one read waits for readiness again: so a stream of bursts that once
+ * looked paced is found out. */
+#define HOLD_PROBE 64
+typedef struct {
+    double hold, gap;
+    int burst_min;
+} hold_rule;
+
 static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr *rhdrs,
                              unsigned int batch, double deadline, PyObject *expect,
                              PyObject *rargs, PyObject *outs, PyObject *in_stats,
                              PyObject *framer, PyObject *counters, PyObject *router,
                              PyObject *rstats, PyObject *acquire, PyObject *release,
-                             PyObject *batching);
+                             PyObject *batching, int loop_fd, const hold_rule *rule);
 
 static PyObject *lane(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 14) {
-        PyErr_SetString(PyExc_TypeError, "lane() takes 14 arguments");
+    if (nargs != 17) {
+        PyErr_SetString(PyExc_TypeError, "lane() takes 17 arguments");
         return NULL;
     }
     int rx_fd = (int)PyLong_AsLong(args[0]);
@@ -356,6 +370,8 @@ static PyObject *lane(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     PyObject *expect = args[5], *rargs = args[6], *outs = args[7], *in_stats = args[8];
     PyObject *framer = args[9], *counters = args[10], *router = args[11], *lock = args[12];
     PyObject *batching = args[13];
+    hold_rule rule = {PyFloat_AsDouble(args[14]), PyFloat_AsDouble(args[15]),
+                      (int)PyLong_AsLong(args[16])};
     PyObject *rstats = PyObject_GetAttrString(router, "stats");
     if (rstats == NULL)
         return NULL;
@@ -394,7 +410,7 @@ static PyObject *lane(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     PyObject *out = ep < 0 ? NULL : lane_cycles(module, ep, rx_fd, rhdrs, batch, deadline,
                                                   expect, rargs, outs, in_stats, framer,
                                                   counters, router, rstats, acquire, release,
-                                                  batching);
+                                                  batching, loop_fd, &rule);
     if (ep >= 0)
         close(ep);
     Py_XDECREF(acquire);
@@ -414,7 +430,7 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
                              PyObject *rargs, PyObject *outs, PyObject *in_stats,
                              PyObject *framer, PyObject *counters, PyObject *router,
                              PyObject *rstats, PyObject *acquire, PyObject *release,
-                             PyObject *batching)
+                             PyObject *batching, int loop_fd, const hold_rule *rule)
 {
     Py_ssize_t nouts = PyTuple_GET_SIZE(outs);
     if (nouts > 8) {
@@ -422,6 +438,8 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
         return NULL;
     }
     int pending = 0;  /* the outs' lists hold a batch to write */
+    int holding = 0, holds = 0;  /* see hold_rule */
+    double done = 0.0;  /* when the port was last read */
     for (;;) {
         struct epoll_event evs[2];
         int r = 0, n = 0, err = 0, loop_ready = 0, port_ready = 0, short_k = -1, short_n = 0;
@@ -452,7 +470,22 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
         if (short_k < 0) {
             if (pending)
                 now = monotonic_s();
-            if (now < deadline) {
+            if (now < deadline && holding) {  /* the loop only, for the hold */
+                double left = deadline - now < rule->hold ? deadline - now : rule->hold;
+                time_t sec = (time_t)left;
+                struct timespec ts = {sec, (long)((left - (double)sec) * 1e9)};
+                struct pollfd lp = {loop_fd, POLLIN, 0};
+                r = ppoll(&lp, 1, &ts, NULL);
+                if (r != 0 || left < rule->hold)
+                    loop_ready = 1;  /* the loop has work, or its timer is due */
+                else
+                    port_ready = 1;  /* read what came meanwhile */
+                if (port_ready) {
+                    n = recvmmsg(rx_fd, rhdrs, batch, MSG_DONTWAIT, NULL);
+                    if (n < 0)
+                        err = errno;
+                }
+            } else if (now < deadline) {
                 r = wait_ns(ep, evs, 2, deadline - now);
                 for (int i = 0; i < r; i++) {
                     if (evs[i].data.u32 == 1 || (evs[i].events & ~EPOLLIN))
@@ -484,11 +517,23 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
             return Py_BuildValue("(i)", 0);  /* the loop has work (or the port: its path) */
         if (!port_ready)
             continue;
-        if (n < 0) {
-            if (err == EAGAIN || err == EINTR)
-                continue;
+        if (n < 0 && err != EAGAIN && err != EINTR)
             return Py_BuildValue("(iOOi)", 1, Py_None, Py_None, err);
+        if (n < 0)
+            n = 0;
+        {  /* the hold's rule, as PortEngine._read_batches keeps it */
+            double t = monotonic_s();
+            int dense = t - done < rule->gap;
+            done = t;
+            if (holding) {
+                holding = n > 0 && dense && ++holds < HOLD_PROBE;
+            } else {
+                holding = n > 0 && n < rule->burst_min && dense && rule->hold > 0;
+                holds = 0;
+            }
         }
+        if (n == 0)
+            continue;
         PyObject *datagrams = PyList_New(n);
         if (datagrams == NULL)
             return NULL;
@@ -528,10 +573,6 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
                 return NULL;
             }
             return Py_BuildValue("(iNNi)", 1, datagrams, raws, 0);
-        }
-        if (n == 0) {
-            Py_DECREF(datagrams);
-            continue;
         }
         /* route them, as Router.receive_many does, under the router's lock */
         PyObject *got = PyObject_CallNoArgs(acquire);

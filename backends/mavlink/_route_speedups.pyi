@@ -16,4 +16,5 @@ def route(datagrams: list[bytes], start: int, info: dict[int, tuple[bytes, int, 
 def lane(rx_fd: int, recv_headers: int, batch: int, loop_fd: int, due: float,
          expect: bytes | None, route_args: tuple[Any, ...], outs: tuple[tuple[Any, ...], ...],
          in_stats: Any, framer_stats: Any, counters: Any, router: Any,
-         lock: Any, batching: tuple[Any, ...]) -> tuple[Any, ...]: ...
+         lock: Any, batching: tuple[Any, ...], hold: float, gap: float,
+         burst_min: int) -> tuple[Any, ...]: ...

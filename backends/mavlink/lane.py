@@ -19,7 +19,10 @@ and adds every counter the Python path adds — and comes back here for anything
   ``write_many`` goes on from it (``MmsgSocket.send``'s ``first``).
 
 Each of those keeps the order of the datagrams and the counts the Python path makes, and
-the lane goes on after it.  Where the lane does not apply (no compiler, not Linux, signing,
+the lane goes on after it.  A paced stream (reads of fewer than ``BURST_MIN`` datagrams) is
+held as the port engine holds it (``COALESCE_S``); bursts are read whole as they come: in
+compiled code a wake-up costs less than holding one (the rule: ``hold_rule`` in the C file).
+Where the lane does not apply (no compiler, not Linux, signing,
 a tap, another kind of link) the Python path runs as before.
 """
 
@@ -29,6 +32,8 @@ import errno
 import os
 from collections.abc import Callable
 from typing import Any
+
+from gateway.io import port as port_mod
 
 __all__ = ["lane_runner"]
 
@@ -100,7 +105,8 @@ def lane_runner(endpoint: Any, engine: Any, port: Any,
             try:
                 got = _lane(mm._fd, mm._rhdrs_addr, mm.batch, loop_fd, due, expect, rargs,
                             out_t, engine.stats, endpoint.framer_stats, endpoint.counters,
-                            router, lock, batching)
+                            router, lock, batching, float(engine.coalesce_s),
+                            port_mod.COALESCE_GAP_S, port_mod.BURST_MIN)
             except BaseException:
                 _settle(out_t, lock)
                 raise
