@@ -18,10 +18,13 @@ from mavlink_peer import upstream_dialect
 from test_mmsg import udp, udp_route
 
 from backends.mavlink import lane as lane_mod
+from backends.mavlink import router as router_mod
 
 dev = upstream_dialect()
 
-needs_lane = pytest.mark.skipif(lane_mod._lane is None, reason="the lane is not built here")
+needs_lane = pytest.mark.skipif(
+    not lane_mod.ENABLED or router_mod._speedups is None,
+    reason="the lane is not built here, or turned off (AURORA_NO_LANE, AURORA_NO_SPEEDUPS)")
 
 
 @pytest.fixture
