@@ -103,7 +103,9 @@ def test_the_lane_routes_a_stream_as_the_python_path_does(
 def test_the_loop_answers_calls_and_timers_while_a_stream_keeps_the_lane_busy(
         stack: contextlib.ExitStack) -> None:
     """The lane waits on the loop's own descriptor and until its next timer: a call from
-    another thread and a timer set meanwhile run at once, not when the stream pauses."""
+    another thread and a timer set meanwhile run at once, not when the stream pauses (which
+    here is never: a lane deaf to them fails the waits; one that only met them at its 0.5 s
+    cap fails the bounds, which leave room for a loaded machine)."""
     gcs = udp(stack)
     gcs.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
     _router, vin, _vout = udp_route(stack, gcs)
@@ -137,12 +139,12 @@ def test_the_loop_answers_calls_and_timers_while_a_stream_keeps_the_lane_busy(
         t0 = time.monotonic()
         loop.call_soon(ran.set)
         assert ran.wait(5)
-        assert time.monotonic() - t0 < 0.1  # the lane's own wait ends at 0.5 s
+        assert time.monotonic() - t0 < 0.25  # (the lane's own wait ends at 0.5 s at most)
         timer = threading.Event()
         t0 = time.monotonic()
         loop.call_later(0.02, timer.set)
         assert timer.wait(5)
-        assert 0.02 <= time.monotonic() - t0 < 0.12
+        assert 0.02 <= time.monotonic() - t0 < 0.27
     assert vin.engine.lane_runs > 0
 
 
