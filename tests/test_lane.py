@@ -19,6 +19,7 @@ from test_mmsg import udp, udp_route
 
 from backends.mavlink import lane as lane_mod
 from backends.mavlink import router as router_mod
+from gateway.io.transport import UdpPort
 
 dev = upstream_dialect()
 
@@ -146,6 +147,42 @@ def test_the_loop_answers_calls_and_timers_while_a_stream_keeps_the_lane_busy(
         assert timer.wait(5)
         assert 0.02 <= time.monotonic() - t0 < 0.27
     assert vin.engine.lane_runs > 0
+
+
+@needs_lane
+def test_after_the_loops_timers_the_lane_goes_on_without_the_ports_own_path(
+        stack: contextlib.ExitStack, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A timer due ends the lane's wait (a router ticks 50 times a second); after it the lane
+    starts again with the port still unwatched — not through a wake-up on the port and a
+    read by its own path, which is what each tick cost before (one read of the port's path
+    per tick: a Python path fails the bound)."""
+    reads = [0]
+    real = UdpPort.read_many
+
+    def counted(self: UdpPort) -> list[bytes]:  # the port's own path, counted
+        reads[0] += 1
+        return real(self)
+
+    monkeypatch.setattr(UdpPort, "read_many", counted)
+    gcs = udp(stack)
+    _router, vin, _vout = udp_route(stack, gcs)
+    ticks = [0]
+    timer = vin.engine.loop.call_every(0.005, lambda: ticks.__setitem__(0, ticks[0] + 1))
+    stack.callback(timer.cancel)
+    vehicle = udp(stack)
+    frames = [d for who, d in _stream()[:600] if who == 0]  # system 1 only: the lane's path
+    sent = 0
+    end = time.monotonic() + 0.5
+    while time.monotonic() < end or ticks[0] < 40:
+        for _ in range(5):
+            vehicle.sendto(frames[sent % len(frames)], vin.address)
+            sent += 1
+        for _ in range(5):
+            gcs.recv(65536)  # (every datagram through: a lost one fails on the timeout)
+        time.sleep(0.001)
+    runs, n = vin.engine.lane_runs, reads[0]
+    assert ticks[0] >= 40 and runs >= ticks[0] // 2  # the lane anew after each tick
+    assert n < ticks[0] // 4, (n, ticks[0], runs)
 
 
 def _refused_run(enabled: bool, monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:

@@ -439,6 +439,8 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
     }
     int pending = 0;  /* the outs' lists hold a batch to write */
     int holding = 0, holds = 0;  /* see hold_rule */
+    int first = 1;  /* the first cycle reads a ready port even when the loop has work too:
+                     * each call reads it at least once (the loop never watches it) */
     double done = 0.0;  /* when the port was last read */
     for (;;) {
         struct epoll_event evs[2];
@@ -493,7 +495,7 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
                     else
                         port_ready = 1;
                 }
-                if (r > 0 && !loop_ready && port_ready) {
+                if (r > 0 && port_ready && (first || !loop_ready)) {
                     n = recvmmsg(rx_fd, rhdrs, batch, MSG_DONTWAIT, NULL);
                     if (n < 0)
                         err = errno;
@@ -513,8 +515,9 @@ static PyObject *lane_cycles(PyObject *module, int ep, int rx_fd, struct mmsghdr
                     return NULL;
             }
         }
-        if (r < 0 || loop_ready)
+        if (r < 0 || (loop_ready && !(first && port_ready)))
             return Py_BuildValue("(i)", 0);  /* the loop has work (or the port: its path) */
+        first = 0;
         if (!port_ready)
             continue;
         if (n < 0 && err != EAGAIN && err != EINTR)

@@ -9,7 +9,9 @@ loop's own epoll descriptor until the loop's next timer, reads with ``recvmmsg``
 the compiled loop under the router's lock, writes each link's batch with one ``sendmmsg``
 and adds every counter the Python path adds — and comes back here for anything else:
 
-* the loop has work (an event, a call from another thread, a timer due): the lane ends;
+* the loop has work (an event, a call from another thread, a timer due): the lane ends,
+  and the port engine starts it again once that work is done (the port unwatched meanwhile;
+  each call reads a ready port at least once, so the loop's work cannot starve it);
 * a datagram from a sender other than the latest peer, or a failed read: the port's path;
 * a datagram the compiled loop stops at (a new source, a targeted message …): the general
   path for the rest, as :meth:`Router._route_datagrams_compiled` does;

@@ -177,6 +177,7 @@ class PortEngine:
         #: a batch-read datagram port's read_many and its protocol's feed_many (see _reader)
         self._batches: tuple[Callable[[], list[bytes]], Callable[[list[bytes]], Any]] | None = None
         self._lane: Callable[[Callable[[], None]], bool] | None = None  # see _run_lane
+        self._lane_next: Any = None  # the timer that starts the lane again (_lane_again)
         self.lane_runs = 0  # times the lane ran (a compiled router's wake-ups: see _run_lane)
         self._want_write = False
         #: the coalescing window of a batch-read datagram port (0: read on every wake-up)
@@ -763,22 +764,33 @@ class PortEngine:
         lane: Callable[[Callable[[], None]], bool] | None = lane_for(self, port, feed)
         return lane
 
-    def _run_lane(self, port: Any, lane: Callable[[Callable[[], None]], bool]) -> bool:
+    def _run_lane(self, port: Any, lane: Callable[[Callable[[], None]], bool], *,
+                  again_: bool = False) -> bool:
         """Run the lane (the loop's thread waits and routes in compiled code until the loop
         has work); the port's descriptor is not watched meanwhile.  False: it did not apply
-        now (then the port is read and held as before)."""
-        started = False
+        now (then the port is read and held as before).
+
+        When the lane ends for the loop's work (a timer due, an event), the port stays
+        unwatched and the lane starts again right after that work (:meth:`_lane_again`), not
+        through a wake-up and a read of the port's own path: a router's ticks (50 a second)
+        cost that much each otherwise."""
+        started = again_  # (again: the port is unwatched already)
+        if self._lane_next is not None:
+            self._lane_next.cancel()
+            self._lane_next = None
 
         def begin() -> None:
             nonlocal started
-            started = True
-            self._holding = True
-            self._set_interest(write=self._want_write)
+            if not started:
+                started = True
+                self._holding = True
+                self._set_interest(write=self._want_write)
 
-        ran = True
+        ran = again = False
         try:
             ran = lane(begin)
             self.lane_runs += ran
+            again = ran and self._port is port and self._lane is lane and not self._closing
         except OSError as exc:  # a read failed
             if self._port is port:
                 self.stats.read_errors += 1
@@ -788,10 +800,24 @@ class PortEngine:
             log.exception("%s: the router's lane failed (the Python path goes on)", self.name)
             self._lane = None
         finally:
-            if started and self._port is port:
+            if again:  # after the loop's work (timers due before now run first)
+                self._lane_next = self._loop.call_at_here(time.monotonic(), self._lane_again)
+            elif started and self._port is port:
                 self._holding = False
                 self._set_interest(write=self._want_write)
         return ran
+
+    def _lane_again(self) -> None:
+        """The lane, again, after the loop's work (see :meth:`_run_lane`); where it does not
+        apply now, the port is watched again and read by its own path."""
+        port, lane = self._port, self._lane
+        self._lane_next = None
+        if port is None or lane is None or self._closing:
+            if self._port is port and port is not None:
+                self._holding = False
+                self._set_interest(write=self._want_write)
+            return
+        self._run_lane(port, lane, again_=True)
 
     def _resume(self) -> None:
         """The end of a hold: read what came meanwhile (unless the port changed)."""
@@ -953,6 +979,9 @@ class PortEngine:
         self._holding = False
         self._batches = None
         self._lane = None
+        if self._lane_next is not None:
+            self._lane_next.cancel()
+            self._lane_next = None
         self._held = (None, None, None)
         if self._poll is not None:
             self._poll.cancel()
