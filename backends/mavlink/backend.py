@@ -122,6 +122,7 @@ class MavlinkBackend(Backend):
         #: (None, []): a vehicle starts a new flight there (``tlog``)
         self._out: list[tuple[AuroraVehicle | None, list[Any]]] = []
         self._ticker: Timer | None = None
+        self._tick_s = POLL_S
         self._started_at = 0.0
         self._next_expiry = 0.0
         self.not_repeated = 0
@@ -143,7 +144,19 @@ class MavlinkBackend(Backend):
         node.on_rc = lambda channels: self._on_rc(channels, name)
         self.nodes[name] = node
         self._node_list.append(node)
+        if self._ticker is not None and self.hub is not None and self._tick_s != POLL_S:
+            self._start_ticker()
         return node
+
+    def _start_ticker(self) -> None:
+        """The vehicles' periodic messages are polled every POLL_S (the first at once); with
+        no vehicle yet (a router of other systems' messages) only the router's expiry runs,
+        every EXPIRE_EVERY_S: each tick is a wake-up of the loop (and of a compiled lane)."""
+        if self._ticker is not None:
+            self._ticker.cancel()
+        self._tick_s = POLL_S if self._node_list else EXPIRE_EVERY_S
+        assert self.hub is not None
+        self._ticker = self.hub.loop.call_every(self._tick_s, self._tick)
 
     def _configured(self, hub: MavlinkHub) -> list[tuple[str, str, int]]:
         """The configured vehicles with their ids: fixed ones kept, the others from ``sysid``
@@ -222,7 +235,7 @@ class MavlinkBackend(Backend):
         self.handover.open(hub.loop)
         self._no_id_log = BurstLog(hub.loop, f"{self.name}: no free MAVLink system id for a "
                                    "vehicle: not shown", logger=log)
-        self._ticker = hub.loop.call_every(POLL_S, self._tick)  # first HEARTBEAT at once
+        self._start_ticker()  # (a vehicle's first HEARTBEAT at once)
         ids = ", ".join(f"{n.vehicle or 'rocket'} {n.sysid}" for n in self._node_list)
         log.info("%s: MAVLink system%s %s on %s%s", self.name,
                  "s" if len(self._node_list) > 1 else "", ids or "(none yet)",
@@ -250,6 +263,7 @@ class MavlinkBackend(Backend):
         self.loop = None
         if self._ticker is not None:
             self._ticker.cancel()
+            self._ticker = None
         if self._no_id_log is not None:
             self._no_id_log.cancel()
         self._leave(hub, self.endpoints)  # queued frames are written first
