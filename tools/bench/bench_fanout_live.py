@@ -160,13 +160,14 @@ class Viewer:
 
 
 def case_args(case: str, http_port: int) -> list[str]:
-    if case == "all":
-        return ["--http", f"127.0.0.1:{http_port}"]
+    if case == "all":  # (the console's flag only where it runs: --only refuses a left-out one)
+        return ["--http", f"127.0.0.1:{http_port}", "--console-interval", "1"]
     if case == "none":  # the least a run can have: a console that prints state changes only
         return ["--only", "console", "--console-interval", "3600"]
     if case.startswith("only:"):
         name = case[5:]
         return ["--only", name] + (["--http", f"127.0.0.1:{http_port}"] if name == "http"
+                                   else ["--console-interval", "1"] if name == "console"
                                    else [])
     raise SystemExit(f"--case: unknown case {case!r} (all, none, only:NAME)")
 
@@ -181,8 +182,8 @@ def one_run(tree: Path, case: str, blob: bytes, ends: list[int], rate: float,
     viewer: Viewer | None = None
     env = {**os.environ, "PYTHONPATH": str(tree)}
     cmd = [sys.executable, "-m", "gateway", "run", "--source", f"socket://127.0.0.1:{port}",
-           "--status-interval", "0", "--log-format", "json", "--console-interval", "1",
-           *case_args(case, http_port), *extra]
+           "--status-interval", "0", "--log-format", "json", *case_args(case, http_port),
+           *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             text=True, cwd="/tmp", env=env)
     err: list[str] = []
