@@ -230,3 +230,25 @@ def test_a_ground_station_that_has_gone_is_counted_as_the_python_path_counts_it(
         assert c["tx_frames"] == 399 + 1 and c["tx_bytes"] == 28 * c["tx_frames"]
         assert c["tx_dropped"] == c["tx_errors"] == 0
         assert c["tx_frames"] // 2 < c["tx_refused"] <= c["tx_frames"]
+
+
+@needs_lane
+def test_a_lane_that_cannot_watch_its_descriptors_fails_as_the_lane_not_the_port(
+        tmp_path: Any) -> None:
+    """epoll refuses a regular file: the lane raises RuntimeError (the port engine then turns
+    the lane off and the port's own path goes on), not OSError (which the engine takes for a
+    failed read, and reopens the port)."""
+    import types
+
+    from backends.mavlink import _route_speedups
+
+    f = (tmp_path / "not-a-socket").open("wb")
+    try:
+        counters = types.SimpleNamespace()
+        router = types.SimpleNamespace(stats=counters)
+        with pytest.raises(RuntimeError, match=r"lane\(\): epoll_ctl: "):
+            _route_speedups.lane(f.fileno(), 0, 1, f.fileno(), time.monotonic() + 1, None,
+                                 (None,) * 10, (), counters, counters, counters, router,
+                                 threading.RLock(), (), 0.001, 0.004, 4)
+    finally:
+        f.close()

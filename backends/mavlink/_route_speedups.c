@@ -394,15 +394,17 @@ static PyObject *lane(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     }
     PyObject *acquire = PyObject_GetAttr(lock, s_acquire);
     PyObject *release = acquire ? PyObject_GetAttr(lock, s_release) : NULL;
+    /* (its own descriptor failing is the lane's failure, not the port's: RuntimeError, so
+     * the engine turns the lane off rather than reopening a port that reads fine) */
     int ep = release ? epoll_create1(EPOLL_CLOEXEC) : -1;
     if (release != NULL && ep < 0)
-        PyErr_SetFromErrno(PyExc_OSError);
+        PyErr_Format(PyExc_RuntimeError, "lane(): epoll_create1: %s", strerror(errno));
     if (ep >= 0) {
         struct epoll_event e1 = {.events = EPOLLIN, .data.u32 = 0};
         struct epoll_event e2 = {.events = EPOLLIN, .data.u32 = 1};
         if (epoll_ctl(ep, EPOLL_CTL_ADD, rx_fd, &e1) < 0
             || epoll_ctl(ep, EPOLL_CTL_ADD, loop_fd, &e2) < 0) {
-            PyErr_SetFromErrno(PyExc_OSError);
+            PyErr_Format(PyExc_RuntimeError, "lane(): epoll_ctl: %s", strerror(errno));
             close(ep);
             ep = -1;
         }
