@@ -226,23 +226,21 @@ class MmsgSocket:
         while True:
             got = fast(self._fd, self._rhdrs_addr, self.batch, True)
             if isinstance(got, tuple):
-                data, raws = got
-                if len(raws) == 1:  # mostly: one sender, the one of the last call
-                    last = self._last_sender
-                    if raws[0] != last[0]:
-                        last = self._last_sender = (raws[0], [self._address(raws[0])])
-                    return data, last[1]
-                return data, [self._address(raw) for raw in raws]
+                data, raws = got  # (a raw address per run of one sender's datagrams)
+                return data, self.senders_of(raws)
             if not self._retry(-got):
                 return [], []
 
     def senders_of(self, raws: list[bytes]) -> list[Any]:
         """The sender of each run of consecutive datagrams from one sender, as
-        :meth:`recv_senders` gives them, from each datagram's raw address."""
-        runs: list[bytes] = []
-        for raw in raws:
-            if not runs or runs[-1] != raw:
-                runs.append(raw)
+        :meth:`recv_senders` gives them, from each datagram's raw address; mostly one
+        sender, the one of the last call (then the same list again)."""
+        runs = raws
+        if len(raws) > 1:
+            runs = []
+            for raw in raws:
+                if not runs or runs[-1] != raw:
+                    runs.append(raw)
         if len(runs) == 1:
             last = self._last_sender
             if runs[0] != last[0]:
