@@ -134,7 +134,14 @@ def test_headless_fprime_gds_shows_the_simulated_flight(framing: str, workdir: P
             if FLIGHT + "Altitude" in names and FLIGHT + "SmType" in names]
     assert len(seen) >= 20, "too few SM updates reached fprime-gds"
     states = set()
-    for _t, names in seen:
+    last_t = seen[-1][0]
+    for t, names in seen:
+        # (an update's entries can span two packets: one missing says which, and whether the
+        # gateway counted a drop — what a failure under heavy load needs to be told apart)
+        missing = [c for c in ("Uptime", "Altitude", "VerticalVelocity", "State", "Armed", "Roll")
+                   if FLIGHT + c not in names]
+        assert not missing, (f"update at t={t} (the last: {t == last_t}) lacks {missing}; "
+                             f"gateway: {gateway.text('stderr')[-1500:]}")
         (uptime,) = set(names[FLIGHT + "Uptime"])
         m = updates[uptime]  # the update the gateway received with this uptime
         assert names[FLIGHT + "Altitude"] == [f32(m.altitude_m)]
