@@ -746,8 +746,7 @@ class PortEngine:
             self._held = (port, read_many, feed_many)
             self._loop.call_at_here(now + self.coalesce_s, self._resume)
         elif holding:
-            self._holding = False
-            self._set_interest(write=self._want_write)
+            self._watch_port()
 
     def _lane_of(self, port: Any) -> Callable[[Callable[[], None]], bool] | None:
         """The protocol's compiled lane for ``port`` (``lane_for(engine, port, feed)``), if it
@@ -803,8 +802,7 @@ class PortEngine:
             if again:  # after the loop's work (timers due before now run first)
                 self._lane_next = self._loop.call_at_here(time.monotonic(), self._lane_again)
             elif started and self._port is port:
-                self._holding = False
-                self._set_interest(write=self._want_write)
+                self._watch_port()
         return ran
 
     def _lane_again(self) -> None:
@@ -814,10 +812,14 @@ class PortEngine:
         self._lane_next = None
         if port is None or lane is None or self._closing:
             if self._port is port and port is not None:
-                self._holding = False
-                self._set_interest(write=self._want_write)
+                self._watch_port()
             return
         self._run_lane(port, lane, again_=True)
+
+    def _watch_port(self) -> None:
+        """The end of a hold or of the lane: the port's descriptor is watched again."""
+        self._holding = False
+        self._set_interest(write=self._want_write)
 
     def _resume(self) -> None:
         """The end of a hold: read what came meanwhile (unless the port changed)."""
